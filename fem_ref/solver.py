@@ -1,0 +1,420 @@
+"""Batched explicit visco-hyperelastic FEM on linear tetrahedra, in Warp kernels.
+
+Many simulations of one mesh advance together: every kernel is launched over
+(simulation, element) or (simulation, node). Time integration is central differences
+(leapfrog) with a lumped mass: forces at x_n give v_(n+1/2) = v_(n-1/2) + dt a_n and
+x_(n+1) = x_n + dt v_(n+1/2). The time step is the largest stable one for the mesh and the
+material stiffened up to ``stretch_limit`` (never hand-set), shortened so that a whole
+number of steps spans each snapshot interval. On CUDA one snapshot interval (all its steps,
+the stress recovery and the snapshot write) is captured once as a CUDA graph and replayed, so
+a whole simulation costs one graph launch per snapshot and one copy back at the end.
+
+A simulation whose element inverts (J <= 0) or goes non-finite is frozen and reported with the
+element and time of the first failure; one that stretches past ``stretch_limit`` (beyond what
+the time step was computed for) is reported too. The other simulations of the batch go on.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from warpgnn.mesh import TetMesh
+
+from .loads import LoadCase
+from .material import MaterialParams, OgdenProny, ogden_energy, ogden_split, sym_to_vec6, vec6, vec6_to_sym
+
+NO_FAILURE = 2**31 - 1  # failure keys are step * n_elements + element, min-reduced
+
+
+@wp.func
+def ramp(t: float, t_ramp: float):
+    if t_ramp <= 0.0:
+        return 1.0
+    s = wp.clamp(t / t_ramp, 0.0, 1.0)
+    return s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
+
+
+@wp.func
+def ramp_rate(t: float, t_ramp: float):
+    if t_ramp <= 0.0:
+        return 0.0
+    s = wp.clamp(t / t_ramp, 0.0, 1.0)
+    return 30.0 * s * s * (1.0 - s) * (1.0 - s) / t_ramp
+
+
+@wp.func
+def deformation_gradient(x: wp.array2d(dtype=wp.vec3), b: int, t: wp.vec4i, Dm_inv: wp.mat33):
+    x0 = x[b, t[0]]
+    a = x[b, t[1]] - x0
+    c = x[b, t[2]] - x0
+    d = x[b, t[3]] - x0
+    Ds = wp.mat33(a[0], c[0], d[0], a[1], c[1], d[1], a[2], c[2], d[2])
+    return Ds * Dm_inv
+
+
+@wp.func
+def prescribed_position(X: wp.vec3, w: float, u: wp.vec3, t: float, t_ramp: float):
+    return X + (w * ramp(t, t_ramp)) * u
+
+
+@wp.kernel
+def element_forces(
+    x: wp.array2d(dtype=wp.vec3),
+    tets: wp.array(dtype=wp.vec4i),
+    Dm_inv: wp.array(dtype=wp.mat33),
+    vol0: wp.array(dtype=float),
+    mat: MaterialParams,
+    S_iso_prev: wp.array2d(dtype=vec6),
+    H1: wp.array2d(dtype=vec6),
+    H2: wp.array2d(dtype=vec6),
+    first: int,
+    step_base: wp.array(dtype=int),
+    i: int,
+    stretch_limit: float,
+    forces: wp.array2d(dtype=wp.vec3),
+    failure: wp.array(dtype=wp.int32),
+    overstretch: wp.array(dtype=wp.int32),
+):
+    """Internal forces of every element at x_n, with the Prony update to step n."""
+    b, e = wp.tid()
+    t = tets[e]
+    Dinv = Dm_inv[e]
+    F = deformation_gradient(x, b, t, Dinv)
+    S_iso, S_vol, J, stretch = ogden_split(F, mat)
+    key = (step_base[0] + i) * tets.shape[0] + e
+    if not (J > 0.0 and wp.isfinite(J) and wp.isfinite(stretch)):
+        wp.atomic_min(failure, b, key)
+        return
+    if stretch > stretch_limit:
+        wp.atomic_min(overstretch, b, key)
+    prev = S_iso
+    if first == 0:
+        prev = vec6_to_sym(S_iso_prev[b, e])
+    dS = S_iso - prev
+    h1 = mat.e1 * vec6_to_sym(H1[b, e]) + mat.gamma1 * dS
+    h2 = mat.e2 * vec6_to_sym(H2[b, e]) + mat.gamma2 * dS
+    S_iso_prev[b, e] = sym_to_vec6(S_iso)
+    H1[b, e] = sym_to_vec6(h1)
+    H2[b, e] = sym_to_vec6(h2)
+    P = F * (S_vol + mat.g_inf * S_iso + h1 + h2)
+    Hf = -vol0[e] * P * wp.transpose(Dinv)  # columns: forces on nodes 1, 2, 3
+    f1 = wp.vec3(Hf[0, 0], Hf[1, 0], Hf[2, 0])
+    f2 = wp.vec3(Hf[0, 1], Hf[1, 1], Hf[2, 1])
+    f3 = wp.vec3(Hf[0, 2], Hf[1, 2], Hf[2, 2])
+    wp.atomic_add(forces, b, t[0], -(f1 + f2 + f3))
+    wp.atomic_add(forces, b, t[1], f1)
+    wp.atomic_add(forces, b, t[2], f2)
+    wp.atomic_add(forces, b, t[3], f3)
+
+
+@wp.kernel
+def advance_nodes(
+    x: wp.array2d(dtype=wp.vec3),
+    v_half: wp.array2d(dtype=wp.vec3),
+    forces: wp.array2d(dtype=wp.vec3),
+    X: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    fixed: wp.array(dtype=wp.int32),
+    pres_load: wp.array2d(dtype=wp.int32),
+    pres_weight: wp.array2d(dtype=float),
+    load_disp: wp.array2d(dtype=wp.vec3),
+    failure: wp.array(dtype=wp.int32),
+    step_base: wp.array(dtype=int),
+    i: int,
+    dt: float,
+    t_ramp: float,
+    damping: float,
+):
+    """Central-difference update to x_(n+1); consumes (and zeroes) the forces at x_n."""
+    b, n = wp.tid()
+    f = forces[b, n]
+    forces[b, n] = wp.vec3(0.0)
+    if failure[b] != NO_FAILURE:
+        return  # frozen: this simulation is reported and resampled
+    t = float(step_base[0] + i + 1) * dt
+    if fixed[n] != 0:
+        x[b, n] = X[n]
+        v_half[b, n] = wp.vec3(0.0)
+        return
+    k = pres_load[b, n]
+    if k >= 0:
+        u = load_disp[b, k]
+        w = pres_weight[b, n]
+        x[b, n] = prescribed_position(X[n], w, u, t, t_ramp)
+        v_half[b, n] = (w * ramp_rate(t - 0.5 * dt, t_ramp)) * u
+        return
+    vh = v_half[b, n]
+    vh = vh + dt * (inv_mass[n] * f - damping * vh)
+    v_half[b, n] = vh
+    x[b, n] = x[b, n] + dt * vh
+
+
+@wp.kernel
+def start_half_step(
+    v_half: wp.array2d(dtype=wp.vec3),
+    forces: wp.array2d(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    dt: float,
+):
+    """v_(-1/2) = v_0 - dt/2 a_0, so the first leapfrog step lands on v_(1/2)."""
+    b, n = wp.tid()
+    v_half[b, n] = v_half[b, n] - (0.5 * dt * inv_mass[n]) * forces[b, n]
+
+
+@wp.kernel
+def element_stress(
+    x: wp.array2d(dtype=wp.vec3),
+    tets: wp.array(dtype=wp.vec4i),
+    Dm_inv: wp.array(dtype=wp.mat33),
+    vol0: wp.array(dtype=float),
+    mat: MaterialParams,
+    H1: wp.array2d(dtype=vec6),
+    H2: wp.array2d(dtype=vec6),
+    snap: wp.array(dtype=int),
+    sigma_acc: wp.array2d(dtype=vec6),
+    weight_acc: wp.array2d(dtype=float),
+    strain_energy: wp.array2d(dtype=float),
+):
+    """Element Cauchy stress, accumulated into nodes weighted by current element volume."""
+    b, e = wp.tid()
+    t = tets[e]
+    F = deformation_gradient(x, b, t, Dm_inv[e])
+    S_iso, S_vol, J, stretch = ogden_split(F, mat)
+    S = S_vol + mat.g_inf * S_iso + vec6_to_sym(H1[b, e]) + vec6_to_sym(H2[b, e])
+    sigma = sym_to_vec6(F * S * wp.transpose(F) / J)
+    wv = J * vol0[e]
+    for k in range(4):
+        wp.atomic_add(sigma_acc, b, t[k], wv * sigma)
+        wp.atomic_add(weight_acc, b, t[k], wv)
+    wp.atomic_add(strain_energy, b, snap[0], vol0[e] * ogden_energy(F, mat))
+
+
+@wp.kernel
+def record_snapshot(
+    x: wp.array2d(dtype=wp.vec3),
+    v_half: wp.array2d(dtype=wp.vec3),
+    forces: wp.array2d(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    fixed: wp.array(dtype=wp.int32),
+    pres_load: wp.array2d(dtype=wp.int32),
+    pres_weight: wp.array2d(dtype=float),
+    load_disp: wp.array2d(dtype=wp.vec3),
+    step_base: wp.array(dtype=int),
+    snap: wp.array(dtype=int),
+    dt: float,
+    t_ramp: float,
+    sigma_acc: wp.array2d(dtype=vec6),
+    weight_acc: wp.array2d(dtype=float),
+    q_out: wp.array3d(dtype=wp.vec3),
+    v_out: wp.array3d(dtype=wp.vec3),
+    sigma_out: wp.array3d(dtype=vec6),
+    kinetic_energy: wp.array2d(dtype=float),
+):
+    """Writes (q_n, v_n, nodal sigma_n) of snapshot ``snap``; v_n = v_(n-1/2) + dt/2 a_n."""
+    b, n = wp.tid()
+    s = snap[0]
+    v = v_half[b, n] + (0.5 * dt * inv_mass[n]) * forces[b, n]
+    k = pres_load[b, n]
+    if fixed[n] != 0:
+        v = wp.vec3(0.0)
+    elif k >= 0:
+        v = (pres_weight[b, n] * ramp_rate(float(step_base[0]) * dt, t_ramp)) * load_disp[b, k]
+    q_out[b, s, n] = x[b, n]
+    v_out[b, s, n] = v
+    sigma_out[b, s, n] = sigma_acc[b, n] / weight_acc[b, n]
+    sigma_acc[b, n] = vec6()
+    weight_acc[b, n] = 0.0
+    wp.atomic_add(kinetic_energy, b, s, 0.5 / inv_mass[n] * wp.dot(v, v))
+
+
+@wp.kernel
+def advance_counters(step_base: wp.array(dtype=int), snap: wp.array(dtype=int), steps: int):
+    step_base[0] = step_base[0] + steps
+    snap[0] = snap[0] + 1
+
+
+@dataclass
+class SolverConfig:
+    duration: float = 1.0  # s, simulated time
+    snapshots: int = 20  # snapshot intervals (snapshots + 1 states are written)
+    ramp_fraction: float = 0.5  # tools reach their displacement at this fraction, then hold
+    viscosity: bool = True
+    mass_damping: float = 0.0  # 1/s, mass-proportional damping (0: none; tests use it for statics)
+    stretch_limit: float = 1.4  # principal stretch the stable time step is computed for
+    safety: float = 0.8  # fraction of the stability limit h / c
+
+    @property
+    def snapshot_dt(self) -> float:
+        return self.duration / self.snapshots
+
+
+@dataclass
+class SimulationResult:
+    q: np.ndarray  # (B, S+1, N, 3) float32
+    v: np.ndarray  # (B, S+1, N, 3) float32
+    sigma: np.ndarray  # (B, S+1, N, 6) float32, Voigt xx yy zz xy yz xz
+    kinetic_energy: np.ndarray  # (B, S+1)
+    strain_energy: np.ndarray  # (B, S+1), elastic part W only
+    failures: list = field(default_factory=list)  # per simulation: None or a one-line report
+    dt: float = 0.0  # explicit step
+    steps: int = 0  # explicit steps per simulation
+
+
+def stable_time_step(mesh: TetMesh, material: OgdenProny, config: SolverConfig) -> float:
+    """safety * (shortest element altitude) / (wave speed at stretch_limit)."""
+    return config.safety * float(mesh.min_altitude().min()) / material.wave_speed(config.stretch_limit)
+
+
+class BatchedExplicitSolver:
+    """Runs ``len(cases)`` simulations of one mesh together; ``step()`` advances one snapshot."""
+
+    def __init__(self, mesh: TetMesh, cases: list[LoadCase], material: OgdenProny = OgdenProny(),
+                 config: SolverConfig = SolverConfig(), device=None, q0=None, v0=None):
+        self.mesh, self.cases, self.config = mesh, cases, config
+        self.material = material if config.viscosity else material.elastic()
+        self.device = wp.get_device(device)
+        B, N, T, S = len(cases), len(mesh.nodes), len(mesh.tets), config.snapshots
+        if B == 0:
+            raise ValueError("no load case to simulate")
+        self.B, self.N, self.T = B, N, T
+
+        dt_max = stable_time_step(mesh, self.material, config)
+        self.substeps = max(1, math.ceil(config.snapshot_dt / dt_max))
+        self.dt = config.snapshot_dt / self.substeps
+        if (S * self.substeps + 1) * T >= NO_FAILURE:
+            raise ValueError("too many steps x elements for the int32 failure key")
+        self.t_ramp = config.ramp_fraction * config.duration
+        self.params = self.material.to_warp(self.dt)
+
+        # Reference geometry and lumped mass (float64 on the host, float32 on the device).
+        X = mesh.nodes
+        Dm = np.stack([X[mesh.tets[:, k]] - X[mesh.tets[:, 0]] for k in (1, 2, 3)], axis=2)
+        vol = mesh.volumes
+        mass = np.zeros(N)
+        np.add.at(mass, mesh.tets.ravel(), np.repeat(material.density * vol / 4.0, 4))
+        if (mass <= 0).any():
+            raise ValueError("a node belongs to no tetrahedron")
+
+        # Prescribed nodes: per (simulation, node) the load it follows and its weight.
+        K = max(len(c.loaded) for c in cases)
+        pres_load = np.full((B, N), -1, np.int32)
+        pres_weight = np.zeros((B, N), np.float32)
+        load_disp = np.zeros((B, K, 3), np.float32)
+        for b, case in enumerate(cases):
+            ids, load, w = case.prescribed
+            pres_load[b, ids], pres_weight[b, ids] = load, w
+            load_disp[b, : len(case.loaded)] = case.displacement
+
+        d = self.device
+        arr = lambda a, dtype: wp.array(np.ascontiguousarray(a), dtype=dtype, device=d)  # noqa: E731
+        self.X = arr(X.astype(np.float32), wp.vec3)
+        self.tets = arr(mesh.tets, wp.vec4i)
+        self.Dm_inv = arr(np.linalg.inv(Dm).astype(np.float32), wp.mat33)
+        self.vol0 = arr(vol.astype(np.float32), float)
+        self.inv_mass = arr((1.0 / mass).astype(np.float32), float)
+        self.fixed = arr(mesh.fixed.astype(np.int32), wp.int32)
+        self.pres_load = arr(pres_load, wp.int32)
+        self.pres_weight = arr(pres_weight, float)
+        self.load_disp = arr(load_disp, wp.vec3)
+
+        q0 = np.broadcast_to(X, (B, N, 3)) if q0 is None else q0
+        v0 = np.zeros((B, N, 3)) if v0 is None else v0
+        self.x = arr(np.asarray(q0, np.float32), wp.vec3)
+        self.v_half = arr(np.asarray(v0, np.float32), wp.vec3)
+        self.forces = wp.zeros((B, N), dtype=wp.vec3, device=d)
+        self.S_iso_prev = wp.zeros((B, T), dtype=vec6, device=d)
+        self.H1 = wp.zeros((B, T), dtype=vec6, device=d)
+        self.H2 = wp.zeros((B, T), dtype=vec6, device=d)
+        self.sigma_acc = wp.zeros((B, N), dtype=vec6, device=d)
+        self.weight_acc = wp.zeros((B, N), dtype=float, device=d)
+        self.failure = wp.full(B, NO_FAILURE, dtype=wp.int32, device=d)
+        self.overstretch = wp.full(B, NO_FAILURE, dtype=wp.int32, device=d)
+        self.step_base = wp.zeros(1, dtype=int, device=d)
+        self.snap = wp.zeros(1, dtype=int, device=d)
+        self.q_out = wp.zeros((B, S + 1, N), dtype=wp.vec3, device=d)
+        self.v_out = wp.zeros((B, S + 1, N), dtype=wp.vec3, device=d)
+        self.sigma_out = wp.zeros((B, S + 1, N), dtype=vec6, device=d)
+        self.kinetic = wp.zeros((B, S + 1), dtype=float, device=d)
+        self.strain = wp.zeros((B, S + 1), dtype=float, device=d)
+
+        self.snapshots_done = 0
+        self._forces(i=0, first=1)
+        wp.launch(start_half_step, (B, N), [self.v_half, self.forces, self.inv_mass, self.dt], device=d)
+        self._record()
+        self.graph = None
+        if d.is_cuda:
+            with wp.ScopedCapture(device=d) as capture:
+                self._interval()
+            self.graph = capture.graph
+
+    # -------------------------------------------------------------- launches
+    def _forces(self, i: int, first: int = 0):
+        wp.launch(element_forces, (self.B, self.T),
+                  [self.x, self.tets, self.Dm_inv, self.vol0, self.params, self.S_iso_prev, self.H1, self.H2,
+                   first, self.step_base, i, self.config.stretch_limit, self.forces, self.failure, self.overstretch],
+                  device=self.device)
+
+    def _record(self):
+        B, N, T = self.B, self.N, self.T
+        wp.launch(element_stress, (B, T),
+                  [self.x, self.tets, self.Dm_inv, self.vol0, self.params, self.H1, self.H2, self.snap,
+                   self.sigma_acc, self.weight_acc, self.strain], device=self.device)
+        wp.launch(record_snapshot, (B, N),
+                  [self.x, self.v_half, self.forces, self.inv_mass, self.fixed, self.pres_load, self.pres_weight,
+                   self.load_disp, self.step_base, self.snap, self.dt, self.t_ramp, self.sigma_acc,
+                   self.weight_acc, self.q_out, self.v_out, self.sigma_out, self.kinetic], device=self.device)
+
+    def _interval(self):
+        """All explicit steps of one snapshot interval, then the snapshot itself."""
+        for i in range(self.substeps):
+            wp.launch(advance_nodes, (self.B, self.N),
+                      [self.x, self.v_half, self.forces, self.X, self.inv_mass, self.fixed, self.pres_load,
+                       self.pres_weight, self.load_disp, self.failure, self.step_base, i, self.dt, self.t_ramp,
+                       self.config.mass_damping], device=self.device)
+            self._forces(i=i + 1)
+        wp.launch(advance_counters, 1, [self.step_base, self.snap, self.substeps], device=self.device)
+        self._record()
+
+    # ------------------------------------------------------------------ API
+    def step(self):
+        """Advance every simulation by one snapshot interval."""
+        if self.snapshots_done >= self.config.snapshots:
+            raise RuntimeError("all snapshots are done")
+        if self.graph is not None:
+            wp.capture_launch(self.graph)
+        else:
+            self._interval()
+        self.snapshots_done += 1
+
+    def run(self, progress=None) -> SimulationResult:
+        """Run all remaining snapshot intervals; ``progress`` is called after each."""
+        while self.snapshots_done < self.config.snapshots:
+            self.step()
+            if progress is not None:
+                progress()
+        return self.result()
+
+    def failures(self) -> list:
+        fail, over = self.failure.numpy(), self.overstretch.numpy()
+        reports = []
+        for b in range(self.B):
+            if fail[b] != NO_FAILURE:
+                step, elem = divmod(int(fail[b]), self.T)
+                reports.append(f"element {elem} inverted or went non-finite at t = {step * self.dt:.4f} s")
+            elif over[b] != NO_FAILURE:
+                step, elem = divmod(int(over[b]), self.T)
+                reports.append(f"element {elem} stretched beyond {self.config.stretch_limit} (the stable "
+                               f"time step's bound) at t = {step * self.dt:.4f} s")
+            else:
+                reports.append(None)
+        return reports
+
+    def result(self) -> SimulationResult:
+        return SimulationResult(
+            q=self.q_out.numpy(), v=self.v_out.numpy(), sigma=self.sigma_out.numpy(),
+            kinetic_energy=self.kinetic.numpy(), strain_energy=self.strain.numpy(),
+            failures=self.failures(), dt=self.dt, steps=self.substeps * self.snapshots_done)
