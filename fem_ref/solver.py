@@ -321,10 +321,10 @@ class BatchedExplicitSolver:
         self.pres_weight = arr(pres_weight, float)
         self.load_disp = arr(load_disp, wp.vec3)
 
-        q0 = np.broadcast_to(X, (B, N, 3)) if q0 is None else q0
-        v0 = np.zeros((B, N, 3)) if v0 is None else v0
-        self.x = arr(np.asarray(q0, np.float32), wp.vec3)
-        self.v_half = arr(np.asarray(v0, np.float32), wp.vec3)
+        q0 = np.broadcast_to(X if q0 is None else q0, (B, N, 3))  # initial state, per simulation or shared
+        v0 = np.broadcast_to(0.0 if v0 is None else v0, (B, N, 3))
+        self.x = arr(q0.astype(np.float32), wp.vec3)
+        self.v_half = arr(v0.astype(np.float32), wp.vec3)
         self.forces = wp.zeros((B, N), dtype=wp.vec3, device=d)
         self.S_iso_prev = wp.zeros((B, T), dtype=vec6, device=d)
         self.H1 = wp.zeros((B, T), dtype=vec6, device=d)
