@@ -8,6 +8,8 @@ neighbours. Every reader validates and raises ``InputError`` with one clear line
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -137,9 +139,13 @@ class TetMesh:
         if not path.is_file():
             raise InputError(f"mesh file not found: {path}")
         try:
-            m = meshio.read(path)
-        except Exception as exc:  # meshio raises many types for corrupt files
-            raise InputError(f"cannot read mesh {path}: {type(exc).__name__}: {exc}".splitlines()[0]) from None
+            # meshio prints its own messages and calls sys.exit on unreadable files: silence
+            # them and turn every failure into our one line.
+            with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+                m = meshio.read(path)
+        except (Exception, SystemExit) as exc:
+            reason = f"{type(exc).__name__}: {exc}".splitlines()[0] if str(exc) else "unreadable or corrupt file"
+            raise InputError(f"cannot read mesh {path}: {reason}") from None
         tets = [c.data for c in m.cells if c.type == "tetra"]
         if not tets:
             raise InputError(f"{path} holds no tetrahedra (cell types: {[c.type for c in m.cells]})")

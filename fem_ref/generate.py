@@ -1,0 +1,149 @@
+"""Dataset generation: presets of load cases on the five anatomies, batched, resumable, shardable.
+
+One HDF5 file per set (L1..L5, Extra on a training anatomy, Extra* with four tools on L5).
+Every simulation's load case is drawn from its own random stream seeded by
+(seed, set, simulation, attempt), so shards and resumed runs draw exactly the same cases. A
+simulation that inverts an element or goes non-finite is reported and redrawn with the next
+attempt; only finished simulations are ever written (atomically, see warpgnn.dataset).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+from tqdm.auto import tqdm
+
+from warpgnn import dataset
+from warpgnn.anatomy import procedural_liver
+
+from .loads import LoadSampler
+from .material import OgdenProny
+from .solver import BatchedExplicitSolver, SolverConfig
+
+MAX_ATTEMPTS = 8
+
+
+@dataclass(frozen=True)
+class SimulationSet:
+    name: str  # file stem
+    anatomy: str  # L1..L5
+    count: int
+    n_loads: int | None = None  # None: 1-3 tools at random
+
+
+@dataclass
+class Preset:
+    sets: list[SimulationSet]
+    solver: SolverConfig = field(default_factory=SolverConfig)
+
+
+def _paper() -> Preset:
+    sets = [SimulationSet(f"L{i}", f"L{i}", 190) for i in range(1, 6)]
+    sets += [SimulationSet("extra", "L1", 33), SimulationSet("extra_star", "L5", 10, n_loads=4)]
+    return Preset(sets)
+
+
+def _smoke() -> Preset:
+    sets = [SimulationSet("L1", "L1", 4), SimulationSet("L2", "L2", 2), SimulationSet("L5", "L5", 3),
+            SimulationSet("extra", "L1", 2), SimulationSet("extra_star", "L5", 1, n_loads=4)]
+    return Preset(sets)
+
+
+PRESETS = {"paper": _paper, "smoke": _smoke}
+
+
+def sim_name(index: int) -> str:
+    return f"sim_{index:04d}"
+
+
+def generate_set(out_dir: Path, spec: SimulationSet, set_index: int, preset: Preset, seed: int,
+                 device=None, max_batch: int = 256, log=print) -> dict:
+    """Generate (or complete) one set's HDF5 file; returns its statistics."""
+    out_dir = Path(out_dir)
+    path = out_dir / f"{spec.name}.h5"
+    mesh = procedural_liver(spec.anatomy)
+    (out_dir / "anatomies").mkdir(parents=True, exist_ok=True)
+    vtu = out_dir / "anatomies" / f"{spec.anatomy}.vtu"
+    if not vtu.exists():
+        mesh.save(vtu)
+    config, material = preset.solver, OgdenProny()
+    done = dataset.simulation_names(path)
+    todo = {i: 0 for i in range(spec.count) if sim_name(i) not in done}
+    stats = {"set": spec.name, "anatomy": spec.anatomy, "nodes": len(mesh.nodes), "tets": len(mesh.tets),
+             "skipped_existing": spec.count - len(todo), "simulated": 0, "resampled": 0, "seconds": 0.0,
+             "steps": 0, "element_updates": 0}
+    if not todo:
+        return stats
+    sampler = LoadSampler(mesh)
+    bar = tqdm(total=len(todo) * config.snapshots, desc=f"{spec.name} ({len(todo)} sims)", unit="snap", leave=False)
+    t0 = time.perf_counter()
+    while todo:
+        batch = list(todo.items())[:max_batch]
+        cases = [sampler.sample(np.random.default_rng([seed, set_index, i, attempt]), spec.n_loads)
+                 for i, attempt in batch]
+        solver = BatchedExplicitSolver(mesh, cases, material, config, device=device)
+        res = solver.run(progress=lambda: bar.update(len(batch)))
+        stats["steps"] += res.steps
+        stats["element_updates"] += res.steps * len(batch) * len(mesh.tets)
+        finished = {}
+        for b, (i, attempt) in enumerate(batch):
+            if res.failures[b] is None:
+                finished[sim_name(i)] = dataset.simulation_record(cases[b], res, b, config, attempt)
+                del todo[i]
+            elif attempt + 1 >= MAX_ATTEMPTS:
+                raise RuntimeError(f"{spec.name}/{sim_name(i)} failed {MAX_ATTEMPTS} times: {res.failures[b]}")
+            else:
+                log(f"{spec.name}/{sim_name(i)} attempt {attempt}: {res.failures[b]}; resampled")
+                todo[i] = attempt + 1
+                stats["resampled"] += 1
+                bar.update(-config.snapshots)
+
+        def fill(f):
+            dataset.write_header(f, mesh, spec.anatomy, config.snapshot_dt, material.as_attrs(), seed)
+            for name, sim in sorted(finished.items()):
+                dataset.write_simulation(f, name, sim)
+
+        dataset.write_atomically(path, fill)
+        stats["simulated"] += len(finished)
+    bar.close()
+    wp.synchronize()
+    stats["seconds"] = time.perf_counter() - t0
+    return stats
+
+
+def parse_shard(text: str | None) -> tuple[int, int]:
+    if not text:
+        return 0, 1
+    try:
+        i, n = (int(p) for p in text.split("/"))
+    except ValueError:
+        raise ValueError(f"--shard must look like i/n, got {text!r}") from None
+    if not 0 <= i < n:
+        raise ValueError(f"--shard {text}: need 0 <= i < n")
+    return i, n
+
+
+def generate(out_dir, preset: str = "paper", seed: int = 0, device=None, shard: str | None = None,
+             max_batch: int = 256, log=print) -> dict:
+    """Generate a preset into ``out_dir``; shard i/n takes every n-th set starting at i."""
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r} (choose from {', '.join(PRESETS)})")
+    p = PRESETS[preset]()
+    i, n = parse_shard(shard)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    stats = [generate_set(out_dir, spec, k, p, seed, device, max_batch, log)
+             for k, spec in enumerate(p.sets) if k % n == i]
+    summary = {"preset": preset, "seed": seed, "shard": f"{i}/{n}", "device": str(wp.get_device(device)),
+               "solver": asdict(p.solver), "sets": stats, "seconds": time.perf_counter() - t0}
+    manifest = out_dir / (f"manifest.{i}-of-{n}.json" if n > 1 else "manifest.json")
+    tmp = manifest.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(summary, indent=2))
+    tmp.replace(manifest)
+    return summary

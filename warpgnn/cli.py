@@ -1,0 +1,192 @@
+"""The ``warpgnn`` command line (DESIGN.md section 5).
+
+Every user-facing failure ends in one line ``warpgnn: error: ...`` and exit status 2; nothing
+already written is lost (outputs go to a temporary name, then are renamed into place).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+
+def init_warp():
+    """Initialise Warp without its banner, and without the native warning that a machine with
+    no GPU has no CUDA driver (it goes to file descriptor 2, so it is silenced there)."""
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            wp.init()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def _device(name):
+    import warp as wp
+
+    try:
+        return wp.get_device(name)
+    except Exception:
+        raise InputError(f"unknown device {name!r} (available: {', '.join(map(str, wp.get_devices()))})") from None
+
+
+def cmd_anatomy(args):
+    from .anatomy import find_fixed_face, mesh_from_surface, procedural_liver
+
+    if args.surface:
+        mesh, report = mesh_from_surface(args.surface, scale=args.scale, target_nodes=args.nodes)
+        for line in report:
+            print(f"repair: {line}")
+    else:
+        mesh = procedural_liver(args.name or args.seed, target_nodes=args.nodes)
+    if args.fixed:
+        from .mesh import read_ids
+
+        mesh.fixed[:] = False
+        mesh.fixed[read_ids(args.fixed, len(mesh.nodes), "fixed")] = True
+    elif not mesh.fixed.any():
+        mesh.fixed[:] = find_fixed_face(mesh)
+    mesh.save(args.out)
+    print(f"{args.out}: {len(mesh.nodes)} nodes, {len(mesh.tets)} tetrahedra, volume {mesh.volume:.3e} m^3, "
+          f"{int(mesh.fixed.sum())} fixed nodes")
+
+
+def cmd_fem(args):
+    from . import dataset
+    from .fem_ref import BatchedExplicitSolver, OgdenProny, SolverConfig, make_load_case
+    from .mesh import TetMesh, read_ids
+
+    mesh = TetMesh.load(args.mesh)
+    if args.fixed:
+        mesh.fixed[:] = False
+        mesh.fixed[read_ids(args.fixed, len(mesh.nodes), "fixed")] = True
+    if not mesh.fixed.any():
+        raise InputError("no fixed node: give --fixed IDS.txt or a mesh with point data 'fixed'")
+    loaded = read_ids(args.load, len(mesh.nodes), "load")
+    disp = np.tile(np.asarray(args.displacement, float), (len(loaded), 1))
+    try:
+        case = make_load_case(mesh, loaded, disp, spread=not args.single_node)
+    except ValueError as exc:
+        raise InputError(f"load nodes: {exc}") from None
+    if args.duration <= 0 or args.snapshots < 1:
+        raise InputError("--duration must be > 0 and --snapshots >= 1")
+    config = SolverConfig(duration=args.duration, snapshots=args.snapshots, viscosity=not args.no_viscosity)
+    solver = BatchedExplicitSolver(mesh, [case], OgdenProny(), config, device=_device(args.device))
+    print(f"explicit step {solver.dt:.3e} s, {solver.substeps * config.snapshots} steps on {solver.device}")
+    res = solver.run()
+    if res.failures[0] is not None:
+        raise InputError(f"simulation failed: {res.failures[0]} (nothing written)")
+    out = Path(args.out)
+
+    def fill(f):
+        if "sims" in f and "run" in f["sims"]:
+            del f["sims"]["run"]
+        dataset.write_header(f, mesh, Path(args.mesh).stem, config.snapshot_dt, OgdenProny().as_attrs(), 0)
+        dataset.write_simulation(f, "run", dataset.simulation_record(case, res, 0, config, 0))
+
+    if out.exists():
+        out.unlink()  # a fresh run replaces the old file (written to a temporary name first)
+    dataset.write_atomically(out, fill)
+    u = np.linalg.norm(res.q[0, -1] - mesh.nodes, axis=1)
+    print(f"{out}: max |u| {u.max() * 100:.2f} cm, max |sigma| {np.abs(res.sigma[0]).max():.1f} Pa")
+
+
+def cmd_generate(args):
+    from .fem_ref.generate import generate
+
+    try:
+        summary = generate(args.out, args.preset, args.seed, _device(args.device), args.shard, args.batch)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    n = sum(s["simulated"] for s in summary["sets"])
+    skipped = sum(s["skipped_existing"] for s in summary["sets"])
+    print(f"{args.out}: {n} simulations written, {skipped} already there, in {summary['seconds']:.1f} s")
+
+
+def cmd_demo(args):
+    """The main job on the built-in default: the smoke dataset and a render of the anatomies."""
+    from .anatomy import LIVERS, procedural_liver
+    from .render import anatomy_table, render_anatomies
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    meshes = {name: procedural_liver(name) for name in LIVERS}
+    render_anatomies(meshes, out / "anatomies.png")
+    print(anatomy_table(meshes))
+    args.preset, args.seed, args.shard, args.batch, args.out = "smoke", 0, None, 256, str(out / "data")
+    cmd_generate(args)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="warpgnn", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="command", required=True)
+
+    a = sub.add_parser("anatomy", help="make a tetrahedral liver mesh (procedural or from a surface)")
+    src = a.add_mutually_exclusive_group(required=True)
+    src.add_argument("--seed", type=int, help="seed of a procedural liver")
+    src.add_argument("--name", choices=["L1", "L2", "L3", "L4", "L5"], help="one of the built-in anatomies")
+    src.add_argument("--surface", help="closed surface: STL, OBJ, PLY, VTK/VTP/VTU")
+    a.add_argument("--scale", type=float, default=1.0, help="multiply surface coordinates (e.g. 0.001 for mm)")
+    a.add_argument("--nodes", type=int, default=600, help="target node count")
+    a.add_argument("--fixed", help="node ids of the Dirichlet face (default: the automatic rule)")
+    a.add_argument("--out", required=True, help="output .vtu (point data 'fixed')")
+    a.set_defaults(func=cmd_anatomy)
+
+    f = sub.add_parser("fem", help="one visco-hyperelastic FEM simulation of a user's mesh")
+    f.add_argument("--mesh", required=True)
+    f.add_argument("--fixed", help="node ids of the fixed face (default: the mesh's 'fixed' point data)")
+    f.add_argument("--load", required=True, help="node ids driven by the tool(s)")
+    f.add_argument("--displacement", nargs=3, type=float, required=True, metavar=("DX", "DY", "DZ"),
+                   help="final displacement of each loaded node [m]")
+    f.add_argument("--duration", type=float, default=1.0, help="simulated time [s]")
+    f.add_argument("--snapshots", type=int, default=20)
+    f.add_argument("--no-viscosity", action="store_true", help="switch the Prony series off")
+    f.add_argument("--single-node", action="store_true", help="drive the loaded node alone (no tool footprint)")
+    f.add_argument("--device", default=None, help="cpu or cuda:0 (default: Warp's default)")
+    f.add_argument("--out", required=True, help="output .h5 (DESIGN.md schema, simulation 'run')")
+    f.set_defaults(func=cmd_fem)
+
+    g = sub.add_parser("generate", help="generate a dataset preset (resumable, shardable)")
+    g.add_argument("--out", required=True)
+    g.add_argument("--preset", default="paper", choices=["paper", "smoke"])
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--device", default=None)
+    g.add_argument("--shard", default=None, help="i/n: this process takes every n-th file from i")
+    g.add_argument("--batch", type=int, default=256, help="most simulations per launch")
+    g.set_defaults(func=cmd_generate)
+
+    d = sub.add_parser("demo", help="the main job on the built-in default")
+    d.add_argument("--out", default="warpgnn-demo")
+    d.add_argument("--device", default=None)
+    d.set_defaults(func=cmd_demo)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    init_warp()
+    try:
+        args.func(args)
+    except InputError as exc:
+        print(f"warpgnn: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("warpgnn: interrupted (finished simulations are kept; re-run to resume)", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
