@@ -19,7 +19,7 @@ import warp as wp
 from tqdm.auto import tqdm
 
 from warpgnn import dataset
-from warpgnn.anatomy import procedural_liver
+from warpgnn.mesh import TetMesh
 
 from .loads import LoadSampler
 from .material import OgdenProny
@@ -61,16 +61,32 @@ def sim_name(index: int) -> str:
     return f"sim_{index:04d}"
 
 
+def build_anatomy(name: str) -> TetMesh:
+    """The built-in anatomy ``name`` (imported here: meshing needs pyvista and tetgen, which
+    a GPU host that only simulates may lack)."""
+    from warpgnn.anatomy import procedural_liver
+
+    return procedural_liver(name)
+
+
+def anatomy_mesh(out_dir: Path, name: str) -> TetMesh:
+    """The dataset's own copy of an anatomy (DIR/anatomies/NAME.vtu), made on first use, so
+    resumed runs and shards simulate exactly the same mesh."""
+    vtu = Path(out_dir) / "anatomies" / f"{name}.vtu"
+    if vtu.exists():
+        return TetMesh.load(vtu)
+    mesh = build_anatomy(name)
+    vtu.parent.mkdir(parents=True, exist_ok=True)
+    mesh.save(vtu)
+    return mesh
+
+
 def generate_set(out_dir: Path, spec: SimulationSet, set_index: int, preset: Preset, seed: int,
                  device=None, max_batch: int = 256, log=print) -> dict:
     """Generate (or complete) one set's HDF5 file; returns its statistics."""
     out_dir = Path(out_dir)
     path = out_dir / f"{spec.name}.h5"
-    mesh = procedural_liver(spec.anatomy)
-    (out_dir / "anatomies").mkdir(parents=True, exist_ok=True)
-    vtu = out_dir / "anatomies" / f"{spec.anatomy}.vtu"
-    if not vtu.exists():
-        mesh.save(vtu)
+    mesh = anatomy_mesh(out_dir, spec.anatomy)
     config, material = preset.solver, OgdenProny()
     done = dataset.simulation_names(path)
     todo = {i: 0 for i in range(spec.count) if sim_name(i) not in done}

@@ -273,7 +273,8 @@ class BatchedExplicitSolver:
     """Runs ``len(cases)`` simulations of one mesh together; ``step()`` advances one snapshot."""
 
     def __init__(self, mesh: TetMesh, cases: list[LoadCase], material: OgdenProny = OgdenProny(),
-                 config: SolverConfig = SolverConfig(), device=None, q0=None, v0=None):
+                 config: SolverConfig = SolverConfig(), device=None, q0=None, v0=None,
+                 capture_graph: bool = True):
         self.mesh, self.cases, self.config = mesh, cases, config
         self.material = material if config.viscosity else material.elastic()
         self.device = wp.get_device(device)
@@ -346,7 +347,7 @@ class BatchedExplicitSolver:
         wp.launch(start_half_step, (B, N), [self.v_half, self.forces, self.inv_mass, self.dt], device=d)
         self._record()
         self.graph = None
-        if d.is_cuda:
+        if d.is_cuda and capture_graph:
             with wp.ScopedCapture(device=d) as capture:
                 self._interval()
             self.graph = capture.graph

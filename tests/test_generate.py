@@ -1,0 +1,124 @@
+"""Dataset generation: schema, determinism, resume without rewriting, sharding, atomic writes."""
+
+import hashlib
+
+import h5py
+import numpy as np
+import pytest
+
+from warpgnn import dataset
+from warpgnn.fem_ref import SolverConfig, generate as gen
+from warpgnn.fem_ref.generate import Preset, SimulationSet, generate_set, parse_shard
+from warpgnn.mesh import box_tet_mesh
+
+
+def slab(_name=None):
+    """A small soft slab fixed on its bottom face: a stand-in anatomy that simulates in a second."""
+    mesh = box_tet_mesh(4, 4, 2, (0.08, 0.08, 0.03))
+    mesh.fixed[:] = mesh.nodes[:, 2] < 1e-9
+    return mesh
+
+
+@pytest.fixture
+def tiny(monkeypatch):
+    monkeypatch.setattr(gen, "build_anatomy", slab)
+    return Preset([SimulationSet("A", "L1", 3), SimulationSet("B", "L2", 2, n_loads=2)],
+                  SolverConfig(duration=0.2, snapshots=4))
+
+
+def digest(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_set_follows_the_schema(tmp_path, tiny):
+    stats = generate_set(tmp_path, tiny.sets[0], 0, tiny, seed=3, device="cpu")
+    assert stats["simulated"] == 3
+    path = tmp_path / "A.h5"
+    mesh = dataset.read_mesh(path)
+    with h5py.File(path) as f:
+        assert f.attrs["anatomy"] == "L1" and f.attrs["units"] == "SI"
+        assert f.attrs["dt"] == pytest.approx(0.05)
+        assert f.attrs["material_mu"] == pytest.approx(364.74)
+        assert sorted(f["sims"]) == ["sim_0000", "sim_0001", "sim_0002"]
+    for name in ("sim_0000", "sim_0001", "sim_0002"):
+        sim = dataset.read_simulation(path, name)
+        assert sim["q"].dtype == np.float32 and sim["q"].shape == (5, len(mesh.nodes), 3)
+        k = sim["loaded"]
+        assert 1 <= len(k) <= 3 and sim["u"].shape == (5, len(k), 3)
+        mag = np.linalg.norm(sim["u"][-1], axis=1)
+        assert ((mag >= 0.005 - 1e-7) & (mag <= 0.025 + 1e-7)).all()
+        assert np.allclose(sim["q"][:, k] - mesh.nodes[k], sim["u"], atol=1e-6)
+        assert np.abs(sim["q"][:, mesh.fixed] - mesh.nodes[mesh.fixed]).max() < 1e-7
+        assert np.isfinite(sim["sigma"]).all() and np.abs(sim["sigma"][-1]).max() > 1.0
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_resume_skips_finished_simulations_and_never_rewrites(tmp_path, tiny):
+    spec = tiny.sets[0]
+    first = generate_set(tmp_path, SimulationSet(spec.name, spec.anatomy, 2), 0, tiny, seed=1, device="cpu")
+    before = dataset.read_simulation(tmp_path / "A.h5", "sim_0001")
+    again = generate_set(tmp_path, SimulationSet(spec.name, spec.anatomy, 2), 0, tiny, seed=1, device="cpu")
+    assert first["simulated"] == 2 and again["simulated"] == 0 and again["skipped_existing"] == 2
+    done = generate_set(tmp_path, spec, 0, tiny, seed=1, device="cpu")  # complete the set
+    assert done["simulated"] == 1 and done["skipped_existing"] == 2
+    after = dataset.read_simulation(tmp_path / "A.h5", "sim_0001")
+    assert all(np.array_equal(before[k], after[k]) for k in dataset.REQUIRED_SIM_FIELDS)
+    # the same seed draws the same case for the same simulation in a fresh directory
+    fresh = tmp_path / "fresh"
+    generate_set(fresh, spec, 0, tiny, seed=1, device="cpu")
+    assert np.array_equal(dataset.read_simulation(fresh / "A.h5", "sim_0002")["u"],
+                          dataset.read_simulation(tmp_path / "A.h5", "sim_0002")["u"])
+
+
+def test_interrupted_write_leaves_the_file_untouched(tmp_path, tiny, monkeypatch):
+    spec = tiny.sets[0]
+    generate_set(tmp_path, SimulationSet(spec.name, spec.anatomy, 1), 0, tiny, seed=0, device="cpu")
+    before = digest(tmp_path / "A.h5")
+
+    def crash(*_):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(dataset, "write_simulation", crash)
+    with pytest.raises(KeyboardInterrupt):
+        generate_set(tmp_path, spec, 0, tiny, seed=0, device="cpu")
+    assert digest(tmp_path / "A.h5") == before
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_shards_split_the_sets(tmp_path, tiny, monkeypatch):
+    monkeypatch.setitem(gen.PRESETS, "tiny", lambda: tiny)
+    gen.generate(tmp_path, "tiny", device="cpu", shard="1/2")
+    assert sorted(p.name for p in tmp_path.glob("*.h5")) == ["B.h5"]
+    gen.generate(tmp_path, "tiny", device="cpu", shard="0/2")
+    assert sorted(p.name for p in tmp_path.glob("*.h5")) == ["A.h5", "B.h5"]
+    for sim in ("sim_0000", "sim_0001"):
+        assert len(dataset.read_simulation(tmp_path / "B.h5", sim)["loaded"]) == 2
+    assert (tmp_path / "manifest.0-of-2.json").exists() and (tmp_path / "manifest.1-of-2.json").exists()
+
+
+def test_failed_simulations_are_redrawn(tmp_path, tiny, monkeypatch):
+    """A load case that inverts elements is reported and replaced by the next attempt."""
+    real = gen.LoadSampler
+
+    class FirstAttemptCrushes(real):
+        def sample(self, rng, n_loads=None):
+            case = super().sample(rng, n_loads)
+            if not hasattr(self, "crushed"):
+                self.crushed = True
+                case.displacement = case.displacement * 40.0  # metres of compression: inverts
+            return case
+
+    monkeypatch.setattr(gen, "LoadSampler", FirstAttemptCrushes)
+    messages = []
+    stats = generate_set(tmp_path, tiny.sets[0], 0, tiny, seed=0, device="cpu", log=messages.append)
+    assert stats["simulated"] == 3 and stats["resampled"] >= 1
+    assert any("element" in m and "resampled" in m for m in messages)
+    sim = dataset.read_simulation(tmp_path / "A.h5", "sim_0000")
+    assert np.isfinite(sim["q"]).all()
+
+
+def test_parse_shard():
+    assert parse_shard(None) == (0, 1) and parse_shard("2/4") == (2, 4)
+    for bad in ("4/4", "x/2", "1"):
+        with pytest.raises(ValueError):
+            parse_shard(bad)
