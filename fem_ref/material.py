@@ -49,19 +49,21 @@ class OgdenProny:
         """The same material with viscosity switched off."""
         return OgdenProny(self.mu, self.alpha, self.d, (0.0, 0.0), self.tau, self.density)
 
-    def wave_speed(self, stretch_limit: float) -> float:
-        """Upper bound of the dilatational wave speed for principal stretches up to
-        ``stretch_limit``: Ogden's tangent shear modulus grows like lambda^alpha, and the
-        volumetric tangent (2/d)(2J - 1) is bounded with J <= stretch_limit^3."""
-        lam = max(stretch_limit, 1.0)
-        shear = self.shear_modulus * lam**self.alpha
-        bulk = self.bulk_modulus * max(1.0, 2.0 * lam**3 - 1.0)
+    def wave_speed(self, stretch: float, J: float | None = None) -> float:
+        """Bound of the dilatational wave speed at largest deviatoric principal stretch
+        ``stretch`` and volume ratio ``J`` (default stretch^3): Ogden's tangent shear modulus
+        grows like lb^alpha, the volumetric tangent is (2/d)(2J - 1). Twin of
+        ``wave_speed_sq`` on the device."""
+        lb = max(stretch, 1.0)
+        J = lb**3 if J is None else J
+        shear = self.shear_modulus * lb**self.alpha
+        bulk = self.bulk_modulus * max(1.0, 2.0 * J - 1.0)
         return math.sqrt((bulk + 4.0 / 3.0 * shear) / self.density)
 
     def to_warp(self, dt: float) -> "MaterialParams":
         p = MaterialParams()
         p.mu, p.alpha, p.d = self.mu, self.alpha, self.d
-        p.g_inf = self.g_inf
+        p.g_inf, p.density = self.g_inf, self.density
         e = [math.exp(-dt / t) for t in self.tau]
         p.e1, p.e2 = e
         p.gamma1, p.gamma2 = (gk * (1.0 - ek) * tk / dt for gk, ek, tk in zip(self.g, e, self.tau))
@@ -78,6 +80,7 @@ class MaterialParams:
     alpha: float
     d: float
     g_inf: float
+    density: float
     e1: float  # exp(-dt/tau_k)
     e2: float
     gamma1: float  # g_k (1 - e_k) tau_k / dt
@@ -98,25 +101,35 @@ def vec6_to_sym(s: vec6):
 @wp.func
 def ogden_split(F: wp.mat33, p: MaterialParams):
     """Isochoric and volumetric second Piola-Kirchhoff stress of F, with J and the largest
-    principal stretch. From the SVD F = U diag(s) V^T, principal Kirchhoff stresses tau_a map
+    deviatoric principal stretch. From C = F^T F = V diag(s^2) V^T (a symmetric eigenproblem,
+    cheaper than the SVD of F and all that is needed), principal Kirchhoff stresses tau_a map
     to S = V diag(tau_a / s_a^2) V^T."""
-    U = wp.mat33()
-    s = wp.vec3()
     V = wp.mat33()
-    wp.svd3(F, U, s, V)
-    J = s[0] * s[1] * s[2]
-    jm13 = wp.pow(wp.abs(J), -1.0 / 3.0)
-    p0 = wp.pow(jm13 * wp.abs(s[0]), p.alpha)
-    p1 = wp.pow(jm13 * wp.abs(s[1]), p.alpha)
-    p2 = wp.pow(jm13 * wp.abs(s[2]), p.alpha)
+    s2 = wp.vec3()
+    wp.eig3(wp.transpose(F) * F, V, s2)
+    J = wp.determinant(F)
+    jm23 = wp.pow(wp.abs(J), -2.0 / 3.0)
+    h = 0.5 * p.alpha
+    p0 = wp.pow(jm23 * s2[0], h)
+    p1 = wp.pow(jm23 * s2[1], h)
+    p2 = wp.pow(jm23 * s2[2], h)
     mean = (p0 + p1 + p2) / 3.0
     kirchhoff_vol = J * (2.0 / p.d) * (J - 1.0)  # J * dU/dJ
-    inv2 = wp.vec3(1.0 / (s[0] * s[0]), 1.0 / (s[1] * s[1]), 1.0 / (s[2] * s[2]))
+    inv2 = wp.vec3(1.0 / s2[0], 1.0 / s2[1], 1.0 / s2[2])
     d_iso = wp.vec3(p.mu * (p0 - mean) * inv2[0], p.mu * (p1 - mean) * inv2[1], p.mu * (p2 - mean) * inv2[2])
     Vt = wp.transpose(V)
     S_iso = V * wp.diag(d_iso) * Vt
     S_vol = V * wp.diag(kirchhoff_vol * inv2) * Vt
-    return S_iso, S_vol, J, wp.max(s)
+    return S_iso, S_vol, J, wp.sqrt(jm23 * wp.max(s2))
+
+
+@wp.func
+def wave_speed_sq(p: MaterialParams, lb: float, J: float):
+    """Squared wave speed bound at deviatoric stretch lb and volume ratio J (see
+    OgdenProny.wave_speed)."""
+    shear = 0.5 * p.mu * p.alpha * wp.pow(wp.max(lb, 1.0), p.alpha)
+    bulk = (2.0 / p.d) * wp.max(1.0, 2.0 * J - 1.0)
+    return (bulk + 4.0 / 3.0 * shear) / p.density
 
 
 @wp.func

@@ -3,15 +3,17 @@
 Many simulations of one mesh advance together: every kernel is launched over
 (simulation, element) or (simulation, node). Time integration is central differences
 (leapfrog) with a lumped mass: forces at x_n give v_(n+1/2) = v_(n-1/2) + dt a_n and
-x_(n+1) = x_n + dt v_(n+1/2). The time step is the largest stable one for the mesh and the
-material stiffened up to ``stretch_limit`` (never hand-set), shortened so that a whole
-number of steps spans each snapshot interval. On CUDA one snapshot interval (all its steps,
+x_(n+1) = x_n + dt v_(n+1/2). The time step is the stable one of the shortest element with the
+material stiffened to the deviatoric stretch ``stretch_limit`` (computed, never hand-set),
+shortened so that a whole number of steps spans each snapshot interval. Ogden's stiffness
+grows like lb^16, so every element checks its own CFL condition at every step
+(dt * c(lb_e, J_e) <= h_e): larger elements may stretch further than the shortest one. On CUDA one snapshot interval (all its steps,
 the stress recovery and the snapshot write) is captured once as a CUDA graph and replayed, so
 a whole simulation costs one graph launch per snapshot and one copy back at the end.
 
-A simulation whose element inverts (J <= 0) or goes non-finite is frozen and reported with the
-element and time of the first failure; one that stretches past ``stretch_limit`` (beyond what
-the time step was computed for) is reported too. The other simulations of the batch go on.
+A simulation whose element inverts (J <= 0), goes non-finite or breaks its CFL condition (the
+explicit scheme would go unstable there) is frozen and reported with the element and time of
+the first failure. The other simulations of the batch go on.
 """
 
 from __future__ import annotations
@@ -25,9 +27,10 @@ import warp as wp
 from warpgnn.mesh import TetMesh
 
 from .loads import LoadCase
-from .material import MaterialParams, OgdenProny, ogden_energy, ogden_split, sym_to_vec6, vec6, vec6_to_sym
+from .material import (MaterialParams, OgdenProny, ogden_energy, ogden_split, sym_to_vec6, vec6, vec6_to_sym,
+                       wave_speed_sq)
 
-NO_FAILURE = 2**31 - 1  # failure keys are step * n_elements + element, min-reduced
+NO_FAILURE = 2**63 - 1  # failure keys are step * n_elements + element, min-reduced
 
 
 @wp.func
@@ -67,6 +70,7 @@ def element_forces(
     tets: wp.array(dtype=wp.vec4i),
     Dm_inv: wp.array(dtype=wp.mat33),
     vol0: wp.array(dtype=float),
+    altitude: wp.array(dtype=float),
     mat: MaterialParams,
     S_iso_prev: wp.array2d(dtype=vec6),
     H1: wp.array2d(dtype=vec6),
@@ -74,23 +78,27 @@ def element_forces(
     first: int,
     step_base: wp.array(dtype=int),
     i: int,
-    stretch_limit: float,
+    dt: float,
     forces: wp.array2d(dtype=wp.vec3),
-    failure: wp.array(dtype=wp.int32),
-    overstretch: wp.array(dtype=wp.int32),
+    failure: wp.array(dtype=wp.int64),
+    unstable: wp.array(dtype=wp.int64),
 ):
     """Internal forces of every element at x_n, with the Prony update to step n."""
     b, e = wp.tid()
+    step_key = wp.int64(step_base[0] + i) * wp.int64(tets.shape[0])
+    if failure[b] < step_key or unstable[b] < step_key:
+        return  # frozen at an earlier step: no work spent on a simulation that will be redrawn
     t = tets[e]
     Dinv = Dm_inv[e]
     F = deformation_gradient(x, b, t, Dinv)
     S_iso, S_vol, J, stretch = ogden_split(F, mat)
-    key = (step_base[0] + i) * tets.shape[0] + e
+    key = step_key + wp.int64(e)
     if not (J > 0.0 and wp.isfinite(J) and wp.isfinite(stretch)):
         wp.atomic_min(failure, b, key)
         return
-    if stretch > stretch_limit:
-        wp.atomic_min(overstretch, b, key)
+    h = altitude[e]
+    if wave_speed_sq(mat, stretch, J) * dt * dt > h * h:
+        wp.atomic_min(unstable, b, key)
     prev = S_iso
     if first == 0:
         prev = vec6_to_sym(S_iso_prev[b, e])
@@ -122,7 +130,8 @@ def advance_nodes(
     pres_load: wp.array2d(dtype=wp.int32),
     pres_weight: wp.array2d(dtype=float),
     load_disp: wp.array2d(dtype=wp.vec3),
-    failure: wp.array(dtype=wp.int32),
+    failure: wp.array(dtype=wp.int64),
+    unstable: wp.array(dtype=wp.int64),
     step_base: wp.array(dtype=int),
     i: int,
     dt: float,
@@ -133,7 +142,7 @@ def advance_nodes(
     b, n = wp.tid()
     f = forces[b, n]
     forces[b, n] = wp.vec3(0.0)
-    if failure[b] != NO_FAILURE:
+    if failure[b] != wp.int64(NO_FAILURE) or unstable[b] != wp.int64(NO_FAILURE):
         return  # frozen: this simulation is reported and resampled
     t = float(step_base[0] + i + 1) * dt
     if fixed[n] != 0:
@@ -178,8 +187,10 @@ def element_stress(
     sigma_acc: wp.array2d(dtype=vec6),
     weight_acc: wp.array2d(dtype=float),
     strain_energy: wp.array2d(dtype=float),
+    max_stretch: wp.array2d(dtype=float),
 ):
-    """Element Cauchy stress, accumulated into nodes weighted by current element volume."""
+    """Element Cauchy stress, accumulated into nodes weighted by current element volume; the
+    largest deviatoric principal stretch of the snapshot (a diagnostic kept beside the data)."""
     b, e = wp.tid()
     t = tets[e]
     F = deformation_gradient(x, b, t, Dm_inv[e])
@@ -191,6 +202,7 @@ def element_stress(
         wp.atomic_add(sigma_acc, b, t[k], wv * sigma)
         wp.atomic_add(weight_acc, b, t[k], wv)
     wp.atomic_add(strain_energy, b, snap[0], vol0[e] * ogden_energy(F, mat))
+    wp.atomic_max(max_stretch, b, snap[0], stretch)
 
 
 @wp.kernel
@@ -244,7 +256,7 @@ class SolverConfig:
     ramp_fraction: float = 0.5  # tools reach their displacement at this fraction, then hold
     viscosity: bool = True
     mass_damping: float = 0.0  # 1/s, mass-proportional damping (0: none; tests use it for statics)
-    stretch_limit: float = 1.4  # principal stretch the stable time step is computed for
+    stretch_limit: float = 1.4  # deviatoric stretch the shortest element's stable step allows
     safety: float = 0.8  # fraction of the stability limit h / c
 
     @property
@@ -259,13 +271,14 @@ class SimulationResult:
     sigma: np.ndarray  # (B, S+1, N, 6) float32, Voigt xx yy zz xy yz xz
     kinetic_energy: np.ndarray  # (B, S+1)
     strain_energy: np.ndarray  # (B, S+1), elastic part W only
+    max_stretch: np.ndarray  # (B, S+1) largest deviatoric principal stretch of any element
     failures: list = field(default_factory=list)  # per simulation: None or a one-line report
     dt: float = 0.0  # explicit step
     steps: int = 0  # explicit steps per simulation
 
 
 def stable_time_step(mesh: TetMesh, material: OgdenProny, config: SolverConfig) -> float:
-    """safety * (shortest element altitude) / (wave speed at stretch_limit)."""
+    """safety * (shortest element altitude) / (wave speed at deviatoric stretch_limit)."""
     return config.safety * float(mesh.min_altitude().min()) / material.wave_speed(config.stretch_limit)
 
 
@@ -286,8 +299,6 @@ class BatchedExplicitSolver:
         dt_max = stable_time_step(mesh, self.material, config)
         self.substeps = max(1, math.ceil(config.snapshot_dt / dt_max))
         self.dt = config.snapshot_dt / self.substeps
-        if (S * self.substeps + 1) * T >= NO_FAILURE:
-            raise ValueError("too many steps x elements for the int32 failure key")
         self.t_ramp = config.ramp_fraction * config.duration
         self.params = self.material.to_warp(self.dt)
 
@@ -316,6 +327,7 @@ class BatchedExplicitSolver:
         self.tets = arr(mesh.tets, wp.vec4i)
         self.Dm_inv = arr(np.linalg.inv(Dm).astype(np.float32), wp.mat33)
         self.vol0 = arr(vol.astype(np.float32), float)
+        self.altitude = arr(mesh.min_altitude().astype(np.float32), float)
         self.inv_mass = arr((1.0 / mass).astype(np.float32), float)
         self.fixed = arr(mesh.fixed.astype(np.int32), wp.int32)
         self.pres_load = arr(pres_load, wp.int32)
@@ -332,8 +344,8 @@ class BatchedExplicitSolver:
         self.H2 = wp.zeros((B, T), dtype=vec6, device=d)
         self.sigma_acc = wp.zeros((B, N), dtype=vec6, device=d)
         self.weight_acc = wp.zeros((B, N), dtype=float, device=d)
-        self.failure = wp.full(B, NO_FAILURE, dtype=wp.int32, device=d)
-        self.overstretch = wp.full(B, NO_FAILURE, dtype=wp.int32, device=d)
+        self.failure = wp.full(B, NO_FAILURE, dtype=wp.int64, device=d)
+        self.unstable = wp.full(B, NO_FAILURE, dtype=wp.int64, device=d)
         self.step_base = wp.zeros(1, dtype=int, device=d)
         self.snap = wp.zeros(1, dtype=int, device=d)
         self.q_out = wp.zeros((B, S + 1, N), dtype=wp.vec3, device=d)
@@ -341,6 +353,7 @@ class BatchedExplicitSolver:
         self.sigma_out = wp.zeros((B, S + 1, N), dtype=vec6, device=d)
         self.kinetic = wp.zeros((B, S + 1), dtype=float, device=d)
         self.strain = wp.zeros((B, S + 1), dtype=float, device=d)
+        self.max_stretch = wp.zeros((B, S + 1), dtype=float, device=d)
 
         self.snapshots_done = 0
         self._forces(i=0, first=1)
@@ -355,15 +368,15 @@ class BatchedExplicitSolver:
     # -------------------------------------------------------------- launches
     def _forces(self, i: int, first: int = 0):
         wp.launch(element_forces, (self.B, self.T),
-                  [self.x, self.tets, self.Dm_inv, self.vol0, self.params, self.S_iso_prev, self.H1, self.H2,
-                   first, self.step_base, i, self.config.stretch_limit, self.forces, self.failure, self.overstretch],
+                  [self.x, self.tets, self.Dm_inv, self.vol0, self.altitude, self.params, self.S_iso_prev, self.H1,
+                   self.H2, first, self.step_base, i, self.dt, self.forces, self.failure, self.unstable],
                   device=self.device)
 
     def _record(self):
         B, N, T = self.B, self.N, self.T
         wp.launch(element_stress, (B, T),
                   [self.x, self.tets, self.Dm_inv, self.vol0, self.params, self.H1, self.H2, self.snap,
-                   self.sigma_acc, self.weight_acc, self.strain], device=self.device)
+                   self.sigma_acc, self.weight_acc, self.strain, self.max_stretch], device=self.device)
         wp.launch(record_snapshot, (B, N),
                   [self.x, self.v_half, self.forces, self.inv_mass, self.fixed, self.pres_load, self.pres_weight,
                    self.load_disp, self.step_base, self.snap, self.dt, self.t_ramp, self.sigma_acc,
@@ -374,7 +387,8 @@ class BatchedExplicitSolver:
         for i in range(self.substeps):
             wp.launch(advance_nodes, (self.B, self.N),
                       [self.x, self.v_half, self.forces, self.X, self.inv_mass, self.fixed, self.pres_load,
-                       self.pres_weight, self.load_disp, self.failure, self.step_base, i, self.dt, self.t_ramp,
+                       self.pres_weight, self.load_disp, self.failure, self.unstable, self.step_base, i, self.dt,
+                       self.t_ramp,
                        self.config.mass_damping], device=self.device)
             self._forces(i=i + 1)
         wp.launch(advance_counters, 1, [self.step_base, self.snap, self.substeps], device=self.device)
@@ -400,7 +414,7 @@ class BatchedExplicitSolver:
         return self.result()
 
     def failures(self) -> list:
-        fail, over = self.failure.numpy(), self.overstretch.numpy()
+        fail, over = self.failure.numpy(), self.unstable.numpy()
         reports = []
         for b in range(self.B):
             if fail[b] != NO_FAILURE:
@@ -408,8 +422,8 @@ class BatchedExplicitSolver:
                 reports.append(f"element {elem} inverted or went non-finite at t = {step * self.dt:.4f} s")
             elif over[b] != NO_FAILURE:
                 step, elem = divmod(int(over[b]), self.T)
-                reports.append(f"element {elem} stretched beyond {self.config.stretch_limit} (the stable "
-                               f"time step's bound) at t = {step * self.dt:.4f} s")
+                reports.append(f"element {elem} stiffened past its stable time step (stretched too far) "
+                               f"at t = {step * self.dt:.4f} s")
             else:
                 reports.append(None)
         return reports
@@ -418,4 +432,5 @@ class BatchedExplicitSolver:
         return SimulationResult(
             q=self.q_out.numpy(), v=self.v_out.numpy(), sigma=self.sigma_out.numpy(),
             kinetic_energy=self.kinetic.numpy(), strain_energy=self.strain.numpy(),
+            max_stretch=self.max_stretch.numpy(),
             failures=self.failures(), dt=self.dt, steps=self.substeps * self.snapshots_done)

@@ -46,7 +46,7 @@ def cmd_anatomy(args):
     from .anatomy import find_fixed_face, mesh_from_surface, procedural_liver
 
     if args.surface:
-        mesh, report = mesh_from_surface(args.surface, scale=args.scale, target_nodes=args.nodes)
+        mesh, report = mesh_from_surface(args.surface, scale=args.scale, target_nodes=args.nodes or 600)
         for line in report:
             print(f"repair: {line}")
     else:
@@ -139,7 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--name", choices=["L1", "L2", "L3", "L4", "L5"], help="one of the built-in anatomies")
     src.add_argument("--surface", help="closed surface: STL, OBJ, PLY, VTK/VTP/VTU")
     a.add_argument("--scale", type=float, default=1.0, help="multiply surface coordinates (e.g. 0.001 for mm)")
-    a.add_argument("--nodes", type=int, default=600, help="target node count")
+    a.add_argument("--nodes", type=int, help="target node count (default: the paper's for --name, 600 otherwise)")
     a.add_argument("--fixed", help="node ids of the Dirichlet face (default: the automatic rule)")
     a.add_argument("--out", required=True, help="output .vtu (point data 'fixed')")
     a.set_defaults(func=cmd_anatomy)

@@ -120,6 +120,7 @@ def simulation_record(case, res, b: int, config, attempt: int) -> dict:
         "u": (ramp[:, None, None] * case.displacement[None]).astype(np.float32),
         "footprint_nodes": ids, "footprint_load": load, "footprint_weight": w,
         "kinetic_energy": res.kinetic_energy[b], "strain_energy": res.strain_energy[b],
+        "max_stretch": res.max_stretch[b],
         "attrs": {"attempt": attempt, "duration": config.duration, "ramp_fraction": config.ramp_fraction,
                   "viscosity": config.viscosity},
     }
