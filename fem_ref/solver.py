@@ -256,7 +256,7 @@ class SolverConfig:
     ramp_fraction: float = 0.5  # tools reach their displacement at this fraction, then hold
     viscosity: bool = True
     mass_damping: float = 0.0  # 1/s, mass-proportional damping (0: none; tests use it for statics)
-    stretch_limit: float = 1.4  # deviatoric stretch the shortest element's stable step allows
+    stretch_limit: float = 1.5  # deviatoric stretch the shortest element's stable step allows (see README)
     safety: float = 0.8  # fraction of the stability limit h / c
 
     @property

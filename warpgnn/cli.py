@@ -116,9 +116,11 @@ def cmd_generate(args):
 
 
 def cmd_demo(args):
-    """The main job on the built-in default: the smoke dataset and a render of the anatomies."""
+    """The main job on the built-in default: the five anatomies (render + table), the smoke
+    dataset, and a render of one of its simulations."""
     from .anatomy import LIVERS, procedural_liver
-    from .render import anatomy_table, render_anatomies
+    from . import dataset
+    from .render import anatomy_table, render_anatomies, render_simulation
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -127,6 +129,10 @@ def cmd_demo(args):
     print(anatomy_table(meshes))
     args.preset, args.seed, args.shard, args.batch, args.out = "smoke", 0, None, 256, str(out / "data")
     cmd_generate(args)
+    data = out / "data" / "L5.h5"
+    render_simulation(dataset.read_mesh(data), dataset.read_simulation(data, "sim_0000"),
+                      out / "simulation.png", "L5 sim_0000")
+    print(f"renders: {out / 'anatomies.png'}, {out / 'simulation.png'}")
 
 
 def build_parser() -> argparse.ArgumentParser:

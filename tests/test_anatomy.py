@@ -1,0 +1,200 @@
+"""Procedural livers L1..L5, the fixed-face rule and user-surface import (CPU, ~20 s)."""
+
+import numpy as np
+import pytest
+
+pv = pytest.importorskip("pyvista")
+pytest.importorskip("tetgen")
+pytest.importorskip("pymeshfix")
+
+from warpgnn.anatomy import (  # noqa: E402
+    LIVERS, _improve, _surface_euler, find_fixed_face, mesh_from_surface, mesh_quality, procedural_liver)
+from warpgnn.errors import InputError  # noqa: E402
+from warpgnn.mesh import TetMesh, box_tet_mesh, signed_volumes  # noqa: E402
+from warpgnn.render import anatomy_table  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def livers():
+    return {name: procedural_liver(name) for name in LIVERS}
+
+
+def face_areas(nodes, faces):
+    x = nodes[faces]
+    return np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]) / 2  # area-weighted outward normals
+
+
+@pytest.mark.parametrize("name", list(LIVERS))
+def test_liver_counts_volume_and_quality(livers, name):
+    mesh, spec = livers[name], LIVERS[name]
+    n = len(mesh.nodes)
+    assert 460 <= n <= 680 and abs(n / spec.nodes - 1) <= 0.02
+    assert 1400 <= len(mesh.tets) <= 2300 and abs(len(mesh.tets) / spec.tets - 1) <= 0.02
+    assert abs(mesh.volume / spec.volume - 1) < 0.02
+    assert (mesh.volumes > 0).all()
+    q = mesh_quality(mesh)
+    assert q["min_dihedral_deg"] > 2.0 and q["min_altitude_over_mean_edge"] > 0.03
+    # a liver scaled to ~250 cm^3: about 12-14 cm left-right, 8-9 front-back, 4-6 high
+    extent = np.ptp(mesh.nodes, axis=0) * 100
+    assert 11 < extent[0] < 15 and 7 < extent[1] < 10.5 and 4 < extent[2] < 6.5
+
+
+@pytest.mark.parametrize("name", list(LIVERS))
+def test_liver_shortest_altitude(livers, name):
+    """The shortest altitude sets the explicit time step: TetGen alone gives 0.6-0.9 mm (a
+    fifth of the median), the improvement pass (_improve) over 1.75 mm."""
+    mesh = livers[name]
+    altitude = mesh.min_altitude()
+    assert altitude.min() >= 1.5e-3
+    assert altitude.min() >= 0.3 * np.median(altitude)
+    assert _surface_euler(mesh) == 2  # flips and collapses left a manifold with a closed surface
+
+
+def test_improve_untangles_a_perturbed_box():
+    """Interior nodes jittered into flat tets: _improve restores the altitude without moving
+    the surface (no reference given) or the flat face off z = 0, and keeps the volume."""
+    box = box_tet_mesh(4, 4, 4, size=(0.04, 0.04, 0.04))
+    nodes = box.nodes.copy()
+    inner = ((nodes > 1e-9) & (nodes < 0.04 - 1e-9)).all(axis=1)
+    nodes[inner] += np.random.default_rng(0).uniform(-0.003, 0.003, (inner.sum(), 3))
+    assert (signed_volumes(nodes, box.tets) > 0).all()
+    jittered = TetMesh(nodes, box.tets)
+    assert jittered.min_altitude().min() < 0.5e-3
+    better = _improve(jittered)
+    assert better.min_altitude().min() > 3e-3
+    assert (better.volumes > 0).all() and better.volume == pytest.approx(0.04**3, rel=1e-12)
+    assert _surface_euler(better) == 2
+    surface = better.nodes[better.surface_nodes()]
+    assert np.isin(surface, [0.0, 0.04]).any(axis=1).all()  # the surface stays on the box's faces...
+
+    def walls(mesh):  # ...and only the base's nodes (in z = 0) move in it
+        x = mesh.nodes
+        return np.unique(x[np.isin(x[:, :2], [0.0, 0.04]).any(axis=1) | (x[:, 2] == 0.04)], axis=0)
+
+    np.testing.assert_array_equal(walls(better), walls(box))
+
+
+@pytest.mark.parametrize("name", list(LIVERS))
+def test_liver_fixed_face_is_the_whole_flat_visceral_face(livers, name):
+    mesh = livers[name]
+    z = mesh.nodes[:, 2]
+    assert mesh.fixed.any()
+    assert np.abs(z[mesh.fixed] - z.min()).max() < 1e-9  # planar, at the bottom
+    surface = np.zeros(len(z), dtype=bool)
+    surface[mesh.surface_nodes()] = True
+    assert (mesh.fixed == (surface & (np.abs(z - z.min()) < 1e-9))).all()  # rim included
+    np.testing.assert_array_equal(mesh.fixed, find_fixed_face(mesh))
+    # the fixed face covers the footprint: its area ~ the shadow of the upper surface
+    faces = mesh.boundary_faces()
+    a = face_areas(mesh.nodes, faces)
+    fixed_area = -a[mesh.fixed[faces].all(axis=1), 2].sum()
+    footprint = a[a[:, 2] > 0, 2].sum()
+    assert fixed_area > 0.95 * footprint
+
+
+@pytest.mark.parametrize("name", list(LIVERS))
+def test_liver_shape_dome_and_lobes(livers, name):
+    mesh = livers[name]
+    x, y, z = mesh.nodes.T
+    faces = mesh.boundary_faces()
+    rim = np.unique(faces[mesh.fixed[faces].sum(axis=1) == 2])  # edges of the flat face
+    rim = rim[mesh.fixed[rim]]
+    top = np.argmax(z)
+    # the highest point lies well inside the footprint, not over the rim
+    gap = np.min(np.hypot(x[rim] - x[top], y[rim] - y[top]))
+    assert gap > 0.2 * min(np.ptp(x), np.ptp(y))
+    # dome: upper-surface height grows with the distance from the rim
+    upper = np.setdiff1d(mesh.surface_nodes(), np.flatnonzero(mesh.fixed))
+    inland = np.min(np.hypot(x[upper, None] - x[rim], y[upper, None] - y[rim]), axis=1)
+    assert np.corrcoef(inland, z[upper])[0, 1] > 0.5
+    # a tall right lobe (x < 0) and a thinner left lobe (x > 0)
+    assert z[x < x.min() + 0.4 * np.ptp(x)].max() > 1.5 * z[x > x.max() - 0.3 * np.ptp(x)].max()
+
+
+def test_procedural_liver_is_deterministic(livers):
+    again = procedural_liver("L3")
+    np.testing.assert_array_equal(again.nodes, livers["L3"].nodes)
+    np.testing.assert_array_equal(again.tets, livers["L3"].tets)
+    np.testing.assert_array_equal(again.fixed, livers["L3"].fixed)
+    assert not np.array_equal(livers["L1"].nodes[:50], livers["L2"].nodes[:50])
+
+
+def test_procedural_liver_bad_input():
+    with pytest.raises(InputError, match="unknown anatomy"):
+        procedural_liver("L9")
+    with pytest.raises(InputError, match="at least"):
+        procedural_liver("L1", target_nodes=3)
+
+
+def test_find_fixed_face_on_a_box():
+    box = box_tet_mesh(3, 3, 3, size=(0.03, 0.03, 0.03))
+    z, x = box.nodes[:, 2], box.nodes[:, 0]
+    np.testing.assert_array_equal(find_fixed_face(box), z == 0)  # corners and edges included
+    np.testing.assert_array_equal(find_fixed_face(box, axis=(1, 0, 0)), np.isclose(x, 0.03))
+    with pytest.raises(InputError):
+        find_fixed_face(box, axis=(0, 0, 0))
+
+
+def test_anatomy_table_lists_paper_values(livers):
+    table = anatomy_table(livers)
+    assert table.count("\n") == 2 + len(LIVERS)
+    assert "| L4 |" in table and "2299" in table
+
+
+# ------------------------------------------------------------------ surfaces
+R = 0.03
+
+
+@pytest.mark.parametrize("suffix", [".stl", ".obj"])
+def test_import_clean_sphere(tmp_path, suffix):
+    path = tmp_path / f"sphere{suffix}"
+    pv.Sphere(radius=R).save(path)
+    mesh, report = mesh_from_surface(path, target_nodes=400)
+    assert abs(len(mesh.nodes) / 400 - 1) <= 0.15
+    assert abs(mesh.volume / (4 / 3 * np.pi * R**3) - 1) < 0.05
+    assert (mesh.volumes > 0).all()
+    assert len(report) == 1 and "nothing repaired" in report[0]
+    assert mesh.fixed.any() and mesh.nodes[mesh.fixed, 2].max() < -0.9 * R  # bottom pole
+
+
+def test_import_scaled_and_with_fixed_ids(tmp_path):
+    path = tmp_path / "sphere_mm.stl"
+    pv.Sphere(radius=R * 1000).save(path)
+    mesh, _ = mesh_from_surface(path, scale=1e-3, target_nodes=300, fixed_ids=[0, 1, 2])
+    assert abs(mesh.volume / (4 / 3 * np.pi * R**3) - 1) < 0.05
+    assert mesh.fixed.sum() == 3 and mesh.fixed[:3].all()
+    with pytest.raises(InputError, match="out of range"):
+        mesh_from_surface(path, scale=1e-3, target_nodes=300, fixed_ids=[0, 10**6])
+
+
+def test_import_repairs_a_hole(tmp_path):
+    holey = pv.Sphere(radius=R).remove_cells(np.arange(12)).extract_surface(algorithm="dataset_surface")
+    assert holey.n_open_edges > 0
+    path = tmp_path / "holey.stl"
+    holey.save(path)
+    mesh, report = mesh_from_surface(path, target_nodes=300)
+    assert "hole" in report[0] and "filled" in report[0]
+    assert abs(mesh.volume / (4 / 3 * np.pi * R**3) - 1) < 0.05
+
+
+@pytest.mark.parametrize("flat", [pv.Plane(i_size=0.05, j_size=0.05), pv.Disc(outer=0.03)])
+def test_flat_surface_is_refused(tmp_path, flat):
+    path = tmp_path / "flat.stl"
+    flat.triangulate().save(path)
+    with pytest.raises(InputError, match="no volume") as err:
+        mesh_from_surface(path)
+    assert "\n" not in str(err.value)
+
+
+def test_missing_unreadable_and_unsupported_files(tmp_path):
+    with pytest.raises(InputError, match="not found"):
+        mesh_from_surface(tmp_path / "nothing.stl")
+    garbage = tmp_path / "garbage.stl"
+    garbage.write_bytes(np.random.default_rng(0).bytes(3000))
+    with pytest.raises(InputError) as err:
+        mesh_from_surface(garbage)
+    assert "\n" not in str(err.value)
+    text = tmp_path / "notes.txt"
+    text.write_text("not a surface\n")
+    with pytest.raises(InputError, match="unsupported"):
+        mesh_from_surface(text)

@@ -1,0 +1,118 @@
+"""Pictures and a table of liver anatomies: the five meshes overlaid in one off-screen
+render, and a Markdown table beside the paper's Table 2."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .anatomy import LIVERS, mesh_quality
+from .mesh import TetMesh
+
+COLOURS = ("#d95f02", "#1b9e77", "#7570b3", "#e7298a", "#66a61e", "#e6ab02", "#a6761d")
+WINDOW = (1600, 900)
+VIEW = (0.35, -1.0, 0.55)  # camera direction from the anatomy
+
+
+def render_anatomies(meshes: dict[str, TetMesh], out_png) -> None:
+    """Off-screen PNG: the anatomies overlaid on top (each surface in its own
+    semi-transparent colour, its fixed (Dirichlet) nodes as points of the same colour, with
+    a legend) and each one alone, opaque with its mesh edges, in a row below."""
+    import pyvista as pv
+
+    out_png = Path(out_png)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    n = max(len(meshes), 1)
+    plotter = pv.Plotter(off_screen=True, window_size=WINDOW, shape=(3, n),
+                         groups=[(np.s_[:2], np.s_[:])], border=False)
+    plotter.set_background("white")
+    colours = [COLOURS[i % len(COLOURS)] for i in range(len(meshes))]
+    centre = np.mean([m.nodes.mean(axis=0) for m in meshes.values()], axis=0)
+    for i, ((name, mesh), colour) in enumerate(zip(meshes.items(), colours)):
+        surface = pv.PolyData.from_regular_faces(mesh.nodes, mesh.boundary_faces())
+        plotter.subplot(0, 0)
+        plotter.add_mesh(surface, color=colour, opacity=0.25, smooth_shading=True, label=name,
+                         silhouette=dict(color=colour, line_width=3))
+        plotter.add_points(mesh.nodes[mesh.fixed], color=colour, point_size=6, render_points_as_spheres=True)
+        plotter.subplot(2, i)
+        plotter.add_mesh(surface, color=colour, show_edges=True, edge_color="#444444", line_width=0.5)
+        plotter.add_points(mesh.nodes[mesh.fixed], color="black", point_size=3, render_points_as_spheres=True)
+        plotter.add_text(name, font_size=10, color="black")
+        _view(plotter, centre, zoom=1.15)
+    plotter.subplot(0, 0)
+    plotter.add_legend(bcolor="white", face="rectangle", size=(0.08, 0.22), loc="upper right")
+    plotter.add_text("liver anatomies overlaid (points: fixed nodes of the flat visceral face)",
+                     font_size=12, color="black")
+    plotter.add_axes(color="black")
+    _view(plotter, centre, zoom=1.5)
+    # write to a temporary name first so a failed render never leaves half a PNG behind
+    tmp = out_png.with_name(out_png.stem + ".tmp" + out_png.suffix)
+    plotter.screenshot(str(tmp))
+    plotter.close()
+    os.replace(tmp, out_png)
+
+
+def _view(plotter, centre, zoom: float) -> None:
+    """Anterior-superior view (patient's right lobe on the left, like an anatomy atlas),
+    high enough to see the dome, low enough to see the flat base."""
+    plotter.camera.focal_point = centre
+    plotter.camera.position = centre + 0.5 * np.array(VIEW)
+    plotter.camera.up = (0.0, 0.0, 1.0)
+    plotter.reset_camera()
+    plotter.camera.zoom(zoom)
+
+
+def anatomy_table(meshes: dict[str, TetMesh]) -> str:
+    """Markdown table of the meshes beside the paper's Table 2 values (where the name is one
+    of ``LIVERS``)."""
+    rows = ["| anatomy | volume [m^3] | nodes | tets | fixed nodes | min dihedral [deg] "
+            "| min altitude / mean edge | paper volume [m^3] | paper nodes | paper tets |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, mesh in meshes.items():
+        q = mesh_quality(mesh)
+        spec = LIVERS.get(name)
+        paper = (f"{spec.volume:.2e} | {spec.nodes} | {spec.tets}" if spec else "- | - | -")
+        rows.append(f"| {name} | {mesh.volume:.3e} | {len(mesh.nodes)} | {len(mesh.tets)} | "
+                    f"{int(np.count_nonzero(mesh.fixed))} | {q['min_dihedral_deg']:.1f} | "
+                    f"{q['min_altitude_over_mean_edge']:.3f} | {paper} |")
+    return "\n".join(rows) + "\n"
+
+
+def render_simulation(mesh: TetMesh, sim: dict, out_png, title: str = "") -> None:
+    """Off-screen PNG of one ground-truth simulation (a ``dataset.read_simulation`` record):
+    the deformed surface at the end of the ramp and at the last snapshot, coloured by the
+    displacement magnitude [mm] and by the von Mises stress [kPa], over the rest shape
+    (grey wireframe), with the tools' loaded nodes as red spheres."""
+    import pyvista as pv
+
+    q, sigma = sim["q"], sim["sigma"].astype(np.float64)
+    steps = (len(q) - 1) // 2, len(q) - 1
+    xx, yy, zz, xy, yz, xz = sigma.transpose(2, 0, 1)
+    von_mises = np.sqrt(0.5 * ((xx - yy) ** 2 + (yy - zz) ** 2 + (zz - xx) ** 2) + 3 * (xy**2 + yz**2 + xz**2))
+    fields = (("|u| [mm]", 1e3 * np.linalg.norm(q - mesh.nodes[None], axis=-1)), ("von Mises [kPa]", 1e-3 * von_mises))
+    faces = mesh.boundary_faces()
+    rest = pv.PolyData.from_regular_faces(mesh.nodes, faces)
+    out_png = Path(out_png)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    plotter = pv.Plotter(off_screen=True, window_size=WINDOW, shape=(2, 2), border=False)
+    plotter.set_background("white")
+    centre = mesh.nodes.mean(axis=0)
+    for row, (label, values) in enumerate(fields):
+        limits = (0.0, float(np.percentile(values[list(steps)], 99.5)) or 1.0)
+        for col, s in enumerate(steps):
+            plotter.subplot(row, col)
+            surface = pv.PolyData.from_regular_faces(q[s].astype(np.float64), faces)
+            surface.point_data[label] = values[s]
+            plotter.add_mesh(rest, style="wireframe", color="#bbbbbb", line_width=0.5)
+            plotter.add_mesh(surface, scalars=label, cmap="viridis", clim=limits, smooth_shading=True,
+                             scalar_bar_args=dict(color="black", title=label, vertical=False))
+            plotter.add_points(q[s][sim["loaded"]].astype(np.float64), color="red", point_size=14,
+                               render_points_as_spheres=True)
+            plotter.add_text(f"{title}  snapshot {s}", font_size=10, color="black")
+            _view(plotter, centre, zoom=1.2)
+    tmp = out_png.with_name(out_png.stem + ".tmp" + out_png.suffix)
+    plotter.screenshot(str(tmp))
+    plotter.close()
+    os.replace(tmp, out_png)
