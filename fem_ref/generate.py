@@ -3,8 +3,8 @@
 One HDF5 file per set (L1..L5, Extra on a training anatomy, Extra* with four tools on L5).
 Every simulation's load case is drawn from its own random stream seeded by
 (seed, set, simulation, attempt), so shards and resumed runs draw exactly the same cases. A
-simulation that inverts an element or goes non-finite is reported and redrawn with the next
-attempt; only finished simulations are ever written (atomically, see warpgnn.dataset).
+simulation that inverts an element, goes non-finite or breaks an element's CFL condition is
+reported and redrawn with the next attempt; only finished simulations are ever written (atomically, see warpgnn.dataset).
 """
 
 from __future__ import annotations

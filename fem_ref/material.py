@@ -100,10 +100,11 @@ def vec6_to_sym(s: vec6):
 
 @wp.func
 def ogden_split(F: wp.mat33, p: MaterialParams):
-    """Isochoric and volumetric second Piola-Kirchhoff stress of F, with J and the largest
-    deviatoric principal stretch. From C = F^T F = V diag(s^2) V^T (a symmetric eigenproblem,
-    cheaper than the SVD of F and all that is needed), principal Kirchhoff stresses tau_a map
-    to S = V diag(tau_a / s_a^2) V^T."""
+    """Isochoric and volumetric second Piola-Kirchhoff stress of F, with J, the largest
+    deviatoric principal stretch and the strain energy density W(F) [J/m^3] (a few flops from
+    the same powers; dropped by the compiler where unused). From C = F^T F = V diag(s^2) V^T
+    (a symmetric eigenproblem, cheaper than the SVD of F and all that is needed), principal
+    Kirchhoff stresses tau_a map to S = V diag(tau_a / s_a^2) V^T."""
     V = wp.mat33()
     s2 = wp.vec3()
     wp.eig3(wp.transpose(F) * F, V, s2)
@@ -120,7 +121,8 @@ def ogden_split(F: wp.mat33, p: MaterialParams):
     Vt = wp.transpose(V)
     S_iso = V * wp.diag(d_iso) * Vt
     S_vol = V * wp.diag(kirchhoff_vol * inv2) * Vt
-    return S_iso, S_vol, J, wp.sqrt(jm23 * wp.max(s2))
+    W = p.mu / p.alpha * (p0 + p1 + p2 - 3.0) + (J - 1.0) * (J - 1.0) / p.d
+    return S_iso, S_vol, J, wp.sqrt(jm23 * wp.max(s2)), W
 
 
 @wp.func
@@ -130,16 +132,3 @@ def wave_speed_sq(p: MaterialParams, lb: float, J: float):
     shear = 0.5 * p.mu * p.alpha * wp.pow(wp.max(lb, 1.0), p.alpha)
     bulk = (2.0 / p.d) * wp.max(1.0, 2.0 * J - 1.0)
     return (bulk + 4.0 / 3.0 * shear) / p.density
-
-
-@wp.func
-def ogden_energy(F: wp.mat33, p: MaterialParams):
-    """Strain energy density W(F) [J/m^3]."""
-    U = wp.mat33()
-    s = wp.vec3()
-    V = wp.mat33()
-    wp.svd3(F, U, s, V)
-    J = s[0] * s[1] * s[2]
-    jm13 = wp.pow(J, -1.0 / 3.0)
-    w_iso = wp.pow(jm13 * s[0], p.alpha) + wp.pow(jm13 * s[1], p.alpha) + wp.pow(jm13 * s[2], p.alpha) - 3.0
-    return p.mu / p.alpha * w_iso + (J - 1.0) * (J - 1.0) / p.d

@@ -7,9 +7,10 @@ x_(n+1) = x_n + dt v_(n+1/2). The time step is the stable one of the shortest el
 material stiffened to the deviatoric stretch ``stretch_limit`` (computed, never hand-set),
 shortened so that a whole number of steps spans each snapshot interval. Ogden's stiffness
 grows like lb^16, so every element checks its own CFL condition at every step
-(dt * c(lb_e, J_e) <= h_e): larger elements may stretch further than the shortest one. On CUDA one snapshot interval (all its steps,
-the stress recovery and the snapshot write) is captured once as a CUDA graph and replayed, so
-a whole simulation costs one graph launch per snapshot and one copy back at the end.
+(dt * c(lb_e, J_e) <= h_e): larger elements may stretch further than the shortest one. On
+CUDA one snapshot interval (all its steps, the stress recovery and the snapshot write) is
+captured once as a CUDA graph and replayed, so a whole simulation costs one graph launch per
+snapshot and one copy back at the end.
 
 A simulation whose element inverts (J <= 0), goes non-finite or breaks its CFL condition (the
 explicit scheme would go unstable there) is frozen and reported with the element and time of
@@ -27,8 +28,7 @@ import warp as wp
 from warpgnn.mesh import TetMesh
 
 from .loads import LoadCase
-from .material import (MaterialParams, OgdenProny, ogden_energy, ogden_split, sym_to_vec6, vec6, vec6_to_sym,
-                       wave_speed_sq)
+from .material import MaterialParams, OgdenProny, ogden_split, sym_to_vec6, vec6, vec6_to_sym, wave_speed_sq
 
 NO_FAILURE = 2**63 - 1  # failure keys are step * n_elements + element, min-reduced
 
@@ -47,6 +47,12 @@ def ramp_rate(t: float, t_ramp: float):
         return 0.0
     s = wp.clamp(t / t_ramp, 0.0, 1.0)
     return 30.0 * s * s * (1.0 - s) * (1.0 - s) / t_ramp
+
+
+@wp.func
+def frozen(failure: wp.array(dtype=wp.int64), unstable: wp.array(dtype=wp.int64), b: int, key: wp.int64):
+    """Simulation b failed (inverted, non-finite or broke its CFL condition) before ``key``."""
+    return failure[b] < key or unstable[b] < key
 
 
 @wp.func
@@ -86,12 +92,12 @@ def element_forces(
     """Internal forces of every element at x_n, with the Prony update to step n."""
     b, e = wp.tid()
     step_key = wp.int64(step_base[0] + i) * wp.int64(tets.shape[0])
-    if failure[b] < step_key or unstable[b] < step_key:
+    if frozen(failure, unstable, b, step_key):
         return  # frozen at an earlier step: no work spent on a simulation that will be redrawn
     t = tets[e]
     Dinv = Dm_inv[e]
     F = deformation_gradient(x, b, t, Dinv)
-    S_iso, S_vol, J, stretch = ogden_split(F, mat)
+    S_iso, S_vol, J, stretch, _W = ogden_split(F, mat)
     key = step_key + wp.int64(e)
     if not (J > 0.0 and wp.isfinite(J) and wp.isfinite(stretch)):
         wp.atomic_min(failure, b, key)
@@ -142,8 +148,8 @@ def advance_nodes(
     b, n = wp.tid()
     f = forces[b, n]
     forces[b, n] = wp.vec3(0.0)
-    if failure[b] != wp.int64(NO_FAILURE) or unstable[b] != wp.int64(NO_FAILURE):
-        return  # frozen: this simulation is reported and resampled
+    if frozen(failure, unstable, b, wp.int64(NO_FAILURE)):
+        return  # any failure so far: this simulation is reported and resampled
     t = float(step_base[0] + i + 1) * dt
     if fixed[n] != 0:
         x[b, n] = X[n]
@@ -194,14 +200,14 @@ def element_stress(
     b, e = wp.tid()
     t = tets[e]
     F = deformation_gradient(x, b, t, Dm_inv[e])
-    S_iso, S_vol, J, stretch = ogden_split(F, mat)
+    S_iso, S_vol, J, stretch, W = ogden_split(F, mat)
     S = S_vol + mat.g_inf * S_iso + vec6_to_sym(H1[b, e]) + vec6_to_sym(H2[b, e])
     sigma = sym_to_vec6(F * S * wp.transpose(F) / J)
     wv = J * vol0[e]
     for k in range(4):
         wp.atomic_add(sigma_acc, b, t[k], wv * sigma)
         wp.atomic_add(weight_acc, b, t[k], wv)
-    wp.atomic_add(strain_energy, b, snap[0], vol0[e] * ogden_energy(F, mat))
+    wp.atomic_add(strain_energy, b, snap[0], vol0[e] * W)
     wp.atomic_max(max_stretch, b, snap[0], stretch)
 
 
@@ -414,14 +420,14 @@ class BatchedExplicitSolver:
         return self.result()
 
     def failures(self) -> list:
-        fail, over = self.failure.numpy(), self.unstable.numpy()
+        fail, unstable = self.failure.numpy(), self.unstable.numpy()
         reports = []
         for b in range(self.B):
             if fail[b] != NO_FAILURE:
                 step, elem = divmod(int(fail[b]), self.T)
                 reports.append(f"element {elem} inverted or went non-finite at t = {step * self.dt:.4f} s")
-            elif over[b] != NO_FAILURE:
-                step, elem = divmod(int(over[b]), self.T)
+            elif unstable[b] != NO_FAILURE:
+                step, elem = divmod(int(unstable[b]), self.T)
                 reports.append(f"element {elem} stiffened past its stable time step (stretched too far) "
                                f"at t = {step * self.dt:.4f} s")
             else:
