@@ -135,6 +135,34 @@ def cmd_demo(args):
     print(f"renders: {out / 'anatomies.png'}, {out / 'simulation.png'}")
 
 
+def cmd_train(args):
+    from .model import ModelConfig
+    from .training import TrainConfig, train
+
+    try:
+        model = ModelConfig(kind=args.model, passes=args.passes, latent=args.latent,
+                            actuator_graphs=not args.single_graph)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    if not 0 < args.train_fraction <= 1:
+        raise InputError("--train-fraction must be in (0, 1]")
+    cfg = TrainConfig(data=args.data, out=args.out, model=model, epochs=args.epochs, batch_size=args.batch,
+                      lr=args.lr, patience=args.patience, train_fraction=args.train_fraction, seed=args.seed,
+                      resume=args.resume, time_limit=args.time_limit, device=args.device)
+    result = train(cfg)
+    print(f"{args.out}: best validation mean RRMSE {result['best']:.4e} at epoch {result['best_epoch']} "
+          f"({result['epochs']} epochs logged)")
+
+
+def cmd_eval(args):
+    from .evaluation import evaluate
+
+    try:
+        evaluate(args.checkpoint, args.data, args.out, args.device, args.backend, args.batch, not args.no_plots)
+    except NotImplementedError as exc:
+        raise InputError(str(exc)) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="warpgnn", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -172,6 +200,35 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--shard", default=None, help="i/n: this process takes every n-th file from i")
     g.add_argument("--batch", type=int, default=256, help="most simulations per launch")
     g.set_defaults(func=cmd_generate)
+
+    t = sub.add_parser("train", help="train the vanilla or hybrid network on a generated dataset")
+    t.add_argument("--data", required=True, help="dataset directory (L1..L5.h5 from 'generate')")
+    t.add_argument("--model", default="hybrid", choices=["hybrid", "vanilla"])
+    t.add_argument("--passes", type=int, default=5, help="message passes (1, 5, 12 in the paper)")
+    t.add_argument("--latent", type=int, default=64, help="latent width F (64: ~0.3M parameters at 5 passes)")
+    t.add_argument("--single-graph", action="store_true",
+                   help="ablation: no actuator graphs, the tool's displacement on its loaded node only")
+    t.add_argument("--out", required=True, help="run directory (last.pt, best.pt, log.csv)")
+    t.add_argument("--epochs", type=int, default=1000)
+    t.add_argument("--batch", type=int, default=16, help="snapshots per step (per process under torchrun)")
+    t.add_argument("--lr", type=float, default=1e-3)
+    t.add_argument("--patience", type=int, default=30, help="epochs without a better validation rollout")
+    t.add_argument("--train-fraction", type=float, default=1.0, help="use this share of the training simulations")
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--time-limit", type=float, default=None, help="seconds; stop after the epoch passing it")
+    t.add_argument("--resume", action="store_true", help="continue RUN/last.pt")
+    t.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
+    t.set_defaults(func=cmd_train)
+
+    e = sub.add_parser("eval", help="roll a checkpoint out on a dataset file and score it")
+    e.add_argument("--checkpoint", required=True)
+    e.add_argument("--data", required=True, help="one dataset file (e.g. data/L5.h5)")
+    e.add_argument("--out", required=True, help="directory for metrics.json, rollouts.h5 and plots")
+    e.add_argument("--backend", default="torch", choices=["torch", "warp"])
+    e.add_argument("--batch", type=int, default=64, help="simulations rolled out side by side")
+    e.add_argument("--no-plots", action="store_true")
+    e.add_argument("--device", default=None)
+    e.set_defaults(func=cmd_eval)
 
     d = sub.add_parser("demo", help="the main job on the built-in default")
     d.add_argument("--out", default="warpgnn-demo")

@@ -116,3 +116,38 @@ def render_simulation(mesh: TetMesh, sim: dict, out_png, title: str = "") -> Non
     plotter.screenshot(str(tmp))
     plotter.close()
     os.replace(tmp, out_png)
+
+
+def render_comparison(mesh: TetMesh, ref: np.ndarray, pred: np.ndarray, loaded, out_png, title: str = "") -> None:
+    """Off-screen PNG of a rollout's final step: the FEM (left) beside the network (right),
+    coloured by |u| [mm] (top) and by sigma_xy [kPa] (bottom), on shared colour scales;
+    ``ref``/``pred`` are (S+1, N, 12) states."""
+    import pyvista as pv
+
+    faces = mesh.boundary_faces()
+    rest = pv.PolyData.from_regular_faces(mesh.nodes, faces)
+    last = {"FEM": ref[-1].astype(np.float64), "network": pred[-1].astype(np.float64)}
+    fields = (("|u| [mm]", lambda z: 1e3 * np.linalg.norm(z[:, :3] - mesh.nodes, axis=1), "viridis"),
+              ("sigma_xy [kPa]", lambda z: 1e-3 * z[:, 9], "coolwarm"))
+    out_png = Path(out_png)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    plotter = pv.Plotter(off_screen=True, window_size=WINDOW, shape=(2, 2), border=False)
+    plotter.set_background("white")
+    for row, (label, value, cmap) in enumerate(fields):
+        ref_values = value(last["FEM"])
+        hi = float(np.percentile(np.abs(ref_values), 99.5)) or 1.0
+        limits = (0.0, hi) if row == 0 else (-hi, hi)
+        for col, (name, z) in enumerate(last.items()):
+            plotter.subplot(row, col)
+            surface = pv.PolyData.from_regular_faces(z[:, :3], faces)
+            surface.point_data[label] = value(z)
+            plotter.add_mesh(rest, style="wireframe", color="#bbbbbb", line_width=0.5)
+            plotter.add_mesh(surface, scalars=label, cmap=cmap, clim=limits, smooth_shading=True,
+                             scalar_bar_args=dict(color="black", title=label, vertical=False))
+            plotter.add_points(z[loaded, :3], color="red", point_size=14, render_points_as_spheres=True)
+            plotter.add_text(f"{name}  {title}  final step", font_size=10, color="black")
+            _view(plotter, mesh.nodes.mean(axis=0), zoom=1.2)
+    tmp = out_png.with_name(out_png.stem + ".tmp" + out_png.suffix)
+    plotter.screenshot(str(tmp))
+    plotter.close()
+    os.replace(tmp, out_png)

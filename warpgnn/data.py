@@ -1,0 +1,121 @@
+"""Simulations as tensors, the paper's splits, and training batches with noise augmentation.
+
+Splits (paper section 2.3): L1-L4 train (760 simulations in the paper preset); every fifth
+simulation of L5 (20%) validates for early stopping; Test is all of L5 (the paper evaluates
+on all 190, validation ones included); Extra and Extra* are their own files.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+import torch
+
+from . import dataset
+from .errors import InputError
+from .graphs import Topology, batch, make_topology
+
+TRAIN_FILES = ("L1", "L2", "L3", "L4")
+TEST_FILE = "L5"
+VALIDATION_EVERY = 5  # 20% of L5
+
+
+@dataclass
+class Simulation:
+    name: str  # "<file stem>/<sim name>"
+    topology: Topology
+    z: torch.Tensor  # (S+1, N, 12) states q, v, sigma
+    u: torch.Tensor  # (S+1, K, 3) displacement of each tool
+    dt: float  # between snapshots
+    mean_edge: float  # mean rest edge length, the scale of the position noise
+
+    @property
+    def steps(self) -> int:
+        return self.z.shape[0] - 1
+
+
+def sim_names(path: Path) -> list[str]:
+    return sorted(dataset.simulation_names(path))
+
+
+def load_file(path, device="cpu", names=None) -> list[Simulation]:
+    """Simulations of one dataset file (all of them, or ``names``), fields checked."""
+    path = Path(path)
+    mesh = dataset.read_mesh(path)
+    with h5py.File(path, "r") as f:
+        if "dt" not in f.attrs:
+            raise InputError(f"{path}: attribute 'dt' missing")
+        dt = float(f.attrs["dt"])
+    names = sim_names(path) if names is None else names
+    edges = mesh.edges()
+    mean_edge = float(np.linalg.norm(mesh.nodes[edges[:, 0]] - mesh.nodes[edges[:, 1]], axis=1).mean())
+    sims = []
+    for name in names:
+        rec = dataset.read_simulation(path, name)
+        footprint = ("footprint_nodes", "footprint_load", "footprint_weight")
+        tip = [rec[k] for k in footprint] if all(k in rec for k in footprint) else [None] * 3
+        top = make_topology(mesh, rec["loaded"], *tip, device=device)
+        z = np.concatenate([rec["q"], rec["v"], rec["sigma"]], -1)
+        sims.append(Simulation(f"{path.stem}/{name}", top, torch.as_tensor(z, dtype=torch.float32, device=device),
+                               torch.as_tensor(rec["u"], dtype=torch.float32, device=device), dt, mean_edge))
+    return sims
+
+
+def file_path(data_dir: Path, stem: str) -> Path:
+    path = Path(data_dir) / f"{stem}.h5"
+    if not path.is_file():
+        raise InputError(f"{data_dir}: dataset file {stem}.h5 missing")
+    return path
+
+
+def load_splits(data_dir, device="cpu", train_fraction: float = 1.0, seed: int = 0) -> dict[str, list[Simulation]]:
+    """Train (L1-L4, optionally a random ``train_fraction`` of them) and validation (20% of L5)."""
+    train = []
+    for stem in TRAIN_FILES:
+        path = file_path(data_dir, stem)
+        names = sim_names(path)
+        if train_fraction < 1.0:
+            rng = np.random.default_rng([seed, TRAIN_FILES.index(stem)])
+            keep = max(1, round(train_fraction * len(names)))
+            names = sorted(rng.choice(names, keep, replace=False).tolist())
+        train += load_file(path, device, names)
+    test = file_path(data_dir, TEST_FILE)
+    val = load_file(test, device, sim_names(test)[::VALIDATION_EVERY])
+    return {"train": train, "val": val}
+
+
+@dataclass
+class Batch:
+    topology: Topology
+    z: torch.Tensor  # (N, 12) input state (noisy when augmenting)
+    u_now: torch.Tensor  # (K, 3)
+    u_next: torch.Tensor  # (K, 3)
+    zdot: torch.Tensor  # (N, 12) target (z(t+1) - z(t)) / dt, from the noisy state
+
+
+def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: float = 0.0,
+               generator: torch.Generator | None = None) -> Batch:
+    """Stack snapshots ``samples`` = [(simulation index, t), ...] into one graph.
+
+    Noise (paper appendix A): q' = q + mean_edge * eps * noise_q on free nodes, v' = v (1 + eps
+    noise_v), sigma' = sigma (1 + eps noise_v), eps ~ U(-1, 1); the target is built from z'.
+    """
+    picked = [(sims[i], t) for i, t in samples]
+    top = batch([s.topology for s, _ in picked])
+    z = torch.cat([s.z[t] for s, t in picked])
+    z_next = torch.cat([s.z[t + 1] for s, t in picked])
+    dt = torch.cat([torch.full((s.topology.n_nodes, 1), s.dt, device=z.device) for s, _ in picked])
+    if noise_q > 0 or noise_v > 0:
+        eps = torch.rand(z.shape, generator=generator, device="cpu").to(z.device) * 2 - 1
+        edge = torch.cat([torch.full((s.topology.n_nodes, 1), s.mean_edge, device=z.device) for s, _ in picked])
+        free = (top.node_type == 0)[:, None].to(z.dtype)
+        z = torch.cat([z[:, :3] + free * edge * eps[:, :3] * noise_q, z[:, 3:] * (1 + eps[:, 3:] * noise_v)], -1)
+    return Batch(top, z, torch.cat([s.u[t] for s, t in picked]), torch.cat([s.u[t + 1] for s, t in picked]),
+                 (z_next - z) / dt)
+
+
+def all_samples(sims: list[Simulation]) -> list[tuple[int, int]]:
+    return [(i, t) for i, s in enumerate(sims) for t in range(s.steps)]

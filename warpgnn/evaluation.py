@@ -1,0 +1,100 @@
+"""``warpgnn eval``: roll a checkpoint out on every simulation of a dataset file and score it.
+
+DIR/metrics.json   {"rmse": {q, v, sigma}, "rrmse": {...}, "per_rollout": [...], ...}
+DIR/rollouts.h5    /sims/<name>/{q, v, sigma} predicted, the ground truth's shapes (+ /mesh)
+DIR/*.png          per-rollout RRMSE box plot, the final step beside the FEM (|u| and sigma_xy),
+                   the 12 state variables of one node over time
+Per rollout the hybrid also reports its degeneracy residual and its bulk entropy production
+dS_i . M_ii dS_i, whose minimum must never be negative.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from . import checkpoint, dataset, metrics
+from .data import load_file
+from .graphs import GROUPS
+
+
+def evaluate(checkpoint_path, data_file, out_dir, device=None, backend: str = "torch", chunk: int = 64,
+             plots: bool = True, log=print) -> dict:
+    from .rollout import rollout
+
+    if backend != "torch":
+        raise NotImplementedError(f"backend {backend!r} is not built yet (the Warp kernels plug in here)")
+    device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    model, payload = checkpoint.load_model(checkpoint_path, device)
+    sims = load_file(data_file, device)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    with tqdm(total=len(sims) * sims[0].steps, desc="rollouts", unit="step", leave=False) as bar:
+        rolls = rollout(model, sims, chunk, progress=bar.update)
+    seconds = time.perf_counter() - t0
+    per = []
+    for r, s in zip(rolls, sims):
+        m = metrics.rollout_metrics(r.z, s.z.cpu().numpy())
+        rec = {"name": r.name, **m}
+        if r.degeneracy is not None:
+            rec.update(degeneracy_mean=float(r.degeneracy.mean()), degeneracy_max=float(r.degeneracy.max()),
+                       entropy_production_min=float(r.entropy_production_min.min()),
+                       entropy_production_mean=float(r.entropy_production_mean.mean()))
+        per.append(rec)
+    summary = metrics.set_metrics(per, [s.topology.n_nodes for s in sims])
+    result = {**summary, "per_rollout": per, "checkpoint": str(checkpoint_path), "data": str(data_file),
+              "model": model.describe(), "trained_epochs": payload.get("epoch"), "device": str(device),
+              "rollout_seconds": seconds, "simulations": len(sims)}
+    if per and "entropy_production_min" in per[0]:
+        result["entropy_production_min"] = min(p["entropy_production_min"] for p in per)
+        result["negative_entropy_rollouts"] = sum(p["entropy_production_min"] < 0 for p in per)
+    _write_json(out / "metrics.json", result)
+    _write_rollouts(out / "rollouts.h5", data_file, rolls)
+    if plots:
+        from .plots import node_history, rrmse_boxplot
+        from .render import render_comparison
+
+        rrmse_boxplot({model.config.kind: per}, out / "rrmse_boxplot.png", title=Path(data_file).stem)
+        worst = int(np.argmax([p["rrmse"]["q"] for p in per]))
+        pick = int(np.argsort([p["rrmse"]["q"] for p in per])[len(per) // 2])  # the median rollout
+        mesh = dataset.read_mesh(data_file)
+        for i, tag in ((pick, "median"), (worst, "worst")):
+            s = sims[i]
+            render_comparison(mesh, s.z.cpu().numpy(), rolls[i].z, s.topology.loaded.cpu().numpy(),
+                              out / f"final_step_{tag}.png", f"{s.name} ({tag} q RRMSE)")
+        s = sims[pick]
+        node = int(s.topology.loaded[0])
+        node_history(s.z.cpu().numpy()[:, node], rolls[pick].z[:, node], s.dt, out / "node_history.png",
+                     f"{s.name}, loaded node {node}")
+    log(f"{Path(data_file).stem}: {len(sims)} rollouts in {seconds:.1f} s; RRMSE q {summary['rrmse']['q']:.3e} "
+        f"v {summary['rrmse']['v']:.3e} sigma {summary['rrmse']['sigma']:.3e}; RMSE q {summary['rmse']['q']:.3e} m "
+        f"v {summary['rmse']['v']:.3e} m/s sigma {summary['rmse']['sigma']:.3e} Pa")
+    return result
+
+
+def _write_json(path: Path, obj) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=1))
+    os.replace(tmp, path)
+
+
+def _write_rollouts(path: Path, data_file, rolls) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    mesh = dataset.read_mesh(data_file)
+    with h5py.File(tmp, "w") as f:
+        g = f.create_group("mesh")
+        g["nodes"], g["tets"], g["fixed"] = mesh.nodes, mesh.tets, mesh.fixed
+        f.attrs["source"] = str(data_file)
+        for r in rolls:
+            s = f.create_group(f"sims/{r.name.split('/')[-1]}")
+            for key, sl in GROUPS.items():
+                s.create_dataset(key, data=r.z[:, :, sl].astype(np.float32), compression="gzip", compression_opts=1)
+    os.replace(tmp, path)

@@ -1,0 +1,136 @@
+"""The multi-graph of DESIGN.md section 4, as tensors.
+
+A ``Topology`` is what stays fixed during a rollout: the mesh graph (bidirected tet edges),
+the node types, the tools (one actuator node per loaded node, with directed edges to every
+mesh node of its graph) and the nodes each tool drives. Many topologies (snapshots of
+different simulations, even of different meshes) stack into one disconnected ``Topology``
+with ``batch``; the network never needs to know.
+
+``raw_features`` turns a state z = (q, v, sigma) and the tools' displacements into the
+unstandardised features of DESIGN.md; positions enter only through relative vectors, so the
+features (and the network) are invariant to translations of the whole state.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+
+from .mesh import TetMesh
+
+NODE_FREE, NODE_FIXED, NODE_PRESCRIBED = 0, 1, 2
+NODE_TYPES = 3
+STATE = 12  # q (3), v (3), sigma (6, Voigt xx yy zz xy yz xz)
+GROUPS = {"q": slice(0, 3), "v": slice(3, 6), "sigma": slice(6, 12)}
+
+
+@dataclass
+class Topology:
+    rest: torch.Tensor  # (N, 3) rest positions
+    senders: torch.Tensor  # (E,) mesh edges j -> i, both directions of every tet edge
+    receivers: torch.Tensor  # (E,)
+    node_type: torch.Tensor  # (N,) NODE_FREE / NODE_FIXED / NODE_PRESCRIBED
+    loaded: torch.Tensor  # (K,) the actuator (loaded) node of each tool
+    act_senders: torch.Tensor  # (K*N,) tool index of each actuator edge
+    act_receivers: torch.Tensor  # (K*N,) mesh node it reaches (every node of the tool's graph)
+    prescribed: torch.Tensor  # (P,) nodes driven by a tool (its rigid tip)
+    prescribed_tool: torch.Tensor  # (P,) which tool drives them
+    prescribed_weight: torch.Tensor  # (P,) q = rest + weight * u_tool
+    graph_sizes: torch.Tensor  # (G,) nodes per stacked graph (CPU)
+
+    @property
+    def n_nodes(self) -> int:
+        return self.rest.shape[0]
+
+    @property
+    def n_tools(self) -> int:
+        return self.loaded.shape[0]
+
+    def to(self, device) -> "Topology":
+        return Topology(**{f.name: getattr(self, f.name).to(device) if f.name != "graph_sizes"
+                           else self.graph_sizes for f in fields(self)})
+
+
+def make_topology(mesh: TetMesh, loaded, prescribed=None, prescribed_tool=None, prescribed_weight=None,
+                  device="cpu") -> Topology:
+    """One simulation's topology. Without a footprint only the loaded nodes are prescribed."""
+    n, loaded = len(mesh.nodes), np.asarray(loaded, np.int64)
+    k = len(loaded)
+    if prescribed is None:
+        prescribed, prescribed_tool, prescribed_weight = loaded, np.arange(k), np.ones(k)
+    e = mesh.edges()
+    senders, receivers = np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]])
+    node_type = np.where(mesh.fixed, NODE_FIXED, NODE_FREE)
+    node_type[np.asarray(prescribed, np.int64)] = NODE_PRESCRIBED
+
+    def t(a, dtype=torch.long):
+        return torch.as_tensor(np.asarray(a), dtype=dtype, device=device)
+
+    return Topology(
+        rest=t(mesh.nodes, torch.float32), senders=t(senders), receivers=t(receivers), node_type=t(node_type),
+        loaded=t(loaded), act_senders=t(np.repeat(np.arange(k), n)), act_receivers=t(np.tile(np.arange(n), k)),
+        prescribed=t(prescribed), prescribed_tool=t(prescribed_tool),
+        prescribed_weight=t(prescribed_weight, torch.float32), graph_sizes=torch.tensor([n]))
+
+
+def batch(topologies: list[Topology]) -> Topology:
+    """Stack topologies into one disconnected graph (node and tool indices offset)."""
+    if len(topologies) == 1:
+        return topologies[0]
+    dev = topologies[0].rest.device
+    nodes = torch.tensor([t.n_nodes for t in topologies], device=dev)
+    tools = torch.tensor([t.n_tools for t in topologies], device=dev)
+    node_off = torch.cumsum(nodes, 0) - nodes
+    tool_off = torch.cumsum(tools, 0) - tools
+
+    def cat(name, offsets=None):
+        parts = [getattr(t, name) for t in topologies]
+        out = torch.cat(parts)
+        if offsets is not None:
+            sizes = torch.tensor([len(p) for p in parts], device=dev)
+            out = out + torch.repeat_interleave(offsets, sizes)
+        return out
+
+    return Topology(
+        rest=cat("rest"), senders=cat("senders", node_off), receivers=cat("receivers", node_off),
+        node_type=cat("node_type"), loaded=cat("loaded", node_off), act_senders=cat("act_senders", tool_off),
+        act_receivers=cat("act_receivers", node_off), prescribed=cat("prescribed", node_off),
+        prescribed_tool=cat("prescribed_tool", tool_off), prescribed_weight=cat("prescribed_weight"),
+        graph_sizes=torch.cat([t.graph_sizes for t in topologies]))
+
+
+def _relative(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """[a - b, |a - b|]"""
+    d = a - b
+    return torch.cat([d, d.norm(dim=-1, keepdim=True)], -1)
+
+
+def raw_features(top: Topology, z: torch.Tensor, u_now: torch.Tensor, u_next: torch.Tensor) -> dict:
+    """Unstandardised features (DESIGN.md section 4) of the multi-graph.
+
+    node (N, 9): v, sigma (the one-hot type is appended after standardisation)
+    mesh_edge (E, 8): q_j - q_i and its norm, now and at rest (j sender, i receiver)
+    actuator_node (K, 6): the tool's displacement at the end of the step and its increment
+    actuator_edge (K*N, 8): position of node j relative to the loaded node, now and at rest
+    """
+    q = z[:, :3]
+    s, r = top.senders, top.receivers
+    k, j = top.loaded[top.act_senders], top.act_receivers
+    return {
+        "node": z[:, 3:],
+        "mesh_edge": torch.cat([_relative(q[s], q[r]), _relative(top.rest[s], top.rest[r])], -1),
+        "actuator_node": torch.cat([u_next, u_next - u_now], -1),
+        "actuator_edge": torch.cat([_relative(q[j], q[k]), _relative(top.rest[j], top.rest[k])], -1),
+    }
+
+
+def apply_boundary_conditions(top: Topology, z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """Fixed nodes at rest with zero velocity; tool-driven nodes at rest + weight * u_tool."""
+    fixed = (top.node_type == NODE_FIXED)[:, None]
+    q = torch.where(fixed, top.rest, z[:, :3])
+    v = torch.where(fixed, torch.zeros_like(z[:, 3:6]), z[:, 3:6])
+    q = q.index_put((top.prescribed,), top.rest[top.prescribed]
+                    + top.prescribed_weight[:, None] * u[top.prescribed_tool])
+    return torch.cat([q, v, z[:, 6:]], -1)

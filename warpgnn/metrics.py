@@ -1,0 +1,41 @@
+"""The paper's error measures (Eqs. 15-16), per state group q, v, sigma.
+
+RMSE  = sqrt( mean over snapshots and nodes of ||z_ref - z_pred||^2 / D )
+RRMSE = sqrt( mean over snapshots and nodes of ||z_ref - z_pred||^2 / ||z_ref||_inf^2 )
+
+||.||_2 runs over the D components of the group at one node. ||z_ref||_inf is the largest
+absolute value of the group over the whole reference rollout: the paper does not say over
+what the maximum runs, and per node or per snapshot it would divide by zero (velocities start
+at rest, fixed nodes never move). Snapshots 1..S are scored (snapshot 0 is given). A set's
+value pools all snapshots of all its rollouts (each rollout with its own normaliser).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .graphs import GROUPS
+
+
+def rollout_metrics(pred: np.ndarray, ref: np.ndarray) -> dict[str, dict[str, float]]:
+    """RMSE and RRMSE of one rollout, arrays (S+1, N, 12)."""
+    out = {"rmse": {}, "rrmse": {}}
+    for g, sl in GROUPS.items():
+        err = ((pred[1:, :, sl].astype(np.float64) - ref[1:, :, sl]) ** 2).sum(-1).mean()
+        norm = float(np.abs(ref[:, :, sl]).max())
+        out["rmse"][g] = float(np.sqrt(err / (sl.stop - sl.start)))
+        out["rrmse"][g] = float(np.sqrt(err) / norm) if norm > 0 else float("nan")
+    return out
+
+
+def set_metrics(per_rollout: list[dict], weights=None) -> dict[str, dict[str, float]]:
+    """Pool per-rollout metrics (each a ``rollout_metrics`` dict), weighted by node-snapshots."""
+    w = np.ones(len(per_rollout)) if weights is None else np.asarray(weights, float)
+    w = w / w.sum()
+    return {kind: {g: float(np.sqrt(sum(wi * r[kind][g] ** 2 for wi, r in zip(w, per_rollout)))) for g in GROUPS}
+            for kind in ("rmse", "rrmse")}
+
+
+def mean_rrmse(metrics: dict) -> float:
+    """The early-stopping score: the mean of the three groups' RRMSE."""
+    return float(np.mean([metrics["rrmse"][g] for g in GROUPS]))

@@ -1,0 +1,77 @@
+"""The port-metriplectic (GENERIC) decoder of the hybrid model (paper Eq. Gen12, DESIGN.md 4).
+
+Each node i carries energy and entropy gradients (dE_i, dS_i), each mesh edge j -> i and each
+node's self-loop carry flattened operators: l (66 values) fills the strict lower triangle of
+A, m (78 values) the lower triangle of B; L = A - A^T is skew-symmetric and M = B B^T
+symmetric positive semi-definite for any network weights. Per node
+
+    zdot_i = L_ii dE_i + M_ii dS_i - sum_{j -> i} (L_ij dE_j + M_ij dS_j)
+
+L and M are never formed: L x = A x - A^T x and M x = B (B^T x). The degeneracy residuals
+L_ii dS_i and M_ii dE_i are returned for the loss, and the bulk entropy production
+dS_i . M_ii dS_i, which is >= 0 by construction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from .core_model import mlp, scatter_sum
+
+STATE = 12
+N_L = STATE * (STATE - 1) // 2  # 66
+N_M = STATE * (STATE + 1) // 2  # 78
+_STRICT = torch.tril_indices(STATE, STATE, -1)
+_LOWER = torch.tril_indices(STATE, STATE, 0)
+
+
+def lower_triangular(values: torch.Tensor, strict: bool) -> torch.Tensor:
+    """(E, 66) -> (E, 12, 12) strictly lower, or (E, 78) -> lower triangular."""
+    rows, cols = (_STRICT if strict else _LOWER)
+    out = values.new_zeros(values.shape[0], STATE, STATE)
+    out[:, rows.to(values.device), cols.to(values.device)] = values
+    return out
+
+
+def apply_L(A: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """(A - A^T) x, batched over the leading axis."""
+    return torch.einsum("eab,eb->ea", A, x) - torch.einsum("eba,eb->ea", A, x)
+
+
+def apply_M(B: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """B (B^T x), batched over the leading axis."""
+    return torch.einsum("eab,eb->ea", B, torch.einsum("eba,eb->ea", B, x))
+
+
+@dataclass
+class GenericOutput:
+    zdot: torch.Tensor  # (N, 12) in standardised units
+    degeneracy: torch.Tensor  # (N,) |L_ii dS_i|^2 + |M_ii dE_i|^2
+    entropy_production: torch.Tensor  # (N,) dS_i . M_ii dS_i >= 0
+
+
+class PortMetriplecticDecoder(nn.Module):
+    def __init__(self, latent: int, hidden_layers: int = 1):
+        super().__init__()
+        self.delta_v = mlp(latent, latent, 2 * STATE, hidden_layers, layer_norm=False)
+        self.delta_e = mlp(3 * latent, latent, N_L + N_M, hidden_layers, layer_norm=False)
+        self.self_loop = nn.Parameter(torch.randn(latent) / latent**0.5)  # the learned edge latent x_ii
+
+    def operators(self, edge_latent, receiver_latent, sender_latent):
+        lm = self.delta_e(torch.cat([edge_latent, receiver_latent, sender_latent], -1))
+        return lower_triangular(lm[:, :N_L], strict=True), lower_triangular(lm[:, N_L:], strict=False)
+
+    def forward(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor) -> GenericOutput:
+        n = x.shape[0]
+        grads = self.delta_v(x)
+        dE, dS = grads[:, :STATE], grads[:, STATE:]
+        A_ii, B_ii = self.operators(self.self_loop.expand(n, -1), x, x)
+        A_ij, B_ij = self.operators(e, x[receivers], x[senders])
+        port = apply_L(A_ij, dE[senders]) + apply_M(B_ij, dS[senders])
+        M_dS = apply_M(B_ii, dS)
+        zdot = apply_L(A_ii, dE) + M_dS - scatter_sum(port, receivers, n)
+        degeneracy = apply_L(A_ii, dS).square().sum(-1) + apply_M(B_ii, dE).square().sum(-1)
+        return GenericOutput(zdot, degeneracy, (dS * M_dS).sum(-1))

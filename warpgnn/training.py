@@ -1,0 +1,206 @@
+"""``warpgnn train``: one-step training on snapshot pairs, early stopping on rollouts.
+
+Adam; the learning rate drops on a plateau of the training loss; after every epoch the
+validation simulations (20% of L5) are rolled out from their initial state, and the mean of
+the q, v, sigma RRMSE decides best.pt and early stopping. RUN/last.pt is written atomically
+after every epoch (so a kill -9 costs at most one epoch) and ``--resume`` continues from it
+bit for bit in data order (every epoch's order and noise come from (seed, epoch, rank)).
+Under torchrun every process takes its share of each epoch (DistributedDataParallel).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from tqdm.auto import tqdm
+
+from . import checkpoint, metrics
+from .data import Batch, all_samples, load_splits, make_batch
+from .errors import InputError
+from .model import ModelConfig, TIGNN
+from .rollout import rollout
+
+
+@dataclass
+class TrainConfig:
+    data: str = "data"
+    out: str = "run"
+    model: ModelConfig = field(default_factory=ModelConfig)
+    epochs: int = 1000
+    batch_size: int = 16  # snapshots per step (per process under torchrun)
+    lr: float = 1e-3
+    lr_factor: float = 0.5
+    lr_patience: int = 5  # epochs without a lower training loss
+    min_lr: float = 1e-6
+    patience: int = 30  # epochs without a better validation rollout before stopping
+    noise_q: float = 1e-4  # times the mean edge length (paper appendix A)
+    noise_v: float = 1e-3  # relative, on v and sigma
+    train_fraction: float = 1.0  # data-scarcity study
+    seed: int = 0
+    resume: bool = False
+    time_limit: float | None = None  # seconds; stop after the epoch that passes it (resume later)
+    device: str | None = None
+
+
+LOG_FIELDS = ("epoch", "seconds", "lr", "loss", "data", "degeneracy", "val_q", "val_v", "val_sigma", "val_mean", "best")
+
+
+def train_step(model, batch: Batch) -> tuple[torch.Tensor, dict]:
+    """Forward and backward of one batch (``model`` may be DDP-wrapped); returns the loss."""
+    core = model.module if hasattr(model, "module") else model
+    p = model(batch.topology, batch.z, batch.u_now, batch.u_next)
+    loss, parts = core.loss(p, batch.zdot)
+    loss.backward()
+    return loss.detach(), parts
+
+
+def fit_normalizer(model: TIGNN, sims, batch_size: int = 64) -> None:
+    from .graphs import raw_features
+
+    samples = all_samples(sims)
+
+    def stream():
+        for i in range(0, len(samples), batch_size):
+            b = make_batch(sims, samples[i:i + batch_size])
+            yield raw_features(b.topology, b.z, b.u_now, b.u_next), b.zdot
+
+    model.normalizer.fit(stream())
+
+
+def validate(model: TIGNN, sims) -> dict:
+    rolls = rollout(model, sims)
+    per = [metrics.rollout_metrics(r.z, s.z.cpu().numpy()) for r, s in zip(rolls, sims)]
+    return metrics.set_metrics(per, [s.topology.n_nodes for s in sims])
+
+
+def _distributed() -> tuple[int, int]:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    return (dist.get_rank(), world) if world > 1 else (0, 1)
+
+
+def _device(name: str | None, rank: int, world: int) -> torch.device:
+    if name is None:
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    dev = torch.device(name)
+    if dev.type == "cuda" and world > 1:
+        dev = torch.device("cuda", int(os.environ.get("LOCAL_RANK", rank)))
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise InputError(f"device {name} requested but CUDA is not available")
+    return dev
+
+
+def _write_log(path: Path, history: list[dict]) -> None:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, LOG_FIELDS, extrasaction="ignore")
+    w.writeheader()
+    w.writerows(history)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(buf.getvalue())
+    os.replace(tmp, path)
+
+
+def train(cfg: TrainConfig, log=print) -> dict:
+    rank, world = _distributed()
+    device = _device(cfg.device, rank, world)
+    out = Path(cfg.out)
+    last = out / "last.pt"
+    state = checkpoint.read(last, map_location=device) if cfg.resume and last.exists() else None
+    if state is None and last.exists():
+        raise InputError(f"{out} already holds a run: pass --resume to continue it, or choose another --out")
+    if state is not None and state.get("stopped"):
+        log(f"{out}: already finished ({state['stopped']}); best validation {state['best']:.4e} at epoch {state['best_epoch']}")
+        return {"best": state["best"], "best_epoch": state["best_epoch"], "epochs": len(state["history"]),
+                "history": state["history"]}
+    torch.manual_seed(cfg.seed)
+    splits = load_splits(cfg.data, device, cfg.train_fraction, cfg.seed)
+    train_sims, val_sims = splits["train"], splits["val"]
+    model = TIGNN(cfg.model).to(device)
+    if state is None:
+        fit_normalizer(model, train_sims)
+    else:
+        model.load_state_dict(state["model"])
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=cfg.lr_factor, patience=cfg.lr_patience,
+                                                       min_lr=cfg.min_lr)
+    history, best, best_epoch, start = [], math.inf, -1, 0
+    if state is not None:
+        opt.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        history, best, best_epoch, start = state["history"], state["best"], state["best_epoch"], state["epoch"] + 1
+    net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
+    if rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+        log(f"{cfg.model.kind}, {cfg.model.passes} passes, F = {cfg.model.latent}: {model.n_parameters():,} parameters; "
+            f"{len(train_sims)} training and {len(val_sims)} validation simulations on {device}"
+            + (f" x {world} processes" if world > 1 else ""))
+    samples = all_samples(train_sims)
+    per_rank = len(samples) // world
+    started = t0 = time.perf_counter()
+    for epoch in range(start, cfg.epochs):
+        order = np.random.default_rng([cfg.seed, epoch]).permutation(len(samples))
+        mine = [samples[i] for i in order[rank * per_rank:(rank + 1) * per_rank]]
+        gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch * 1_009 + rank)
+        model.train()
+        sums, n = {}, 0
+        bar = tqdm(range(0, len(mine), cfg.batch_size), desc=f"epoch {epoch}", leave=False, disable=True if rank else None)
+        for i in bar:
+            b = make_batch(train_sims, mine[i:i + cfg.batch_size], cfg.noise_q, cfg.noise_v, gen)
+            opt.zero_grad(set_to_none=True)
+            loss, parts = train_step(net, b)
+            opt.step()
+            for k, v in {"loss": loss, **parts}.items():
+                sums[k] = sums.get(k, 0.0) + v
+            n += 1
+            if n % 20 == 0:
+                bar.set_postfix(loss=f"{float(loss):.3e}")
+        means = torch.stack([sums[k] / n for k in sorted(sums)])
+        if world > 1:
+            dist.all_reduce(means)
+            means /= world
+        row = {k: float(v) for k, v in zip(sorted(sums), means)}
+        sched.step(row["loss"])
+        val = validate(model, val_sims)
+        score = metrics.mean_rrmse(val)
+        improved = score < best
+        if improved:
+            best, best_epoch = score, epoch
+        epoch_seconds = time.perf_counter() - t0
+        row.update(epoch=epoch, seconds=round(epoch_seconds + (history[-1]["seconds"] if history else 0), 1),
+                   lr=opt.param_groups[0]["lr"], val_q=val["rrmse"]["q"], val_v=val["rrmse"]["v"],
+                   val_sigma=val["rrmse"]["sigma"], val_mean=score, best=improved)
+        history.append(row)
+        t0 = time.perf_counter()
+        stopped = f"early stop: no better validation rollout for {cfg.patience} epochs" \
+            if epoch - best_epoch >= cfg.patience else None
+        if rank == 0:
+            if improved:
+                checkpoint.save_atomically(checkpoint.model_payload(model, epoch=epoch, validation=val,
+                                                                    train_config=asdict(cfg)), out / "best.pt")
+            checkpoint.save_atomically(checkpoint.model_payload(
+                model, optimizer=opt.state_dict(), scheduler=sched.state_dict(), epoch=epoch, best=best,
+                best_epoch=best_epoch, history=history, stopped=stopped, train_config=asdict(cfg)), last)
+            _write_log(out / "log.csv", history)
+            log(f"epoch {epoch} ({epoch_seconds:.1f} s): loss {row['loss']:.4e}, val RRMSE q {val['rrmse']['q']:.3e} v {val['rrmse']['v']:.3e} "
+                f"sigma {val['rrmse']['sigma']:.3e}{'  (best)' if improved else ''}")
+        if stopped:
+            if rank == 0:
+                log(stopped)
+            break
+        if cfg.time_limit is not None and time.perf_counter() - started + epoch_seconds > cfg.time_limit:
+            if rank == 0:
+                log(f"time limit reached after epoch {epoch}; --resume continues")
+            break
+    if world > 1:
+        dist.destroy_process_group()
+    return {"best": best, "best_epoch": best_epoch, "epochs": len(history), "history": history}
