@@ -24,16 +24,18 @@ from .core_model import mlp, scatter_sum
 STATE = 12
 N_L = STATE * (STATE - 1) // 2  # 66
 N_M = STATE * (STATE + 1) // 2  # 78
-_STRICT = torch.tril_indices(STATE, STATE, -1)
-_LOWER = torch.tril_indices(STATE, STATE, 0)
+_TRIANGLES: dict = {}  # (strict, device) -> flat indices into a 12 x 12 matrix
 
 
 def lower_triangular(values: torch.Tensor, strict: bool) -> torch.Tensor:
     """(E, 66) -> (E, 12, 12) strictly lower, or (E, 78) -> lower triangular."""
-    rows, cols = (_STRICT if strict else _LOWER)
-    out = values.new_zeros(values.shape[0], STATE, STATE)
-    out[:, rows.to(values.device), cols.to(values.device)] = values
-    return out
+    key = (strict, values.device)
+    if key not in _TRIANGLES:
+        rows, cols = torch.tril_indices(STATE, STATE, -1 if strict else 0)
+        _TRIANGLES[key] = (rows * STATE + cols).to(values.device)
+    out = values.new_zeros(values.shape[0], STATE * STATE)
+    out[:, _TRIANGLES[key]] = values
+    return out.view(-1, STATE, STATE)
 
 
 def apply_L(A: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
