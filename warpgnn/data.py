@@ -26,7 +26,7 @@ VALIDATION_EVERY = 5  # 20% of L5
 @dataclass
 class Simulation:
     name: str  # "<file stem>/<sim name>"
-    topology: Topology
+    topology: Topology  # kept on the CPU: batches are stacked there, then copied once
     z: torch.Tensor  # (S+1, N, 12) states q, v, sigma
     u: torch.Tensor  # (S+1, K, 3) displacement of each tool
     dt: float  # between snapshots
@@ -57,7 +57,7 @@ def load_file(path, device="cpu", names=None) -> list[Simulation]:
         rec = dataset.read_simulation(path, name)
         footprint = ("footprint_nodes", "footprint_load", "footprint_weight")
         tip = [rec[k] for k in footprint] if all(k in rec for k in footprint) else [None] * 3
-        top = make_topology(mesh, rec["loaded"], *tip, device=device)
+        top = make_topology(mesh, rec["loaded"], *tip)
         z = np.concatenate([rec["q"], rec["v"], rec["sigma"]], -1)
         sims.append(Simulation(f"{path.stem}/{name}", top, torch.as_tensor(z, dtype=torch.float32, device=device),
                                torch.as_tensor(rec["u"], dtype=torch.float32, device=device), dt, mean_edge))
@@ -104,15 +104,24 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     noise_v), sigma' = sigma (1 + eps noise_v), eps ~ U(-1, 1); the target is built from z'.
     """
     picked = [(sims[i], t) for i, t in samples]
-    top = batch([s.topology for s, _ in picked])
+    device = picked[0][0].z.device
+    top = batch([s.topology for s, _ in picked]).to(device)
     z = torch.cat([s.z[t] for s, t in picked])
     z_next = torch.cat([s.z[t + 1] for s, t in picked])
-    dt = torch.cat([torch.full((s.topology.n_nodes, 1), s.dt, device=z.device) for s, _ in picked])
-    if noise_q > 0 or noise_v > 0:
-        eps = torch.rand(z.shape, generator=generator, device="cpu").to(z.device) * 2 - 1
-        edge = torch.cat([torch.full((s.topology.n_nodes, 1), s.mean_edge, device=z.device) for s, _ in picked])
+    sizes = torch.tensor([s.topology.n_nodes for s, _ in picked])
+    # per-node columns: dt, then the position-noise amplitude and U(-1, 1) draws
+    host = [torch.tensor([s.dt for s, _ in picked]).repeat_interleave(sizes)[:, None]]
+    noisy = noise_q > 0 or noise_v > 0
+    if noisy:
+        host += [torch.tensor([s.mean_edge * noise_q for s, _ in picked]).repeat_interleave(sizes)[:, None],
+                 torch.rand((len(z), 12), generator=generator) * 2 - 1]
+    host = torch.cat(host, 1).float()
+    host = (host.pin_memory() if device.type == "cuda" else host).to(device, non_blocking=True)
+    dt = host[:, :1]
+    if noisy:
+        amp, eps = host[:, 1:2], host[:, 2:]
         free = (top.node_type == 0)[:, None].to(z.dtype)
-        z = torch.cat([z[:, :3] + free * edge * eps[:, :3] * noise_q, z[:, 3:] * (1 + eps[:, 3:] * noise_v)], -1)
+        z = torch.cat([z[:, :3] + free * amp * eps[:, :3], z[:, 3:] * (1 + eps[:, 3:] * noise_v)], -1)
     return Batch(top, z, torch.cat([s.u[t] for s, t in picked]), torch.cat([s.u[t + 1] for s, t in picked]),
                  (z_next - z) / dt)
 

@@ -49,7 +49,14 @@ class Topology:
         return self.loaded.shape[0]
 
     def to(self, device) -> "Topology":
-        return Topology(**{f.name: getattr(self, f.name).to(device) if f.name != "graph_sizes"
+        """A copy on ``device``; from the CPU through pinned memory, so the copy does not wait
+        for the GPU (training builds each batch's topology on the CPU while the GPU works)."""
+        device = torch.device(device)
+        if device.type == "cuda" and self.rest.device.type == "cpu":
+            move = lambda t: t.pin_memory().to(device, non_blocking=True)  # noqa: E731
+        else:
+            move = lambda t: t.to(device)  # noqa: E731
+        return Topology(**{f.name: move(getattr(self, f.name)) if f.name != "graph_sizes"
                            else self.graph_sizes for f in fields(self)})
 
 
@@ -76,22 +83,20 @@ def make_topology(mesh: TetMesh, loaded, prescribed=None, prescribed_tool=None, 
 
 
 def batch(topologies: list[Topology]) -> Topology:
-    """Stack topologies into one disconnected graph (node and tool indices offset)."""
+    """Stack topologies into one disconnected graph (node and tool indices offset). Cheapest
+    on CPU topologies (sizes are known there without asking the GPU)."""
     if len(topologies) == 1:
         return topologies[0]
-    dev = topologies[0].rest.device
-    nodes = torch.tensor([t.n_nodes for t in topologies], device=dev)
-    tools = torch.tensor([t.n_tools for t in topologies], device=dev)
-    node_off = torch.cumsum(nodes, 0) - nodes
-    tool_off = torch.cumsum(tools, 0) - tools
+    nodes = [t.n_nodes for t in topologies]
+    tools = [t.n_tools for t in topologies]
+    node_off = np.cumsum([0] + nodes[:-1])
+    tool_off = np.cumsum([0] + tools[:-1])
 
     def cat(name, offsets=None):
         parts = [getattr(t, name) for t in topologies]
-        out = torch.cat(parts)
         if offsets is not None:
-            sizes = torch.tensor([len(p) for p in parts], device=dev)
-            out = out + torch.repeat_interleave(offsets, sizes)
-        return out
+            parts = [p + int(o) for p, o in zip(parts, offsets)]
+        return torch.cat(parts)
 
     return Topology(
         rest=cat("rest"), senders=cat("senders", node_off), receivers=cat("receivers", node_off),

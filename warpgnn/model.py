@@ -12,7 +12,6 @@ from dataclasses import asdict, dataclass
 
 import torch
 from torch import nn
-from torch.nn import functional as F
 
 from .core_model import EdgeSet, EncodeProcess, MultiGraph, mlp
 from .graphs import NODE_TYPES, STATE, Topology, apply_boundary_conditions, raw_features
@@ -46,6 +45,11 @@ class Prediction:
     entropy_production: torch.Tensor | None = None  # (N,) hybrid only, >= 0
 
 
+def one_hot(node_type: torch.Tensor) -> torch.Tensor:
+    # not F.one_hot: on CUDA it reads the largest value back to the host (a sync per step)
+    return (node_type[:, None] == torch.arange(NODE_TYPES, device=node_type.device)).float()
+
+
 class TIGNN(nn.Module):
     def __init__(self, config: ModelConfig = ModelConfig()):
         super().__init__()
@@ -63,7 +67,7 @@ class TIGNN(nn.Module):
     def graph(self, top: Topology, z, u_now, u_next) -> MultiGraph:
         raw = raw_features(top, z, u_now, u_next)
         norm = self.normalizer.standardize
-        nodes = [norm("node", raw["node"]), F.one_hot(top.node_type, NODE_TYPES).to(z.dtype)]
+        nodes = [norm("node", raw["node"]), one_hot(top.node_type).to(z.dtype)]
         actuator = norm("actuator_node", raw["actuator_node"])
         mesh = EdgeSet(norm("mesh_edge", raw["mesh_edge"]), top.senders, top.receivers)
         if not self.config.actuator_graphs:

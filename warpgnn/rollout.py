@@ -27,10 +27,10 @@ def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None) -> li
     out = []
     for start in range(0, len(sims), chunk):
         part = sims[start:start + chunk]
-        top = batch([s.topology for s in part])
-        graph_of = torch.repeat_interleave(torch.arange(len(part), device=top.rest.device),
-                                           top.graph_sizes.to(top.rest.device))
-        counts = top.graph_sizes.to(top.rest.device).float()
+        device = part[0].z.device
+        top = batch([s.topology for s in part]).to(device)
+        graph_of = torch.repeat_interleave(torch.arange(len(part)), top.graph_sizes).to(device)
+        counts = top.graph_sizes.to(device).float()
         z = torch.cat([s.z[0] for s in part])
         states, deg, ent_min, ent_mean = [z], [], [], []
         for t in range(part[0].steps):

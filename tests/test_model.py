@@ -1,0 +1,479 @@
+"""The torch reference network (DESIGN.md section 4): shapes and sizes, symmetries, the
+GENERIC structure of the hybrid decoder against a dense assembly, loss, metrics, boundary
+conditions, batching, noise augmentation and standardisation statistics.
+
+Everything runs on tiny models and small box meshes on the CPU; symmetry and assembly checks
+run in float64 so their tolerances can stay tight."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+from synthetic import box, simulation
+
+from warpgnn import metrics
+from warpgnn.data import Simulation, make_batch
+from warpgnn.graphs import (NODE_FIXED, NODE_FREE, NODE_PRESCRIBED, apply_boundary_conditions, batch,
+                            make_topology, raw_features)
+from warpgnn.mesh import TetMesh, box_tet_mesh
+from warpgnn.model import ModelConfig, Prediction, TIGNN
+from warpgnn.normalization import FEATURES, Normalizer
+from warpgnn.port_metriplectic import N_L, N_M, PortMetriplecticDecoder, apply_L, apply_M, lower_triangular
+
+VARIANTS = [("hybrid", True), ("hybrid", False), ("vanilla", True), ("vanilla", False)]
+VARIANT_IDS = [f"{k}-{'actuators' if a else 'single'}" for k, a in VARIANTS]
+
+
+# ----------------------------------------------------------------------------- helpers
+def tiny(kind="hybrid", actuator_graphs=True, seed=0, **kw) -> TIGNN:
+    torch.manual_seed(seed)
+    return TIGNN(ModelConfig(kind=kind, passes=2, latent=16, actuator_graphs=actuator_graphs, **kw))
+
+
+def top_nodes(mesh):
+    return np.flatnonzero(mesh.nodes[:, 2] > mesh.nodes[:, 2].max() - 1e-9)
+
+
+def tool_topology(mesh, loaded, device="cpu"):
+    """Each tool drives its loaded node (weight 1) and one first-ring neighbour (weight 0.5),
+    so footprints, tools and weights all matter."""
+    ring = mesh.neighbours()
+    nodes, tools, weights = [], [], []
+    for k, node in enumerate(loaded):
+        free = [j for j in ring[node] if not mesh.fixed[j] and j not in loaded and j not in nodes]
+        nodes += [node, free[0]]
+        tools += [k, k]
+        weights += [1.0, 0.5]
+    return make_topology(mesh, loaded, nodes, tools, weights, device=device)
+
+
+def random_state(top, gen, dtype=torch.float64):
+    """A deformed state with velocities and stresses on physical scales."""
+    n = top.n_nodes
+    q = top.rest.to(dtype) + 2e-3 * torch.randn(n, 3, generator=gen, dtype=dtype)
+    v = 1e-2 * torch.randn(n, 3, generator=gen, dtype=dtype)
+    s = 1e3 * torch.randn(n, 6, generator=gen, dtype=dtype)
+    return torch.cat([q, v, s], -1)
+
+
+def to_double(top):
+    return replace(top, rest=top.rest.double(), prescribed_weight=top.prescribed_weight.double())
+
+
+def randomize_normalizer(model, top, gen):
+    """Fit on random states, then shift means and rescale stds so standardisation is far
+    from the identity (and from the fitted values) in every column."""
+    samples = []
+    for _ in range(3):
+        z = random_state(top, gen)
+        u = 3e-3 * torch.randn(top.n_tools, 3, generator=gen, dtype=torch.float64)
+        samples.append((raw_features(top, z, u, 1.1 * u), torch.randn(top.n_nodes, 12, generator=gen)))
+    norm = model.normalizer.fit(samples)
+    for name in FEATURES:
+        mean, std = getattr(norm, f"{name}_mean"), getattr(norm, f"{name}_std")
+        mean.add_(0.3 * std * torch.randn(mean.shape, generator=gen, dtype=torch.float64).float())
+        std.mul_(0.5 + torch.rand(std.shape, generator=gen, dtype=torch.float64).float())
+    norm.zdot_scale.copy_(0.5 + torch.rand(12, generator=gen, dtype=torch.float64).float())
+
+
+def setup_case(kind, actuator_graphs, seed=0, cells=(2, 2, 2)):
+    """A float64 tiny model with a non-trivial normaliser, a two-tool topology and a state."""
+    gen = torch.Generator().manual_seed(seed)
+    mesh = box(cells)
+    loaded = top_nodes(mesh)[[0, -1]]
+    top = to_double(tool_topology(mesh, loaded))
+    model = tiny(kind, actuator_graphs, seed)
+    randomize_normalizer(model, top, gen)
+    model = model.double()
+    z = random_state(top, gen)
+    u_now = 3e-3 * torch.randn(top.n_tools, 3, generator=gen, dtype=torch.float64)
+    u_next = u_now + 1e-3 * torch.randn(top.n_tools, 3, generator=gen, dtype=torch.float64)
+    return mesh, loaded, top, model, z, u_now, u_next
+
+
+# ----------------------------------------------------------------------- 1. shapes, sizes
+@pytest.mark.parametrize("kind,actuator_graphs", VARIANTS, ids=VARIANT_IDS)
+def test_prediction_shapes_and_scaling(kind, actuator_graphs):
+    mesh = box((2, 2, 2))
+    top = tool_topology(mesh, top_nodes(mesh)[[0, -1]])
+    gen = torch.Generator().manual_seed(1)
+    model = tiny(kind, actuator_graphs)
+    model.normalizer.zdot_scale.copy_(torch.arange(1.0, 13.0))
+    z = random_state(top, gen, torch.float32)
+    u_now, u_next = torch.zeros(2, 3), torch.full((2, 3), 1e-3)
+    p = model(top, z, u_now, u_next)
+    n = mesh.nodes.shape[0]
+    assert p.zdot.shape == p.zdot_standardized.shape == (n, 12)
+    assert torch.isfinite(p.zdot).all()
+    # physical zdot = standardised output times the per-component RMS scale
+    torch.testing.assert_close(p.zdot, p.zdot_standardized * torch.arange(1.0, 13.0))
+    if kind == "hybrid":
+        assert p.degeneracy.shape == p.entropy_production.shape == (n,)
+        assert (p.degeneracy >= 0).all() and (p.entropy_production >= 0).all()
+    else:
+        assert p.degeneracy is None and p.entropy_production is None
+    # the tools reach the network in both the multi-graph and the single-graph ablation
+    other = model(top, z, u_now, -u_next)
+    assert (other.zdot - p.zdot).abs().max() > 1e-6
+
+
+def test_parameter_counts():
+    assert 0.2e6 <= TIGNN(ModelConfig()).n_parameters() <= 0.35e6
+    assert 1.8e6 <= TIGNN(ModelConfig(passes=12, latent=128)).n_parameters() <= 2.8e6
+    # the single-graph ablation drops the two actuator encoders and every f_w
+    assert TIGNN(ModelConfig(actuator_graphs=False)).n_parameters() < TIGNN(ModelConfig()).n_parameters()
+    with pytest.raises(ValueError):
+        ModelConfig(kind="gat")
+
+
+# ------------------------------------------------------------------ 2-3. symmetries
+@pytest.mark.parametrize("kind,actuator_graphs", VARIANTS, ids=VARIANT_IDS)
+def test_translation_invariance(kind, actuator_graphs):
+    _, _, top, model, z, u_now, u_next = setup_case(kind, actuator_graphs)
+    shift = torch.tensor([0.31, -0.72, 1.13], dtype=torch.float64)
+    moved_z = z.clone()
+    moved_z[:, :3] += shift
+    base = model(top, z, u_now, u_next)
+    moved = model(replace(top, rest=top.rest + shift), moved_z, u_now, u_next)
+    torch.testing.assert_close(moved.zdot, base.zdot, rtol=1e-9, atol=1e-9 * base.zdot.abs().max().item())
+    # not vacuous: moving a single node does change the prediction
+    bent = z.clone()
+    bent[3, :3] += 1e-3
+    assert (model(top, bent, u_now, u_next).zdot - base.zdot).abs().max() > 1e-6 * base.zdot.abs().max()
+
+
+@pytest.mark.parametrize("kind,actuator_graphs", VARIANTS, ids=VARIANT_IDS)
+def test_permutation_equivariance(kind, actuator_graphs):
+    mesh, loaded, top, model, z, u_now, u_next = setup_case(kind, actuator_graphs)
+    n = len(mesh.nodes)
+    perm = np.random.default_rng(7).permutation(n)  # new node a is old node perm[a]
+    inv = np.argsort(perm)
+    permuted_mesh = TetMesh(mesh.nodes[perm], inv[mesh.tets], mesh.fixed[perm])
+    old = top
+    permuted = to_double(make_topology(permuted_mesh, inv[old.loaded.numpy()], inv[old.prescribed.numpy()],
+                                       old.prescribed_tool.numpy(), old.prescribed_weight.numpy()))
+    p = torch.as_tensor(perm)
+    assert torch.equal(permuted.node_type, old.node_type[p])
+    base = model(top, z, u_now, u_next)
+    out = model(permuted, z[p], u_now, u_next)
+    scale = base.zdot.abs().max().item()
+    torch.testing.assert_close(out.zdot, base.zdot[p], rtol=1e-9, atol=1e-9 * scale)
+    if kind == "hybrid":
+        torch.testing.assert_close(out.degeneracy, base.degeneracy[p], rtol=1e-9, atol=1e-12)
+
+
+# --------------------------------------------------------- 4. operator structure L, M
+def test_lower_triangular_layout():
+    """Row-major fill of the (strict) lower triangle, numpy's tril_indices order."""
+    for strict, width in ((True, N_L), (False, N_M)):
+        values = torch.arange(1.0, width + 1).expand(2, -1)
+        mat = lower_triangular(values, strict).numpy()
+        expected = np.zeros((12, 12))
+        expected[np.tril_indices(12, -1 if strict else 0)] = np.arange(1.0, width + 1)
+        assert mat.shape == (2, 12, 12)
+        np.testing.assert_array_equal(mat[0], expected)
+        np.testing.assert_array_equal(mat[1], expected)
+
+
+def test_operators_skew_and_psd_for_random_values():
+    gen = torch.Generator().manual_seed(3)
+    E = 7
+    A = lower_triangular(torch.randn(E, N_L, generator=gen, dtype=torch.float64), strict=True)
+    B = lower_triangular(torch.randn(E, N_M, generator=gen, dtype=torch.float64), strict=False)
+    L = A - A.transpose(1, 2)
+    M = B @ B.transpose(1, 2)
+    assert torch.equal(L, -L.transpose(1, 2))
+    assert torch.allclose(M, M.transpose(1, 2), rtol=0, atol=1e-12)
+    assert torch.linalg.eigvalsh(M).min() >= -1e-10
+    x = torch.randn(E, 12, generator=gen, dtype=torch.float64)
+    torch.testing.assert_close(apply_L(A, x), torch.einsum("eab,eb->ea", L, x), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(apply_M(B, x), torch.einsum("eab,eb->ea", M, x), rtol=1e-12, atol=1e-12)
+    # skew L does no work and M dissipates: x.Lx = 0, x.Mx >= 0
+    assert (x * apply_L(A, x)).sum(-1).abs().max() < 1e-12
+    assert ((x * apply_M(B, x)).sum(-1) >= 0).all()
+
+
+# ----------------------------------------------------- 5. GENERIC sum vs dense assembly
+def test_generic_decoder_matches_dense_assembly():
+    torch.manual_seed(5)
+    F, N = 8, 5
+    dec = PortMetriplecticDecoder(F).double()
+    # bidirected pairs, a one-way edge 0 -> 3 (catches a sender/receiver swap), node 4 isolated
+    senders = torch.tensor([0, 1, 1, 2, 3, 2, 0])
+    receivers = torch.tensor([1, 0, 2, 1, 2, 3, 3])
+    gen = torch.Generator().manual_seed(6)
+    x = torch.randn(N, F, generator=gen, dtype=torch.float64)
+    e = torch.randn(len(senders), F, generator=gen, dtype=torch.float64)
+    with torch.no_grad():
+        out = dec(x, e, senders, receivers)
+        grads = dec.delta_v(x)
+        dE, dS = grads[:, :12].numpy(), grads[:, 12:].numpy()
+        # delta_e(x_ij, x_i, x_j): edge latent, receiver latent, sender latent
+        lm_self = dec.delta_e(torch.cat([dec.self_loop.expand(N, -1), x, x], -1)).numpy()
+        lm_edge = dec.delta_e(torch.cat([e, x[receivers], x[senders]], -1)).numpy()
+
+    def dense(lm):
+        A = np.zeros((len(lm), 12, 12))
+        B = np.zeros((len(lm), 12, 12))
+        A[:, *np.tril_indices(12, -1)] = lm[:, :N_L]
+        B[:, *np.tril_indices(12)] = lm[:, N_L:]
+        return A - A.transpose(0, 2, 1), B @ B.transpose(0, 2, 1)
+
+    L_ii, M_ii = dense(lm_self)
+    L_e, M_e = dense(lm_edge)
+    Lbig, Mbig = np.zeros((12 * N, 12 * N)), np.zeros((12 * N, 12 * N))
+    for i in range(N):
+        Lbig[12 * i:12 * i + 12, 12 * i:12 * i + 12] = L_ii[i]
+        Mbig[12 * i:12 * i + 12, 12 * i:12 * i + 12] = M_ii[i]
+    for k, (j, i) in enumerate(zip(senders.tolist(), receivers.tolist())):
+        Lbig[12 * i:12 * i + 12, 12 * j:12 * j + 12] -= L_e[k]
+        Mbig[12 * i:12 * i + 12, 12 * j:12 * j + 12] -= M_e[k]
+    zdot = (Lbig @ dE.ravel() + Mbig @ dS.ravel()).reshape(N, 12)
+    np.testing.assert_allclose(out.zdot.numpy(), zdot, rtol=1e-10, atol=1e-12 * np.abs(zdot).max())
+    # the isolated node only sees its self-loop
+    np.testing.assert_allclose(out.zdot[4].numpy(), L_ii[4] @ dE[4] + M_ii[4] @ dS[4], rtol=1e-10)
+
+    LdS = np.einsum("nab,nb->na", L_ii, dS)
+    MdE = np.einsum("nab,nb->na", M_ii, dE)
+    np.testing.assert_allclose(out.degeneracy.numpy(), (LdS**2).sum(1) + (MdE**2).sum(1), rtol=1e-10)
+    production = np.einsum("na,nab,nb->n", dS, M_ii, dS)
+    assert (production >= 0).all()
+    np.testing.assert_allclose(out.entropy_production.numpy(), production, rtol=1e-10, atol=1e-14)
+
+
+# ------------------------------------------------------------------------------ 6. loss
+def test_loss_hand_values():
+    scale = torch.tensor([2.0] * 6 + [10.0] * 6)
+    s = torch.zeros(2, 12)
+    target = torch.zeros(2, 12)
+    s[0, 0], target[0, 0] = 1.0, 4.0  # standardised target 2 -> squared error 1
+    s[1, 6], target[1, 6] = 0.5, 25.0  # standardised target 2.5 -> squared error 4
+    s[1, 11], target[1, 11] = -3.0, -30.0  # exact -> 0
+    data = 5.0 / 24.0
+
+    vanilla = tiny("vanilla")
+    vanilla.normalizer.zdot_scale.copy_(scale)
+    loss, info = vanilla.loss(Prediction(s * scale, s), target)
+    assert loss.item() == pytest.approx(data, rel=1e-6)
+    assert set(info) == {"data"}
+
+    hybrid = tiny("hybrid", lambda_d=2.0)
+    hybrid.normalizer.zdot_scale.copy_(scale)
+    deg = torch.tensor([0.3, 0.1])
+    loss, info = hybrid.loss(Prediction(s * scale, s, deg, torch.zeros(2)), target)
+    assert loss.item() == pytest.approx(data + 2.0 * 0.2, rel=1e-6)
+    assert info["data"].item() == pytest.approx(data, rel=1e-6)
+    assert info["degeneracy"].item() == pytest.approx(0.2, rel=1e-6)
+    assert ModelConfig().lambda_d == 5.0
+
+
+# --------------------------------------------------------------------------- 7. metrics
+def hand_rollouts():
+    """(S+1=3, N=2, 12) arrays whose errors are worked out in the comments."""
+    ref = np.zeros((3, 2, 12))
+    pred = np.zeros((3, 2, 12))
+    ref[0, 1, 2] = -5.0  # the q maximum sits in snapshot 0, which still normalises
+    ref[1, 0, 3] = 2.0
+    ref[2, 1, 6:] = 10.0
+    pred[:] = ref
+    pred[0] += 100.0  # snapshot 0 is given, never scored
+    pred[1, 0, 0] = 3.0  # q: squared errors 9 and 16 over 4 node-snapshots
+    pred[2, 1, 1] = 4.0
+    pred[2, 0, 4] = 1.0  # v: squared error 1
+    pred[2, 1, 6:] = 8.0  # sigma: 6 components off by 2 -> 24
+    return pred, ref
+
+
+def test_rollout_metrics_hand_values():
+    pred, ref = hand_rollouts()
+    m = metrics.rollout_metrics(pred.astype(np.float32), ref)
+    # mean over 4 node-snapshots of ||e||^2: q 25/4, v 1/4, sigma 24/4
+    expected_rmse = {"q": np.sqrt(6.25 / 3), "v": np.sqrt(0.25 / 3), "sigma": 1.0}
+    expected_rrmse = {"q": 2.5 / 5.0, "v": 0.5 / 2.0, "sigma": np.sqrt(6.0) / 10.0}
+    for g in ("q", "v", "sigma"):
+        assert m["rmse"][g] == pytest.approx(expected_rmse[g], rel=1e-12)
+        assert m["rrmse"][g] == pytest.approx(expected_rrmse[g], rel=1e-12)
+    # a group the reference never moves has no relative error
+    still = ref.copy()
+    still[:, :, 3:6] = 0.0
+    assert np.isnan(metrics.rollout_metrics(pred, still)["rrmse"]["v"])
+    assert metrics.mean_rrmse(m) == pytest.approx(np.mean(list(expected_rrmse.values())))
+
+
+def test_set_metrics_pools_node_snapshots():
+    pred1, ref1 = hand_rollouts()
+    rng = np.random.default_rng(0)
+    ref2 = rng.normal(size=(3, 5, 12))
+    pred2 = ref2 + 0.1 * rng.normal(size=ref2.shape)
+    m1, m2 = metrics.rollout_metrics(pred1, ref1), metrics.rollout_metrics(pred2, ref2)
+    pooled = metrics.set_metrics([m1, m2], weights=[2 * 2, 2 * 5])  # scored snapshots x nodes
+    # RMSE of the set = RMSE over all node-snapshots at once
+    joint = metrics.rollout_metrics(np.concatenate([pred1, pred2], 1), np.concatenate([ref1, ref2], 1))
+    for g in ("q", "v", "sigma"):
+        assert pooled["rmse"][g] == pytest.approx(joint["rmse"][g], rel=1e-12)
+        # RRMSE: each rollout keeps its own normaliser
+        assert pooled["rrmse"][g] == pytest.approx(np.sqrt((4 * m1["rrmse"][g] ** 2 + 10 * m2["rrmse"][g] ** 2) / 14))
+        equal = metrics.set_metrics([m1, m2])
+        assert equal["rmse"][g] == pytest.approx(np.sqrt((m1["rmse"][g] ** 2 + m2["rmse"][g] ** 2) / 2))
+
+
+# ------------------------------------------------------ 8. boundary conditions, batching
+def test_apply_boundary_conditions():
+    mesh = box((2, 2, 2))
+    loaded = top_nodes(mesh)[[0, -1]]
+    top = tool_topology(mesh, loaded)
+    gen = torch.Generator().manual_seed(2)
+    z = random_state(top, gen, torch.float32)
+    u = torch.tensor([[1e-3, -2e-3, 3e-3], [-4e-3, 5e-3, 6e-3]])
+    out = apply_boundary_conditions(top, z, u).numpy()
+    zn, rest = z.numpy(), mesh.nodes
+    types = top.node_type.numpy()
+    assert (types == NODE_FIXED).sum() == mesh.fixed.sum() > 0
+    assert (types == NODE_PRESCRIBED).sum() == 4
+    driven = dict(zip(top.prescribed.tolist(), zip(top.prescribed_tool.tolist(), top.prescribed_weight.tolist())))
+    for i in range(len(rest)):
+        expected = zn[i].copy()
+        if types[i] == NODE_FIXED:
+            expected[:3], expected[3:6] = rest[i], 0.0
+        elif types[i] == NODE_PRESCRIBED:
+            tool, w = driven[i]
+            expected[:3] = rest[i] + w * u[tool].numpy()
+        np.testing.assert_allclose(out[i], expected, rtol=1e-6, atol=1e-9, err_msg=f"node {i} type {types[i]}")
+    assert sorted(w for _, w in driven.values()) == [0.5, 0.5, 1.0, 1.0]
+
+
+def test_model_step_is_euler_then_boundary_conditions():
+    _, _, top, model, z, u_now, u_next = setup_case("hybrid", True)
+    dt = 0.05
+    expected = apply_boundary_conditions(top, z + dt * model(top, z, u_now, u_next).zdot, u_next)
+    torch.testing.assert_close(model.step(top, z, u_now, u_next, dt), expected, rtol=1e-12, atol=1e-12)
+
+
+def test_batch_offsets_match_per_graph_features():
+    mesh_a = box_tet_mesh(2, 2, 1, size=(0.02, 0.03, 0.01))
+    mesh_a.fixed[:] = mesh_a.nodes[:, 2] < 1e-9
+    mesh_b = box((3, 2, 2))
+    tops = [to_double(make_topology(mesh_a, top_nodes(mesh_a)[[2]])),  # one single-node tool
+            to_double(tool_topology(mesh_b, top_nodes(mesh_b)[[0, -1]]))]  # two tools with footprints
+    gen = torch.Generator().manual_seed(4)
+    zs = [random_state(t, gen) for t in tops]
+    u_now = [1e-3 * torch.randn(t.n_tools, 3, generator=gen, dtype=torch.float64) for t in tops]
+    u_next = [1e-3 * torch.randn(t.n_tools, 3, generator=gen, dtype=torch.float64) for t in tops]
+    big = batch(tops)
+    z, un, ux = torch.cat(zs), torch.cat(u_now), torch.cat(u_next)
+    na = tops[0].n_nodes
+    assert big.graph_sizes.tolist() == [na, tops[1].n_nodes]
+    assert big.n_tools == 3
+    assert torch.equal(big.loaded, torch.cat([tops[0].loaded, tops[1].loaded + na]))
+
+    raw = raw_features(big, z, un, ux)
+    parts = [raw_features(t, zz, a, b) for t, zz, a, b in zip(tops, zs, u_now, u_next)]
+    for name in FEATURES:
+        torch.testing.assert_close(raw[name], torch.cat([p[name] for p in parts]), rtol=0, atol=0)
+    torch.testing.assert_close(apply_boundary_conditions(big, z, ux),
+                               torch.cat([apply_boundary_conditions(t, zz, b) for t, zz, b in zip(tops, zs, u_next)]))
+    # the whole network sees two disconnected graphs
+    for kind, act in (("hybrid", True), ("vanilla", False)):
+        model = tiny(kind, act).double()
+        whole = model(big, z, un, ux).zdot
+        split = torch.cat([model(t, zz, a, b).zdot for t, zz, a, b in zip(tops, zs, u_now, u_next)])
+        torch.testing.assert_close(whole, split, rtol=1e-10, atol=1e-10 * split.abs().max().item())
+
+
+# ------------------------------------------------------------------- 9. noise augmentation
+def mean_edge(mesh):
+    e = mesh.edges()
+    return float(np.linalg.norm(mesh.nodes[e[:, 0]] - mesh.nodes[e[:, 1]], axis=1).mean())
+
+
+def make_sim(mesh, seed, dt):
+    rec = simulation(mesh, np.random.default_rng(seed), steps=3, dt=dt, tools=2)
+    top = make_topology(mesh, rec["loaded"])
+    z = torch.as_tensor(np.concatenate([rec["q"], rec["v"], rec["sigma"]], -1))
+    return Simulation(f"box/{seed}", top, z, torch.as_tensor(rec["u"]), dt, mean_edge(mesh))
+
+
+@pytest.fixture(scope="module")
+def two_sims():
+    # synthetic.simulation loads the plane z = 0.02: same height, 4x finer elements
+    small = box_tet_mesh(3, 3, 6, size=(0.01, 0.01, 0.02))
+    small.fixed[:] = small.nodes[:, 2] < 1e-9
+    return [make_sim(box((3, 3, 2)), 0, 0.05), make_sim(small, 1, 0.02)]
+
+
+def test_make_batch_without_noise(two_sims):
+    b = make_batch(two_sims, [(0, 1), (1, 2)])
+    assert torch.equal(b.z, torch.cat([two_sims[0].z[1], two_sims[1].z[2]]))
+    assert torch.equal(b.u_next, torch.cat([two_sims[0].u[2], two_sims[1].u[3]]))
+    n0 = two_sims[0].topology.n_nodes
+    torch.testing.assert_close(b.zdot[:n0], (two_sims[0].z[2] - two_sims[0].z[1]) / 0.05)
+    torch.testing.assert_close(b.zdot[n0:], (two_sims[1].z[3] - two_sims[1].z[2]) / 0.02)
+
+
+def test_make_batch_noise(two_sims):
+    noise_q, noise_v = 0.05, 0.1
+    samples = [(0, 1), (1, 2)]
+    gen = torch.Generator().manual_seed(0)
+    b = make_batch(two_sims, samples, noise_q, noise_v, generator=gen)
+    clean = make_batch(two_sims, samples)
+    z0, z1 = clean.z, torch.cat([two_sims[0].z[2], two_sims[1].z[3]])
+    n0 = two_sims[0].topology.n_nodes
+    free = b.topology.node_type == NODE_FREE
+    assert (~free).sum() > 0 and free.sum() > 0
+    # positions: Dirichlet and tool-driven nodes untouched, free nodes within their own mesh's bound
+    assert torch.equal(b.z[~free, :3], z0[~free, :3])
+    dq = (b.z[:, :3] - z0[:, :3]).abs().max(1).values
+    bounds = [two_sims[0].mean_edge * noise_q, two_sims[1].mean_edge * noise_q]
+    assert bounds[0] > 2 * bounds[1]
+    for part, bound in ((slice(0, n0), bounds[0]), (slice(n0, None), bounds[1])):
+        assert dq[part].max() <= bound * (1 + 1e-5) + 1e-7
+        assert dq[part][free[part]].max() > 0.5 * bound  # the noise is really there, at its scale
+    assert dq[:n0][free[:n0]].max() > bounds[1]  # and uses each simulation's own edge length
+    # v and sigma: relative noise
+    rel = (b.z[:, 3:] - z0[:, 3:]).abs()
+    assert (rel <= z0[:, 3:].abs() * noise_v * (1 + 1e-5) + 1e-12).all()
+    assert rel.max() > 0
+    # the target comes from the noisy state, exactly
+    dt = torch.cat([torch.full((n0, 1), 0.05), torch.full((len(z0) - n0, 1), 0.02)])
+    assert torch.equal(b.zdot, (z1 - b.z) / dt)
+    # reproducible with a seeded generator, different with another seed
+    again = make_batch(two_sims, samples, noise_q, noise_v, generator=torch.Generator().manual_seed(0))
+    other = make_batch(two_sims, samples, noise_q, noise_v, generator=torch.Generator().manual_seed(1))
+    assert torch.equal(again.z, b.z) and not torch.equal(other.z, b.z)
+
+
+# --------------------------------------------------------------------- 10. normaliser
+def test_normalizer_fit_matches_numpy():
+    rng = np.random.default_rng(0)
+    samples, cols = [], {name: [] for name in FEATURES}
+    zdots = []
+    for rows in (5, 11, 3):
+        raw = {name: rng.normal(rng.uniform(-3, 3, w), rng.uniform(0.1, 2, w), (rows, w)) for name, w in FEATURES.items()}
+        raw["mesh_edge"][:, 7] = 0.25  # a constant column keeps std 1
+        zdot = rng.normal(0.5, 2.0, (rows, 12))
+        zdot[:, 5] = 0.0  # no motion in a component: scale 1, not 0
+        samples.append(({k: torch.as_tensor(v, dtype=torch.float32) for k, v in raw.items()},
+                        torch.as_tensor(zdot, dtype=torch.float32)))
+        for k in FEATURES:
+            cols[k].append(raw[k].astype(np.float32).astype(np.float64))
+        zdots.append(zdot.astype(np.float32).astype(np.float64))
+    norm = Normalizer()
+    assert not norm.fitted
+    norm.fit(samples)
+    assert norm.fitted
+    for name in FEATURES:
+        x = np.concatenate(cols[name])
+        std = x.std(0)
+        std[std <= 1e-8] = 1.0
+        np.testing.assert_allclose(getattr(norm, f"{name}_mean").numpy(), x.mean(0), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(getattr(norm, f"{name}_std").numpy(), std, rtol=1e-4)
+    assert norm.mesh_edge_std[7].item() == 1.0
+    z = np.concatenate(zdots)
+    rms = np.sqrt((z**2).mean(0))
+    rms[5] = 1.0
+    np.testing.assert_allclose(norm.zdot_scale.numpy(), rms, rtol=1e-5)
+    # standardise = (x - mean) / std column by column
+    x = samples[0][0]["node"]
+    expected = (x.numpy() - norm.node_mean.numpy()) / norm.node_std.numpy()
+    np.testing.assert_allclose(norm.standardize("node", x).numpy(), expected, rtol=1e-5, atol=1e-6)

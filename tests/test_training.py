@@ -1,0 +1,342 @@
+"""Training (loss goes down, resume, kill -9, DDP) and `warpgnn eval` on a tiny synthetic dataset.
+
+Everything runs on the CPU with a 2-pass, F = 16 network so the module stays well under a
+minute or two on two cores.
+"""
+
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+import torch
+import torch.distributed as dist
+import torch.multiprocessing as mp
+
+import synthetic
+from test_cli import assert_one_line_error, run_cli
+from warpgnn import checkpoint, training
+from warpgnn.data import all_samples, load_file, make_batch
+from warpgnn.errors import InputError
+from warpgnn.model import TIGNN, ModelConfig
+from warpgnn.training import TrainConfig
+
+TINY = dict(passes=2, latent=16)
+# the columns of RUN/log.csv (training.LOG_FIELDS, spelled out so a silent change shows up here)
+LOG_COLUMNS = ["epoch", "seconds", "lr", "loss", "data", "degeneracy", "val_q", "val_v", "val_sigma", "val_mean", "best"]
+GROUPS = {"q": 3, "v": 3, "sigma": 6}
+PNGS = ("rrmse_boxplot.png", "final_step_median.png", "final_step_worst.png", "node_history.png")
+
+
+def config(data, out, epochs, kind="hybrid", **kw) -> TrainConfig:
+    return TrainConfig(data=str(data), out=str(out), model=ModelConfig(kind=kind, **TINY), epochs=epochs,
+                       batch_size=4, device="cpu", **kw)
+
+
+def quiet_train(cfg):
+    """train() with its log lines captured; returns (result, lines)."""
+    lines = []
+    return training.train(cfg, log=lines.append), lines
+
+
+def trained_epochs(lines) -> list[int]:
+    return [int(line.split()[1]) for line in lines if line.startswith("epoch ")]
+
+
+def read_log(path) -> tuple[list[str], list[dict]]:
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        return reader.fieldnames, list(reader)
+
+
+def without_seconds(rows):
+    # wall-clock time is the only thing a resumed run may legitimately change
+    return [{k: v for k, v in r.items() if k != "seconds"} for r in rows]
+
+
+def assert_same_weights(a, b):
+    sa = torch.load(a, weights_only=False)["model"]
+    sb = torch.load(b, weights_only=False)["model"]
+    assert sa.keys() == sb.keys()
+    for name in sa:
+        assert torch.equal(sa[name], sb[name]), name
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    # Tiny graphs gain nothing from intra-op threads, and on a busy 2-core machine OpenMP
+    # threads competing with other processes slow training by an order of magnitude.
+    saved = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(saved)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    return synthetic.make_dataset(tmp_path_factory.mktemp("data"), sims_per_file=3, steps=4)
+
+
+@pytest.fixture(scope="module")
+def hybrid_run(data, tmp_path_factory):
+    out = tmp_path_factory.mktemp("hybrid") / "run"
+    result, _ = quiet_train(config(data, out, epochs=6))
+    return out, result
+
+
+# --------------------------------------------------------------------------- training
+
+
+def test_tiny_run_lowers_its_loss_and_writes_its_files(hybrid_run):
+    out, result = hybrid_run
+    hist = result["history"]
+    assert len(hist) == result["epochs"] == 6
+    assert hist[-1]["loss"] < 0.5 * hist[0]["loss"]
+    assert result["best_epoch"] > 0 and result["best"] < 0.8 * hist[0]["val_mean"]
+
+    header, rows = read_log(out / "log.csv")
+    assert header == LOG_COLUMNS
+    assert [int(r["epoch"]) for r in rows] == list(range(6))
+    assert [float(r["loss"]) for r in rows] == pytest.approx([h["loss"] for h in hist])
+
+    last, last_payload = checkpoint.load_model(out / "last.pt")
+    best, best_payload = checkpoint.load_model(out / "best.pt")
+    assert isinstance(last, TIGNN) and isinstance(best, TIGNN)
+    assert bool(last.normalizer.fitted) and bool(best.normalizer.fitted)
+    assert last_payload["epoch"] == 5 and best_payload["epoch"] == result["best_epoch"]
+    assert best_payload["validation"]["rrmse"]["q"] == pytest.approx(hist[result["best_epoch"]]["val_q"])
+    assert not list(out.glob("*.tmp"))
+
+
+def test_resume_continues_bit_for_bit(data, tmp_path):
+    straight, _ = quiet_train(config(data, tmp_path / "a", epochs=4))
+    quiet_train(config(data, tmp_path / "b", epochs=2))
+    resumed, lines = quiet_train(config(data, tmp_path / "b", epochs=4, resume=True))
+    assert trained_epochs(lines) == [2, 3]
+    # Every epoch's order and noise derive from (seed, epoch), and CPU kernels are deterministic
+    # for a fixed thread count, so exact equality is expected (no tolerance needed).
+    assert_same_weights(tmp_path / "a" / "last.pt", tmp_path / "b" / "last.pt")
+    assert without_seconds(resumed["history"]) == without_seconds(straight["history"])
+    assert without_seconds(read_log(tmp_path / "b" / "log.csv")[1]) == \
+        without_seconds(read_log(tmp_path / "a" / "log.csv")[1])
+
+
+def test_kill_during_an_epoch_costs_at_most_that_epoch(data, tmp_path):
+    out = tmp_path / "run"
+    quiet_train(config(data, out, epochs=2))
+    shutil.copy(out / "last.pt", tmp_path / "last_after_epoch_1.pt")
+    shutil.copy(out / "log.csv", tmp_path / "log_after_epoch_1.csv")
+    finished, _ = quiet_train(config(data, out, epochs=3, resume=True))
+    shutil.copy(out / "last.pt", tmp_path / "last_after_epoch_2.pt")
+
+    # kill -9 while epoch 2 wrote its checkpoint: last.pt and log.csv are still epoch 1's
+    # (atomic rename), and a half-written temporary lies beside them
+    shutil.copy(tmp_path / "last_after_epoch_1.pt", out / "last.pt")
+    shutil.copy(tmp_path / "log_after_epoch_1.csv", out / "log.csv")
+    partial = (tmp_path / "last_after_epoch_2.pt").read_bytes()
+    (out / "last.pt.tmp").write_bytes(partial[:len(partial) // 2])
+
+    redone, lines = quiet_train(config(data, out, epochs=3, resume=True))
+    assert trained_epochs(lines) == [2]
+    assert_same_weights(out / "last.pt", tmp_path / "last_after_epoch_2.pt")
+    assert without_seconds(redone["history"]) == without_seconds(finished["history"])
+    assert [int(r["epoch"]) for r in read_log(out / "log.csv")[1]] == [0, 1, 2]
+    assert not (out / "last.pt.tmp").exists()
+
+
+def test_existing_run_without_resume_is_refused(hybrid_run, data, tmp_path):
+    src, _ = hybrid_run
+    out = tmp_path / "run"
+    out.mkdir()
+    shutil.copy(src / "last.pt", out / "last.pt")
+    before = (out / "last.pt").read_bytes()
+    with pytest.raises(InputError, match="resume"):
+        training.train(config(data, out, epochs=1), log=lambda *_: None)
+    assert (out / "last.pt").read_bytes() == before
+
+
+# --------------------------------------------------------------------------- DDP
+
+
+def tiny_model() -> TIGNN:
+    torch.manual_seed(0)
+    return TIGNN(ModelConfig(**TINY))
+
+
+def _ddp_worker(rank, world, store, data_file, normalizer_file, samples, out_dir):
+    """One gloo rank: train_step on its half of the samples through DistributedDataParallel."""
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=f"file://{store}", rank=rank, world_size=world)
+    try:
+        model = tiny_model()
+        model.normalizer.load_state_dict(torch.load(normalizer_file))
+        sims = load_file(data_file)
+        half = len(samples) // world
+        batch = make_batch(sims, samples[rank * half:(rank + 1) * half])
+        training.train_step(torch.nn.parallel.DistributedDataParallel(model), batch)
+        torch.save({n: p.grad for n, p in model.named_parameters()}, out_dir / f"grads_{rank}.pt")
+    finally:
+        dist.destroy_process_group()
+
+
+def test_ddp_gradients_match_one_process(data, tmp_path):
+    data_file = data / "L1.h5"
+    sims = load_file(data_file)
+    # one mesh, so both halves hold the same number of nodes and DDP's plain average of the
+    # per-rank mean losses equals the full batch's mean
+    samples = all_samples(sims)[:8]
+    single = tiny_model()
+    training.fit_normalizer(single, sims)
+    torch.save(single.normalizer.state_dict(), tmp_path / "normalizer.pt")
+
+    mp.start_processes(_ddp_worker, args=(2, tmp_path / "store", data_file, tmp_path / "normalizer.pt", samples,
+                                          tmp_path), nprocs=2, start_method="spawn")
+
+    training.train_step(single, make_batch(sims, samples))  # noise off: make_batch's defaults
+    ranks = [torch.load(tmp_path / f"grads_{r}.pt") for r in range(2)]
+    for name, p in single.named_parameters():
+        ref = p.grad
+        assert ref is not None and ref.norm() > 0, name
+        for grads in ranks:
+            rel = float((grads[name] - ref).norm() / ref.norm())
+            assert rel < 1e-5, (name, rel)
+
+
+def test_torchrun_two_processes(data, tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.run(
+        [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+         "-m", "warpgnn.cli", "train", "--data", str(data), "--model", "hybrid", "--passes", "2", "--latent", "16",
+         "--batch", "4", "--epochs", "1", "--device", "cpu", "--out", str(out)],
+        capture_output=True, text=True, timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "x 2 processes" in proc.stdout
+    model, payload = checkpoint.load_model(out / "last.pt")
+    assert payload["epoch"] == 0 and len(read_log(out / "log.csv")[1]) == 1
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def test_eval_truncated_checkpoint(hybrid_run, data, tmp_path):
+    blob = (hybrid_run[0] / "best.pt").read_bytes()
+    bad = tmp_path / "cut.pt"
+    bad.write_bytes(blob[:len(blob) // 2])
+    proc = run_cli("eval", "--checkpoint", bad, "--data", data / "L5.h5", "--out", tmp_path / "ev", "--device", "cpu")
+    assert_one_line_error(proc, "cut.pt", "truncated or corrupt")
+
+
+def test_eval_checkpoint_with_nan(hybrid_run, data, tmp_path):
+    payload = torch.load(hybrid_run[0] / "best.pt", weights_only=False)
+    name = next(k for k, v in payload["model"].items() if v.is_floating_point() and v.numel() > 1)
+    payload["model"][name].view(-1)[0] = float("nan")
+    bad = tmp_path / "nan.pt"
+    torch.save(payload, bad)
+    proc = run_cli("eval", "--checkpoint", bad, "--data", data / "L5.h5", "--out", tmp_path / "ev", "--device", "cpu")
+    assert_one_line_error(proc, "NaN", name)
+
+
+def test_eval_simulation_lacking_a_field(hybrid_run, data, tmp_path):
+    bad = tmp_path / "L5.h5"
+    shutil.copy(data / "L5.h5", bad)
+    with h5py.File(bad, "a") as f:
+        del f["sims/sim_0000/sigma"]
+    proc = run_cli("eval", "--checkpoint", hybrid_run[0] / "best.pt", "--data", bad, "--out", tmp_path / "ev",
+                   "--device", "cpu")
+    assert_one_line_error(proc, "sim_0000", "sigma")
+
+
+@pytest.mark.parametrize("change", [-1, +1], ids=["fewer_nodes", "more_nodes"])
+def test_eval_mesh_node_count_differs_from_simulations(hybrid_run, data, tmp_path, change):
+    bad = tmp_path / "L5.h5"
+    shutil.copy(data / "L5.h5", bad)
+    with h5py.File(bad, "a") as f:
+        nodes, fixed = f["mesh/nodes"][()], f["mesh/fixed"][()]
+        del f["mesh/nodes"], f["mesh/fixed"]
+        if change < 0:  # the last node goes, so some tetrahedra point past the end
+            f["mesh/nodes"], f["mesh/fixed"] = nodes[:-1], fixed[:-1]
+        else:  # an extra, unconnected node: the mesh is valid, the simulations' arrays are not
+            f["mesh/nodes"] = np.vstack([nodes, nodes[:1] + 1.0])
+            f["mesh/fixed"] = np.append(fixed, False)
+    proc = run_cli("eval", "--checkpoint", hybrid_run[0] / "best.pt", "--data", bad, "--out", tmp_path / "ev",
+                   "--device", "cpu")
+    assert_one_line_error(proc, *(("out of range",) if change < 0 else ("L5.h5", "shape")))
+
+
+def test_train_on_a_directory_missing_a_file(data, tmp_path):
+    partial = tmp_path / "data"
+    shutil.copytree(data, partial)
+    (partial / "L3.h5").unlink()
+    proc = run_cli("train", "--data", partial, "--passes", 2, "--latent", 16, "--epochs", 1, "--device", "cpu",
+                   "--out", tmp_path / "run")
+    assert_one_line_error(proc, "L3.h5", "missing")
+    assert not (tmp_path / "run" / "last.pt").exists()
+
+
+# --------------------------------------------------------------------------- eval outputs
+
+
+@pytest.fixture(scope="module")
+def evaluated(hybrid_run, data, tmp_path_factory):
+    out = tmp_path_factory.mktemp("eval")
+    proc = run_cli("eval", "--checkpoint", hybrid_run[0] / "best.pt", "--data", data / "L5.h5", "--out", out,
+                   "--device", "cpu")
+    assert proc.returncode == 0, proc.stderr
+    return out, json.loads((out / "metrics.json").read_text())
+
+
+def numpy_metrics(truth_file, rollouts_file):
+    """The paper's RMSE/RRMSE (warpgnn/metrics.py docstring), recomputed from the two files:
+    squared 2-norm per node and snapshot over snapshots 1..S; RMSE divides by the group's D,
+    RRMSE by the square of the group's largest |value| over the whole reference rollout; a
+    set pools every (snapshot, node) of every rollout."""
+    per, pooled = {}, {kind: {g: 0.0 for g in GROUPS} for kind in ("rmse", "rrmse")}
+    count = 0
+    with h5py.File(truth_file, "r") as t, h5py.File(rollouts_file, "r") as r:
+        assert sorted(r["sims"]) == sorted(t["sims"])
+        for name in sorted(t["sims"]):
+            per[name] = {"rmse": {}, "rrmse": {}}
+            for g, d in GROUPS.items():
+                ref = t[f"sims/{name}/{g}"][()].astype(np.float64)
+                pred = r[f"sims/{name}/{g}"][()]
+                assert pred.shape == ref.shape and pred.dtype == np.float32, (name, g)
+                assert np.array_equal(pred[0], ref[0]), (name, g)  # the rollout starts from the truth
+                err2 = ((pred[1:] - ref[1:]) ** 2).sum(-1)
+                scale2 = np.abs(ref).max() ** 2
+                per[name]["rmse"][g] = np.sqrt(err2.mean() / d)
+                per[name]["rrmse"][g] = np.sqrt(err2.mean() / scale2)
+                pooled["rmse"][g] += err2.sum() / d
+                pooled["rrmse"][g] += err2.sum() / scale2
+            count += err2.size
+    return per, {kind: {g: np.sqrt(v / count) for g, v in gs.items()} for kind, gs in pooled.items()}
+
+
+def test_eval_writes_metrics_rollouts_and_plots(evaluated, data):
+    out, m = evaluated
+    with h5py.File(data / "L5.h5", "r") as f:
+        names = sorted(f["sims"])
+    for kind in ("rmse", "rrmse"):
+        assert set(m[kind]) == {"q", "v", "sigma"}
+    assert [p["name"].split("/")[-1] for p in m["per_rollout"]] == names
+    for png in PNGS:
+        assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", png
+    assert not list(out.glob("*.tmp"))
+
+    per, pooled = numpy_metrics(data / "L5.h5", out / "rollouts.h5")
+    for kind in ("rmse", "rrmse"):
+        assert m[kind] == pytest.approx(pooled[kind], rel=1e-6)
+    for p in m["per_rollout"]:
+        name = p["name"].split("/")[-1]
+        for kind in ("rmse", "rrmse"):
+            assert p[kind] == pytest.approx(per[name][kind], rel=1e-6)
+
+
+def test_hybrid_entropy_production_is_never_negative(evaluated):
+    _, m = evaluated
+    assert m["per_rollout"] and all(p["entropy_production_min"] >= 0 for p in m["per_rollout"])
+    assert m["entropy_production_min"] >= 0 and m["negative_entropy_rollouts"] == 0
