@@ -278,6 +278,28 @@ def test_train_on_a_directory_missing_a_file(data, tmp_path):
     assert not (tmp_path / "run" / "last.pt").exists()
 
 
+def test_resume_with_other_model_flags(hybrid_run, data, tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    shutil.copy(hybrid_run[0] / "last.pt", out / "last.pt")  # a 2-pass run
+    before = (out / "last.pt").read_bytes()
+    proc = run_cli("train", "--data", data, "--passes", 3, "--latent", 16, "--epochs", 7, "--batch", 4,
+                   "--device", "cpu", "--out", out, "--resume")
+    assert_one_line_error(proc)
+    assert (out / "last.pt").read_bytes() == before
+
+
+def test_eval_dataset_without_simulations(hybrid_run, data, tmp_path):
+    bad = tmp_path / "L5.h5"
+    shutil.copy(data / "L5.h5", bad)
+    with h5py.File(bad, "a") as f:
+        for name in list(f["sims"]):
+            del f["sims"][name]
+    proc = run_cli("eval", "--checkpoint", hybrid_run[0] / "best.pt", "--data", bad, "--out", tmp_path / "ev",
+                   "--device", "cpu")
+    assert_one_line_error(proc, "L5.h5")
+
+
 # --------------------------------------------------------------------------- eval outputs
 
 

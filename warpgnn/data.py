@@ -50,6 +50,8 @@ def load_file(path, device="cpu", names=None) -> list[Simulation]:
             raise InputError(f"{path}: attribute 'dt' missing")
         dt = float(f.attrs["dt"])
     names = sim_names(path) if names is None else names
+    if not names:
+        raise InputError(f"{path}: no simulations")
     edges = mesh.edges()
     mean_edge = float(np.linalg.norm(mesh.nodes[edges[:, 0]] - mesh.nodes[edges[:, 1]], axis=1).mean())
     sims = []

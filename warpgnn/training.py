@@ -122,6 +122,12 @@ def train(cfg: TrainConfig, log=print) -> dict:
         log(f"{out}: already finished ({state['stopped']}); best validation {state['best']:.4e} at epoch {state['best_epoch']}")
         return {"best": state["best"], "best_epoch": state["best_epoch"], "epochs": len(state["history"]),
                 "history": state["history"]}
+    if state is not None and state["model_config"] != asdict(cfg.model):
+        raise InputError(f"{out} was trained with model settings {state['model_config']}; resume it with the same flags")
+    if "OMP_NUM_THREADS" not in os.environ:
+        # CPU ops (batch stacking) of several processes on one host oversubscribe the cores
+        # with torch's default thread count: 3 runs sharing an H200 ran 2-3x slower.
+        torch.set_num_threads(max(1, min(4, (os.cpu_count() or 1) // world)))
     torch.manual_seed(cfg.seed)
     splits = load_splits(cfg.data, device, cfg.train_fraction, cfg.seed)
     train_sims, val_sims = splits["train"], splits["val"]

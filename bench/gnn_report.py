@@ -1,0 +1,78 @@
+"""Tables and figures of the GNN runs: reads eval directories (EVAL/<run>/<set>/metrics.json,
+EVAL/<run>/L5_median.npz from bench/extract_rollout.py) and training logs (RUNS/<run>/log.csv),
+writes one JSON record, box plots like the paper's, final-step renders and a node history.
+
+    python bench/gnn_report.py EVAL RUNS OUT_PREFIX --device "NVIDIA H200" --command "..."
+"""
+
+import argparse
+import csv
+import datetime
+import json
+from pathlib import Path
+
+import numpy as np
+
+from warpgnn.mesh import TetMesh
+from warpgnn.plots import node_history, rrmse_boxplot
+from warpgnn.render import render_comparison
+
+SETS = {"L1": "Train (L1)", "extra": "Extra", "L5": "Test (L5)", "extra_star": "Extra*"}
+PAPER_L5_5PASS = {"hybrid": {"rrmse": {"q": 1.2713e-3, "v": 5.18567e-2, "sigma": 2.73333e-2},
+                             "rmse": {"q": 3.730e-4, "v": 7.430e-4, "sigma": 1.664e3}},
+                  "vanilla": {"rrmse": {"q": 1.383e-3, "v": 5.99e-2, "sigma": 2.8893e-2},
+                              "rmse": {"q": 4.060e-4, "v": 8.430e-4, "sigma": 1.755e3}}}
+TARGET_HYBRID_5PASS = {"q": 1.0e-3, "v": 4.0e-2, "sigma": 2.2e-2}
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("eval")
+    ap.add_argument("runs")
+    ap.add_argument("out_prefix")
+    ap.add_argument("--device", required=True)
+    ap.add_argument("--command", required=True)
+    ap.add_argument("--note", default="")
+    a = ap.parse_args()
+    ev, runs, prefix = Path(a.eval), Path(a.runs), Path(a.out_prefix)
+    record = {"device": a.device, "date": datetime.date.today().isoformat(), "command": a.command, "note": a.note,
+              "paper_L5_5pass": PAPER_L5_5PASS, "target_hybrid_5pass_rrmse": TARGET_HYBRID_5PASS, "runs": {}}
+    per = {}
+    for run in sorted(p.name for p in ev.iterdir() if p.is_dir()):
+        log = list(csv.DictReader(open(runs / run / "log.csv")))
+        best = min(log, key=lambda r: float(r["val_mean"]))
+        entry = {"epochs": len(log), "training_seconds": float(log[-1]["seconds"]),
+                 "best_epoch": int(best["epoch"]), "seconds_to_best": float(best["seconds"]), "sets": {}}
+        for s in SETS:
+            m = json.load(open(ev / run / s / "metrics.json"))
+            entry["parameters"] = m["model"]["parameters"]
+            entry["sets"][s] = {k: m[k] for k in ("rmse", "rrmse")} | {
+                k: m[k] for k in ("entropy_production_min", "negative_entropy_rollouts", "rollout_seconds") if k in m}
+            per[(run, s)] = m["per_rollout"]
+        record["runs"][run] = entry
+    out_json = prefix.with_suffix(".json")
+    out_json.write_text(json.dumps(record, indent=1))
+    test = {run: per[(run, "L5")] for run in record["runs"]}
+    rrmse_boxplot(test, f"{prefix}_boxplot_test.png", "per-rollout RRMSE on the unseen anatomy L5 (190 rollouts)")
+    for run in record["runs"]:
+        if run.startswith("hybrid_p5"):
+            rrmse_boxplot({SETS[s]: per[(run, s)] for s in SETS}, f"{prefix}_boxplot_sets.png",
+                          f"{run}: per-rollout RRMSE by set")
+    for run in record["runs"]:
+        d = np.load(ev / run / "L5_median.npz")
+        mesh = TetMesh(d["nodes"], d["tets"], d["fixed"])
+        render_comparison(mesh, d["ref"], d["pred"], d["loaded"], f"{prefix}_final_{run}.png",
+                          f"{run} L5/{d['name']}")
+        node = int(d["loaded"][0])
+        node_history(d["ref"][:, node], d["pred"][:, node], float(d["dt"]), f"{prefix}_node_{run}.png",
+                     f"{run}, L5/{d['name']} (median q RRMSE), loaded node {node}")
+    print("| run | params | epochs | L5 RRMSE q | v | sigma | L5 RMSE q [m] | v [m/s] | sigma [Pa] |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for run, e in record["runs"].items():
+        r, m = e["sets"]["L5"]["rrmse"], e["sets"]["L5"]["rmse"]
+        print(f"| {run} | {e['parameters']:,} | {e['epochs']} | {r['q']:.2e} | {r['v']:.2e} | {r['sigma']:.2e} | "
+              f"{m['q']:.2e} | {m['v']:.2e} | {m['sigma']:.2e} |")
+
+
+if __name__ == "__main__":
+    main()
