@@ -47,7 +47,11 @@ def render_anatomies(meshes: dict[str, TetMesh], out_png) -> None:
                      font_size=12, color="black")
     plotter.add_axes(color="black")
     _view(plotter, centre, zoom=1.5)
-    # write to a temporary name first so a failed render never leaves half a PNG behind
+    _screenshot(plotter, out_png)
+
+
+def _screenshot(plotter, out_png: Path) -> None:
+    """Write to a temporary name first so a failed render never leaves half a PNG behind."""
     tmp = out_png.with_name(out_png.stem + ".tmp" + out_png.suffix)
     plotter.screenshot(str(tmp))
     plotter.close()
@@ -112,10 +116,7 @@ def render_simulation(mesh: TetMesh, sim: dict, out_png, title: str = "") -> Non
                                render_points_as_spheres=True)
             plotter.add_text(f"{title}  snapshot {s}", font_size=10, color="black")
             _view(plotter, centre, zoom=1.2)
-    tmp = out_png.with_name(out_png.stem + ".tmp" + out_png.suffix)
-    plotter.screenshot(str(tmp))
-    plotter.close()
-    os.replace(tmp, out_png)
+    _screenshot(plotter, out_png)
 
 
 def render_comparison(mesh: TetMesh, ref: np.ndarray, pred: np.ndarray, loaded, out_png, title: str = "") -> None:
@@ -147,7 +148,4 @@ def render_comparison(mesh: TetMesh, ref: np.ndarray, pred: np.ndarray, loaded, 
             plotter.add_points(z[loaded, :3], color="red", point_size=14, render_points_as_spheres=True)
             plotter.add_text(f"{name}  {title}  final step", font_size=10, color="black")
             _view(plotter, mesh.nodes.mean(axis=0), zoom=1.2)
-    tmp = out_png.with_name(out_png.stem + ".tmp" + out_png.suffix)
-    plotter.screenshot(str(tmp))
-    plotter.close()
-    os.replace(tmp, out_png)
+    _screenshot(plotter, out_png)
