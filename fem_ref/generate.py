@@ -171,7 +171,5 @@ def generate(out_dir, preset: str = "paper", seed: int = 0, device=None, shard: 
     summary = {"preset": preset, "seed": seed, "shard": f"{i}/{n}", "device": str(wp.get_device(device)),
                "solver": asdict(p.solver), "sets": stats, "seconds": time.perf_counter() - t0}
     manifest = out_dir / (f"manifest.{i}-of-{n}.json" if n > 1 else "manifest.json")
-    tmp = manifest.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(summary, indent=2))
-    tmp.replace(manifest)
+    dataset.write_text_atomically(manifest, json.dumps(summary, indent=2))
     return summary

@@ -25,6 +25,14 @@ from .mesh import TetMesh
 REQUIRED_SIM_FIELDS = ("q", "v", "sigma", "loaded", "u")
 
 
+def write_text_atomically(path: Path, text: str) -> None:
+    """Write a small text file (JSON, CSV) under a temporary name, then rename it into place."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
 def write_atomically(path: Path, fill) -> None:
     """Call ``fill(h5file)`` on a copy of ``path`` (or a new file), then rename it into place."""
     path = Path(path)

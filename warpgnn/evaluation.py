@@ -56,7 +56,7 @@ def evaluate(checkpoint_path, data_file, out_dir, device=None, backend: str = "t
     if per and "entropy_production_min" in per[0]:
         result["entropy_production_min"] = min(p["entropy_production_min"] for p in per)
         result["negative_entropy_rollouts"] = sum(p["entropy_production_min"] < 0 for p in per)
-    _write_json(out / "metrics.json", result)
+    dataset.write_text_atomically(out / "metrics.json", json.dumps(result, indent=1))
     _write_rollouts(out / "rollouts.h5", data_file, rolls)
     if plots:
         from .plots import node_history, rrmse_boxplot
@@ -78,12 +78,6 @@ def evaluate(checkpoint_path, data_file, out_dir, device=None, backend: str = "t
         f"v {summary['rrmse']['v']:.3e} sigma {summary['rrmse']['sigma']:.3e}; RMSE q {summary['rmse']['q']:.3e} m "
         f"v {summary['rmse']['v']:.3e} m/s sigma {summary['rmse']['sigma']:.3e} Pa")
     return result
-
-
-def _write_json(path: Path, obj) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=1))
-    os.replace(tmp, path)
 
 
 def _write_rollouts(path: Path, data_file, rolls) -> None:

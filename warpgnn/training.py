@@ -24,6 +24,7 @@ import torch.distributed as dist
 from tqdm.auto import tqdm
 
 from . import checkpoint, metrics
+from .dataset import write_text_atomically
 from .data import Batch, all_samples, load_splits, make_batch
 from .errors import InputError
 from .model import ModelConfig, TIGNN
@@ -105,9 +106,7 @@ def _write_log(path: Path, history: list[dict]) -> None:
     w = csv.DictWriter(buf, LOG_FIELDS, extrasaction="ignore")
     w.writeheader()
     w.writerows(history)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(buf.getvalue())
-    os.replace(tmp, path)
+    write_text_atomically(path, buf.getvalue())
 
 
 def train(cfg: TrainConfig, log=print) -> dict:
