@@ -59,7 +59,7 @@ def load_file(path, device="cpu", names=None) -> list[Simulation]:
         rec = dataset.read_simulation(path, name)
         footprint = ("footprint_nodes", "footprint_load", "footprint_weight")
         tip = [rec[k] for k in footprint] if all(k in rec for k in footprint) else [None] * 3
-        top = make_topology(mesh, rec["loaded"], *tip)
+        top = make_topology(mesh, rec["loaded"], *tip, edges=edges)
         z = np.concatenate([rec["q"], rec["v"], rec["sigma"]], -1)
         sims.append(Simulation(f"{path.stem}/{name}", top, torch.as_tensor(z, dtype=torch.float32, device=device),
                                torch.as_tensor(rec["u"], dtype=torch.float32, device=device), dt, mean_edge))

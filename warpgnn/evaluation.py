@@ -57,7 +57,8 @@ def evaluate(checkpoint_path, data_file, out_dir, device=None, backend: str = "t
         result["entropy_production_min"] = min(p["entropy_production_min"] for p in per)
         result["negative_entropy_rollouts"] = sum(p["entropy_production_min"] < 0 for p in per)
     dataset.write_text_atomically(out / "metrics.json", json.dumps(result, indent=1))
-    _write_rollouts(out / "rollouts.h5", data_file, rolls)
+    mesh = dataset.read_mesh(data_file)
+    _write_rollouts(out / "rollouts.h5", data_file, mesh, rolls)
     if plots:
         from .plots import node_history, rrmse_boxplot
         from .render import render_comparison
@@ -65,7 +66,6 @@ def evaluate(checkpoint_path, data_file, out_dir, device=None, backend: str = "t
         rrmse_boxplot({model.config.kind: per}, out / "rrmse_boxplot.png", title=Path(data_file).stem)
         worst = int(np.argmax([p["rrmse"]["q"] for p in per]))
         pick = int(np.argsort([p["rrmse"]["q"] for p in per])[len(per) // 2])  # the median rollout
-        mesh = dataset.read_mesh(data_file)
         for i, tag in ((pick, "median"), (worst, "worst")):
             s = sims[i]
             render_comparison(mesh, s.z.cpu().numpy(), rolls[i].z, s.topology.loaded.cpu().numpy(),
@@ -80,9 +80,8 @@ def evaluate(checkpoint_path, data_file, out_dir, device=None, backend: str = "t
     return result
 
 
-def _write_rollouts(path: Path, data_file, rolls) -> None:
+def _write_rollouts(path: Path, data_file, mesh, rolls) -> None:
     tmp = path.with_name(path.name + ".tmp")
-    mesh = dataset.read_mesh(data_file)
     with h5py.File(tmp, "w") as f:
         g = f.create_group("mesh")
         g["nodes"], g["tets"], g["fixed"] = mesh.nodes, mesh.tets, mesh.fixed

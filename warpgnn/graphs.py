@@ -61,13 +61,14 @@ class Topology:
 
 
 def make_topology(mesh: TetMesh, loaded, prescribed=None, prescribed_tool=None, prescribed_weight=None,
-                  device="cpu") -> Topology:
-    """One simulation's topology. Without a footprint only the loaded nodes are prescribed."""
+                  device="cpu", edges: np.ndarray | None = None) -> Topology:
+    """One simulation's topology. Without a footprint only the loaded nodes are prescribed.
+    ``edges``: the mesh's undirected edges when already known (many simulations, one mesh)."""
     n, loaded = len(mesh.nodes), np.asarray(loaded, np.int64)
     k = len(loaded)
     if prescribed is None:
         prescribed, prescribed_tool, prescribed_weight = loaded, np.arange(k), np.ones(k)
-    e = mesh.edges()
+    e = mesh.edges() if edges is None else edges
     senders, receivers = np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]])
     node_type = np.where(mesh.fixed, NODE_FIXED, NODE_FREE)
     node_type[np.asarray(prescribed, np.int64)] = NODE_PRESCRIBED
