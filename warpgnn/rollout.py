@@ -49,10 +49,8 @@ def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None) -> li
                 progress(len(part))
         zs = torch.stack(states).cpu().numpy()
         offsets = np.concatenate([[0], np.cumsum(top.graph_sizes.numpy())])
-        stack = (lambda xs: torch.stack(xs, 1).cpu().numpy()) if deg else (lambda xs: None)
-        d, emin, emean = stack(deg), stack(ent_min), stack(ent_mean)
+        # (graphs, steps) arrays of the hybrid's diagnostics, in Rollout's field order
+        diagnostics = [torch.stack(xs, 1).cpu().numpy() for xs in (deg, ent_min, ent_mean)] if deg else []
         for g, s in enumerate(part):
-            out.append(Rollout(s.name, zs[:, offsets[g]:offsets[g + 1]],
-                               None if d is None else d[g], None if d is None else emin[g],
-                               None if d is None else emean[g]))
+            out.append(Rollout(s.name, zs[:, offsets[g]:offsets[g + 1]], *(a[g] for a in diagnostics)))
     return out
