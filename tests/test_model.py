@@ -216,8 +216,9 @@ def test_generic_decoder_matches_dense_assembly():
     def dense(lm):
         A = np.zeros((len(lm), 12, 12))
         B = np.zeros((len(lm), 12, 12))
-        A[:, *np.tril_indices(12, -1)] = lm[:, :N_L]
-        B[:, *np.tril_indices(12)] = lm[:, N_L:]
+        (ra, ca), (rb, cb) = np.tril_indices(12, -1), np.tril_indices(12)
+        A[:, ra, ca] = lm[:, :N_L]
+        B[:, rb, cb] = lm[:, N_L:]
         return A - A.transpose(0, 2, 1), B @ B.transpose(0, 2, 1)
 
     L_ii, M_ii = dense(lm_self)
