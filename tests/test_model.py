@@ -16,6 +16,7 @@ from warpgnn import metrics
 from warpgnn.data import Simulation, make_batch
 from warpgnn.graphs import (NODE_FIXED, NODE_FREE, NODE_PRESCRIBED, apply_boundary_conditions, batch,
                             make_topology, raw_features)
+from warpgnn.core_model import EdgeMLP
 from warpgnn.mesh import TetMesh, box_tet_mesh
 from warpgnn.model import ModelConfig, Prediction, TIGNN
 from warpgnn.normalization import FEATURES, Normalizer
@@ -195,6 +196,31 @@ def test_operators_skew_and_psd_for_random_values():
 
 
 # ----------------------------------------------------- 5. GENERIC sum vs dense assembly
+def concatenated_mlp(edge_mlp: EdgeMLP, features: torch.Tensor) -> torch.Tensor:
+    """The plain MLP on [e, r, s] that an EdgeMLP stands for: one first layer on the concatenation."""
+    first = torch.nn.Linear(features.shape[1], edge_mlp.edge.out_features).to(features.dtype)
+    with torch.no_grad():
+        first.weight.copy_(torch.cat([edge_mlp.edge.weight, edge_mlp.receiver.weight, edge_mlp.sender.weight], 1))
+        first.bias.copy_(edge_mlp.edge.bias)
+    return edge_mlp.rest(first(features))
+
+
+@pytest.mark.parametrize("layer_norm", [True, False])
+def test_edge_mlp_is_the_mlp_of_the_concatenation(layer_norm):
+    torch.manual_seed(3)
+    f = EdgeMLP(6, 10, 7, hidden_layers=2, layer_norm=layer_norm).double()
+    gen = torch.Generator().manual_seed(4)
+    x_r, x_s = torch.randn(5, 6, generator=gen, dtype=torch.float64), torch.randn(3, 6, generator=gen, dtype=torch.float64)
+    e = torch.randn(8, 6, generator=gen, dtype=torch.float64)
+    receivers, senders = torch.tensor([0, 1, 4, 4, 2, 3, 0, 1]), torch.tensor([2, 2, 0, 1, 0, 1, 1, 0])
+    with torch.no_grad():
+        reference = concatenated_mlp(f, torch.cat([e, x_r[receivers], x_s[senders]], -1))
+        torch.testing.assert_close(f(e, x_r, x_s, receivers, senders), reference, rtol=1e-12, atol=1e-12)
+        loop = torch.randn(6, generator=gen, dtype=torch.float64)
+        reference = concatenated_mlp(f, torch.cat([loop.expand(5, -1), x_r, x_r], -1))
+        torch.testing.assert_close(f.self_loop(loop, x_r), reference, rtol=1e-12, atol=1e-12)
+
+
 def test_generic_decoder_matches_dense_assembly():
     torch.manual_seed(5)
     F, N = 8, 5
@@ -210,8 +236,8 @@ def test_generic_decoder_matches_dense_assembly():
         grads = dec.delta_v(x)
         dE, dS = grads[:, :12].numpy(), grads[:, 12:].numpy()
         # delta_e(x_ij, x_i, x_j): edge latent, receiver latent, sender latent
-        lm_self = dec.delta_e(torch.cat([dec.self_loop.expand(N, -1), x, x], -1)).numpy()
-        lm_edge = dec.delta_e(torch.cat([e, x[receivers], x[senders]], -1)).numpy()
+        lm_self = concatenated_mlp(dec.delta_e, torch.cat([dec.self_loop.expand(N, -1), x, x], -1)).numpy()
+        lm_edge = concatenated_mlp(dec.delta_e, torch.cat([e, x[receivers], x[senders]], -1)).numpy()
 
     def dense(lm):
         A = np.zeros((len(lm), 12, 12))

@@ -96,8 +96,9 @@ def test_tiny_run_lowers_its_loss_and_writes_its_files(hybrid_run):
     out, result = hybrid_run
     hist = result["history"]
     assert len(hist) == result["epochs"] == 6
-    assert hist[-1]["loss"] < 0.5 * hist[0]["loss"]
-    assert result["best_epoch"] > 0 and result["best"] < 0.8 * hist[0]["val_mean"]
+    # (the decoder starts at the targets' scale, so the first epoch's loss is already O(1))
+    assert hist[-1]["loss"] < 0.85 * hist[0]["loss"]
+    assert result["best_epoch"] > 0 and result["best"] < 0.9 * hist[0]["val_mean"]
 
     header, rows = read_log(out / "log.csv")
     assert header == LOG_COLUMNS
@@ -124,6 +125,50 @@ def test_resume_continues_bit_for_bit(data, tmp_path):
     assert without_seconds(resumed["history"]) == without_seconds(straight["history"])
     assert without_seconds(read_log(tmp_path / "b" / "log.csv")[1]) == \
         without_seconds(read_log(tmp_path / "a" / "log.csv")[1])
+
+
+def test_exponential_schedule_values():
+    cfg = TrainConfig(lr=1e-3, lr_final=1e-5, lr_schedule="exponential", time_budget=100.0)
+    assert training.scheduled_lr(cfg, 0.0) == pytest.approx(1e-3)
+    assert training.scheduled_lr(cfg, 50.0) == pytest.approx(1e-4)  # geometric midpoint
+    assert training.scheduled_lr(cfg, 100.0) == pytest.approx(1e-5)
+    assert training.scheduled_lr(cfg, 250.0) == pytest.approx(1e-5)  # never below lr_final
+    with pytest.raises(ValueError, match="time-budget"):
+        TrainConfig(lr_schedule="exponential")
+    with pytest.raises(ValueError, match="plateau or exponential"):
+        TrainConfig(lr_schedule="cosine")
+
+
+def test_time_budget_ends_the_run_and_sets_each_epochs_rate(data, tmp_path):
+    out = tmp_path / "run"
+    # a budget of 1 us is spent by the first epoch: the run stops there, marked finished
+    result, lines = quiet_train(config(data, out, epochs=5, lr_schedule="exponential", time_budget=1e-6))
+    assert trained_epochs(lines) == [0] and result["epochs"] == 1
+    assert result["history"][0]["lr"] == pytest.approx(1e-3)  # nothing was spent when epoch 0 began
+    assert "time budget" in checkpoint.read(out / "last.pt")["stopped"]
+    again, lines = quiet_train(config(data, out, epochs=5, lr_schedule="exponential", time_budget=1e-6, resume=True))
+    assert trained_epochs(lines) == [] and "already finished" in lines[0]
+    # a budget no epoch reaches: the rate falls epoch by epoch as the seconds add up
+    result, _ = quiet_train(config(data, tmp_path / "long", epochs=3, lr_schedule="exponential", time_budget=1e4))
+    rates = [h["lr"] for h in result["history"]]
+    assert rates[0] == pytest.approx(1e-3) and rates[0] > rates[1] > rates[2] > 1e-5
+    for h, lr in zip(result["history"][:-1], rates[1:]):
+        assert lr == pytest.approx(training.scheduled_lr(TrainConfig(lr_schedule="exponential", time_budget=1e4),
+                                                         h["seconds"]))
+
+
+def test_prefetched_batches_keep_order_and_random_draws(data):
+    sims = load_file(data / "L1.h5")
+    chunks = [[(0, 0), (1, 1)], [(1, 2)], [(0, 3), (1, 0), (0, 1)]]
+    direct = [make_batch(sims, c, 1e-4, 1e-3, torch.Generator().manual_seed(7)) for c in chunks[:1]]
+    g1, g2 = torch.Generator().manual_seed(7), torch.Generator().manual_seed(7)
+    expected = [make_batch(sims, c, 1e-4, 1e-3, g1) for c in chunks]
+    got = list(training.prefetched(lambda c: make_batch(sims, c, 1e-4, 1e-3, g2), chunks))
+    assert len(got) == 3
+    for a, b in zip(got, expected):
+        assert torch.equal(a.z, b.z) and torch.equal(a.zdot, b.zdot) and torch.equal(a.topology.senders, b.topology.senders)
+    assert torch.equal(got[0].z, direct[0].z)
+    assert list(training.prefetched(lambda c: c, [])) == []
 
 
 def test_kill_during_an_epoch_costs_at_most_that_epoch(data, tmp_path):

@@ -33,6 +33,9 @@ def init_warp():
         os.close(saved)
 
 
+WARP_COMMANDS = ("fem", "generate", "demo")  # the rest run on torch (and meshing) alone
+
+
 def _device(name):
     import warp as wp
 
@@ -146,9 +149,14 @@ def cmd_train(args):
         raise InputError(str(exc)) from None
     if not 0 < args.train_fraction <= 1:
         raise InputError("--train-fraction must be in (0, 1]")
-    cfg = TrainConfig(data=args.data, out=args.out, model=model, epochs=args.epochs, batch_size=args.batch,
-                      lr=args.lr, patience=args.patience, train_fraction=args.train_fraction, seed=args.seed,
-                      resume=args.resume, time_limit=args.time_limit, device=args.device)
+    try:
+        cfg = TrainConfig(data=args.data, out=args.out, model=model, epochs=args.epochs, batch_size=args.batch,
+                          lr=args.lr, lr_schedule=args.lr_schedule, lr_final=args.lr_final, patience=args.patience,
+                          train_fraction=args.train_fraction, seed=args.seed, resume=args.resume,
+                          time_limit=args.time_limit, time_budget=args.time_budget, tf32=not args.no_tf32,
+                          device=args.device)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
     result = train(cfg)
     print(f"{args.out}: best validation mean RRMSE {result['best']:.4e} at epoch {result['best_epoch']} "
           f"({result['epochs']} epochs logged)")
@@ -212,10 +220,18 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--epochs", type=int, default=1000)
     t.add_argument("--batch", type=int, default=16, help="snapshots per step (per process under torchrun)")
     t.add_argument("--lr", type=float, default=1e-3)
+    t.add_argument("--lr-schedule", default="plateau", choices=["plateau", "exponential"],
+                   help="plateau: halve on a training-loss plateau (the paper); exponential: lr -> --lr-final "
+                        "over --time-budget")
+    t.add_argument("--lr-final", type=float, default=1e-5, help="exponential schedule: the rate at the budget's end")
     t.add_argument("--patience", type=int, default=30, help="epochs without a better validation rollout")
     t.add_argument("--train-fraction", type=float, default=1.0, help="use this share of the training simulations")
     t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--time-limit", type=float, default=None, help="seconds; stop after the epoch passing it")
+    t.add_argument("--time-limit", type=float, default=None,
+                   help="seconds of this invocation; stop after the epoch passing it (--resume continues)")
+    t.add_argument("--time-budget", type=float, default=None,
+                   help="seconds of training in all, across resumes; the run ends once they are spent")
+    t.add_argument("--no-tf32", action="store_true", help="full fp32 matmuls on CUDA (default: TF32)")
     t.add_argument("--resume", action="store_true", help="continue RUN/last.pt")
     t.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     t.set_defaults(func=cmd_train)
@@ -239,7 +255,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    init_warp()
+    if args.command in WARP_COMMANDS:
+        init_warp()
     try:
         args.func(args)
     except InputError as exc:

@@ -1,6 +1,9 @@
 """``warpgnn train``: one-step training on snapshot pairs, early stopping on rollouts.
 
-Adam; the learning rate drops on a plateau of the training loss; after every epoch the
+Adam; the learning rate drops on a plateau of the training loss (the paper), or decays
+exponentially over a fixed training-time budget (``lr_schedule="exponential"``, for runs that
+must fit a time slot: the rate is set at each epoch's start from the seconds already spent, so
+a resumed run continues the same curve); after every epoch the
 validation simulations (20% of L5) are rolled out from their initial state, and the mean of
 the q, v, sigma RRMSE decides best.pt and early stopping. RUN/last.pt is written atomically
 after every epoch (so a kill -9 costs at most one epoch) and ``--resume`` continues from it
@@ -15,6 +18,7 @@ import io
 import math
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -39,17 +43,27 @@ class TrainConfig:
     epochs: int = 1000
     batch_size: int = 16  # snapshots per step (per process under torchrun)
     lr: float = 1e-3
+    lr_schedule: str = "plateau"  # plateau (the paper) | exponential (from lr to lr_final over time_budget)
     lr_factor: float = 0.5
     lr_patience: int = 5  # epochs without a lower training loss
     min_lr: float = 1e-6
+    lr_final: float = 1e-5  # exponential schedule: the rate when time_budget is spent
     patience: int = 30  # epochs without a better validation rollout before stopping
     noise_q: float = 1e-4  # times the mean edge length (paper appendix A)
     noise_v: float = 1e-3  # relative, on v and sigma
     train_fraction: float = 1.0  # data-scarcity study
     seed: int = 0
     resume: bool = False
-    time_limit: float | None = None  # seconds; stop after the epoch that passes it (resume later)
+    time_limit: float | None = None  # seconds of this invocation; stop after the epoch that passes it (resume later)
+    time_budget: float | None = None  # seconds of training in all, across resumes; the run ends when spent
+    tf32: bool = True  # CUDA matmuls in TF32 (10-bit mantissa inputs, fp32 accumulation)
     device: str | None = None
+
+    def __post_init__(self):
+        if self.lr_schedule not in ("plateau", "exponential"):
+            raise ValueError(f"lr_schedule must be plateau or exponential, got {self.lr_schedule!r}")
+        if self.lr_schedule == "exponential" and not self.time_budget:
+            raise ValueError("the exponential schedule decays over --time-budget: give one")
 
 
 LOG_FIELDS = ("epoch", "seconds", "lr", "loss", "data", "degeneracy", "val_q", "val_v", "val_sigma", "val_mean", "best")
@@ -98,7 +112,47 @@ def _device(name: str | None, rank: int, world: int) -> torch.device:
         dev = torch.device("cuda", int(os.environ.get("LOCAL_RANK", rank)))
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise InputError(f"device {name} requested but CUDA is not available")
+    if dev.type == "cuda" and world > 1:
+        torch.cuda.set_device(dev)  # NCCL's communicators use the current device
     return dev
+
+
+def scheduled_lr(cfg: TrainConfig, seconds_spent: float) -> float:
+    """The exponential schedule: lr at the start, lr_final once time_budget seconds are spent."""
+    progress = min(1.0, seconds_spent / cfg.time_budget)
+    return cfg.lr * (cfg.lr_final / cfg.lr) ** progress
+
+
+def prefetched(make, items):
+    """``make(item)`` for each item, the next one built on a worker thread while the caller
+    uses the current one (batch stacking is CPU work, and torch releases the GIL in it). One
+    worker makes them strictly in order, so random draws inside ``make`` keep their sequence."""
+    items = list(items)
+    with ThreadPoolExecutor(1) as pool:
+        ahead = pool.submit(make, items[0]) if items else None
+        for i in range(len(items)):
+            current = ahead.result()
+            ahead = pool.submit(make, items[i + 1]) if i + 1 < len(items) else None
+            yield current
+
+
+def _agree(flag: bool, world: int, device) -> bool:
+    """True on every process if it is true on any (clocks differ between processes, and a
+    process that stops alone would leave the others waiting in an all-reduce)."""
+    if world == 1:
+        return flag
+    t = torch.tensor([float(flag)], device=device)
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return bool(t.item())
+
+
+def _from_rank0(value: float, world: int, device) -> float:
+    """Rank 0's value on every process (the learning rate must be the same everywhere)."""
+    if world == 1:
+        return value
+    t = torch.tensor([value], dtype=torch.float64, device=device)
+    dist.broadcast(t, 0)
+    return float(t.item())
 
 
 def _write_log(path: Path, history: list[dict]) -> None:
@@ -127,6 +181,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
         # CPU ops (batch stacking) of several processes on one host oversubscribe the cores
         # with torch's default thread count: 3 runs sharing an H200 ran 2-3x slower.
         torch.set_num_threads(max(1, min(4, (os.cpu_count() or 1) // world)))
+    if device.type == "cuda":
+        torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
     torch.manual_seed(cfg.seed)
     splits = load_splits(cfg.data, device, cfg.train_fraction, cfg.seed)
     train_sims, val_sims = splits["train"], splits["val"]
@@ -153,14 +209,19 @@ def train(cfg: TrainConfig, log=print) -> dict:
     per_rank = len(samples) // world
     started = t0 = time.perf_counter()
     for epoch in range(start, cfg.epochs):
+        if cfg.lr_schedule == "exponential":
+            spent = history[-1]["seconds"] if history else 0.0
+            for group in opt.param_groups:
+                group["lr"] = _from_rank0(scheduled_lr(cfg, spent), world, device)
         order = np.random.default_rng([cfg.seed, epoch]).permutation(len(samples))
         mine = [samples[i] for i in order[rank * per_rank:(rank + 1) * per_rank]]
         gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch * 1_009 + rank)
         model.train()
         sums, n = {}, 0
-        bar = tqdm(range(0, len(mine), cfg.batch_size), desc=f"epoch {epoch}", leave=False, disable=True if rank else None)
-        for i in bar:
-            b = make_batch(train_sims, mine[i:i + cfg.batch_size], cfg.noise_q, cfg.noise_v, gen)
+        chunks = [mine[i:i + cfg.batch_size] for i in range(0, len(mine), cfg.batch_size)]
+        batches = prefetched(lambda c: make_batch(train_sims, c, cfg.noise_q, cfg.noise_v, gen), chunks)
+        bar = tqdm(batches, total=len(chunks), desc=f"epoch {epoch}", leave=False, disable=True if rank else None)
+        for b in bar:
             opt.zero_grad(set_to_none=True)
             loss, parts = train_step(net, b)
             opt.step()
@@ -174,7 +235,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
             dist.all_reduce(means)
             means /= world
         row = {k: float(v) for k, v in zip(sorted(sums), means)}
-        sched.step(row["loss"])
+        if cfg.lr_schedule == "plateau":
+            sched.step(row["loss"])
         val = validate(model, val_sims)
         score = metrics.mean_rrmse(val)
         improved = score < best
@@ -186,8 +248,11 @@ def train(cfg: TrainConfig, log=print) -> dict:
                    val_sigma=val["rrmse"]["sigma"], val_mean=score, best=improved)
         history.append(row)
         t0 = time.perf_counter()
-        stopped = f"early stop: no better validation rollout for {cfg.patience} epochs" \
-            if epoch - best_epoch >= cfg.patience else None
+        stopped = None
+        if epoch - best_epoch >= cfg.patience:
+            stopped = f"early stop: no better validation rollout for {cfg.patience} epochs"
+        elif cfg.time_budget is not None and _agree(row["seconds"] >= cfg.time_budget, world, device):
+            stopped = f"time budget of {cfg.time_budget:.0f} s spent"
         if rank == 0:
             if improved:
                 checkpoint.save_atomically(checkpoint.model_payload(model, epoch=epoch, validation=val,
@@ -202,7 +267,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
             if rank == 0:
                 log(stopped)
             break
-        if cfg.time_limit is not None and time.perf_counter() - started + epoch_seconds > cfg.time_limit:
+        if cfg.time_limit is not None and _agree(time.perf_counter() - started + epoch_seconds > cfg.time_limit, world, device):
             if rank == 0:
                 log(f"time limit reached after epoch {epoch}; --resume continues")
             break
