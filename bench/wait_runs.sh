@@ -2,9 +2,9 @@
 # Waits up to SECONDS for the training processes of RUNS (bench/train_paper.sh) to finish,
 # printing each run's latest epoch line every minute.   usage: bench/wait_runs.sh RUNS SECONDS
 RUNS=$1; LIMIT=$2; t0=$SECONDS
-while pgrep -f "warpgnn train" > /dev/null && [ $((SECONDS - t0)) -lt "$LIMIT" ]; do
+while pgrep -f "warpgnn(.cli)? train" > /dev/null && [ $((SECONDS - t0)) -lt "$LIMIT" ]; do
   sleep $(( LIMIT - (SECONDS - t0) < 60 ? LIMIT - (SECONDS - t0) : 60 ))
   echo "--- $((SECONDS - t0)) s"
   for d in "$RUNS"/*/; do printf '%-22s %s\n' "$(basename "$d")" "$(grep -a '^epoch' "$d/stdout.txt" | tail -n 1 | cut -c1-150)"; done
 done
-pgrep -f "warpgnn train" > /dev/null && echo "still running" || echo "all runs finished"
+pgrep -f "warpgnn(.cli)? train" > /dev/null && echo "still running" || echo "all runs finished"
