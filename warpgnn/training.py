@@ -210,9 +210,9 @@ def train(cfg: TrainConfig, log=print) -> dict:
     started = t0 = time.perf_counter()
     for epoch in range(start, cfg.epochs):
         if cfg.lr_schedule == "exponential":
-            spent = history[-1]["seconds"] if history else 0.0
+            lr = _from_rank0(scheduled_lr(cfg, history[-1]["seconds"] if history else 0.0), world, device)
             for group in opt.param_groups:
-                group["lr"] = _from_rank0(scheduled_lr(cfg, spent), world, device)
+                group["lr"] = lr
         order = np.random.default_rng([cfg.seed, epoch]).permutation(len(samples))
         mine = [samples[i] for i in order[rank * per_rank:(rank + 1) * per_rank]]
         gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + epoch * 1_009 + rank)
