@@ -153,8 +153,9 @@ def cmd_train(args):
         cfg = TrainConfig(data=args.data, out=args.out, model=model, epochs=args.epochs, batch_size=args.batch,
                           lr=args.lr, lr_schedule=args.lr_schedule, lr_final=args.lr_final, patience=args.patience,
                           train_fraction=args.train_fraction, seed=args.seed, resume=args.resume,
-                          time_limit=args.time_limit, time_budget=args.time_budget, tf32=not args.no_tf32,
-                          device=args.device)
+                          time_limit=args.time_limit, time_budget=args.time_budget, tf32=args.tf32,
+                          compile=args.compile, device=args.device,
+                          **{k: getattr(args, k) for k in ("noise_q", "noise_v") if getattr(args, k) is not None})
     except ValueError as exc:
         raise InputError(str(exc)) from None
     result = train(cfg)
@@ -231,7 +232,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seconds of this invocation; stop after the epoch passing it (--resume continues)")
     t.add_argument("--time-budget", type=float, default=None,
                    help="seconds of training in all, across resumes; the run ends once they are spent")
-    t.add_argument("--no-tf32", action="store_true", help="full fp32 matmuls on CUDA (default: TF32)")
+    t.add_argument("--noise-q", type=float, help="position noise, times the mean edge length (default: the paper's 1e-4)")
+    t.add_argument("--noise-v", type=float, help="relative noise on velocity and stress (default: the paper's 1e-3)")
+    t.add_argument("--tf32", action="store_true", help="TF32 matmuls on CUDA (default: full fp32)")
+    t.add_argument("--compile", action="store_true",
+                   help="torch.compile the network for training (GPU: fused kernels; compiles once, ~1 min)")
     t.add_argument("--resume", action="store_true", help="continue RUN/last.pt")
     t.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     t.set_defaults(func=cmd_train)

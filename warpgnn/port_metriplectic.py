@@ -29,18 +29,14 @@ N_M = STATE * (STATE + 1) // 2  # 78
 # hybrid's first predictions are 10-70x the targets' scale (initial loss ~1e3 against the
 # vanilla decoder's ~3) and training spends its first epochs undoing that.
 OPERATOR_INIT_SCALE = 0.05
-_TRIANGLES: dict = {}  # (strict, device) -> flat indices into a 12 x 12 matrix
 
 
 def lower_triangular(values: torch.Tensor, strict: bool) -> torch.Tensor:
     """(E, 66) -> (E, 12, 12) strictly lower, or (E, 78) -> lower triangular."""
-    key = (strict, values.device)
-    if key not in _TRIANGLES:
-        rows, cols = torch.tril_indices(STATE, STATE, -1 if strict else 0)
-        _TRIANGLES[key] = (rows * STATE + cols).to(values.device)
-    out = values.new_zeros(values.shape[0], STATE * STATE)
-    out[:, _TRIANGLES[key]] = values
-    return out.view(-1, STATE, STATE)
+    rows, cols = torch.tril_indices(STATE, STATE, -1 if strict else 0, device=values.device)
+    out = values.new_zeros(values.shape[0], STATE, STATE)
+    out[:, rows, cols] = values
+    return out
 
 
 def apply_L(A: torch.Tensor, x: torch.Tensor) -> torch.Tensor:

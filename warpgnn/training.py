@@ -56,7 +56,8 @@ class TrainConfig:
     resume: bool = False
     time_limit: float | None = None  # seconds of this invocation; stop after the epoch that passes it (resume later)
     time_budget: float | None = None  # seconds of training in all, across resumes; the run ends when spent
-    tf32: bool = True  # CUDA matmuls in TF32 (10-bit mantissa inputs, fp32 accumulation)
+    tf32: bool = False  # CUDA matmuls in TF32 (measured no faster at these widths: train_step_time_h200.json)
+    compile: bool = False  # torch.compile the training forward (and backward), dynamic shapes
     device: str | None = None
 
     def __post_init__(self):
@@ -69,9 +70,24 @@ class TrainConfig:
 LOG_FIELDS = ("epoch", "seconds", "lr", "loss", "data", "degeneracy", "val_q", "val_v", "val_sigma", "val_mean", "best")
 
 
+def unwrapped(model) -> TIGNN:
+    """The TIGNN inside torch.compile and DistributedDataParallel wrappers."""
+    while isinstance(model, torch.nn.Module) and not isinstance(model, TIGNN):
+        model = getattr(model, "_orig_mod", None) or model.module
+    return model
+
+
+def compiled(model, backend: str = "inductor"):
+    """``model`` under torch.compile with dynamic shapes: every batch stacks a different number
+    of nodes and edges, and one symbolic-size graph serves them all instead of a recompilation
+    per size. Inductor fuses the gathers, activations, layer norms and scatters of each
+    message-passing MLP (forward and backward) into a few kernels."""
+    return torch.compile(model, dynamic=True, backend=backend)
+
+
 def train_step(model, batch: Batch) -> tuple[torch.Tensor, dict]:
-    """Forward and backward of one batch (``model`` may be DDP-wrapped); returns the loss."""
-    core = model.module if hasattr(model, "module") else model
+    """Forward and backward of one batch (``model`` may be DDP- or compile-wrapped); returns the loss."""
+    core = unwrapped(model)
     p = model(batch.topology, batch.z, batch.u_now, batch.u_next)
     loss, parts = core.loss(p, batch.zdot)
     loss.backward()
@@ -200,6 +216,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
         sched.load_state_dict(state["scheduler"])
         history, best, best_epoch, start = state["history"], state["best"], state["best_epoch"], state["epoch"] + 1
     net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
+    if cfg.compile:
+        net = compiled(net)
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         log(f"{cfg.model.kind}, {cfg.model.passes} passes, F = {cfg.model.latent}: {model.n_parameters():,} parameters; "
