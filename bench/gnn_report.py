@@ -7,12 +7,12 @@ writes one JSON record, box plots like the paper's, final-step renders and a nod
 
 import argparse
 import csv
-import datetime
 import json
 from pathlib import Path
 
 import numpy as np
 
+import provenance  # bench/, beside this script
 from warpgnn.mesh import TetMesh
 from warpgnn.plots import node_history, rrmse_boxplot
 from warpgnn.render import render_comparison
@@ -30,13 +30,11 @@ def main():
     ap.add_argument("eval")
     ap.add_argument("runs")
     ap.add_argument("out_prefix")
-    ap.add_argument("--device", required=True)
-    ap.add_argument("--command", required=True)
-    ap.add_argument("--note", default="")
+    provenance.add_arguments(ap)
     a = ap.parse_args()
     ev, runs, prefix = Path(a.eval), Path(a.runs), Path(a.out_prefix)
-    record = {"device": a.device, "date": datetime.date.today().isoformat(), "command": a.command, "note": a.note,
-              "paper_L5_5pass": PAPER_L5_5PASS, "target_hybrid_5pass_rrmse": TARGET_HYBRID_5PASS, "runs": {}}
+    record = provenance.record(a) | {"paper_L5_5pass": PAPER_L5_5PASS,
+                                     "target_hybrid_5pass_rrmse": TARGET_HYBRID_5PASS, "runs": {}}
     per = {}
     for run in sorted(p.name for p in ev.iterdir() if p.is_dir()):
         log = list(csv.DictReader(open(runs / run / "log.csv")))

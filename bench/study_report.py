@@ -7,11 +7,12 @@ hybrid vs vanilla). Each arm's score is its best validation rollout (20 % of L5)
 
 import argparse
 import csv
-import datetime
 import json
 from pathlib import Path
 
 import matplotlib.pyplot as plt
+
+import provenance  # bench/, beside this script
 
 GROUPS = ("q", "v", "sigma")
 ABLATION = {("multi", 1): "ablation_multi_p1", ("multi", 5): "hybrid_p5_s0", ("multi", 12): "hybrid_p12_s0",
@@ -46,16 +47,13 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("runs")
     ap.add_argument("out_prefix")
-    ap.add_argument("--device", required=True)
-    ap.add_argument("--command", required=True)
-    ap.add_argument("--note", default="")
+    provenance.add_arguments(ap)
     a = ap.parse_args()
     runs = Path(a.runs)
     ablation = {k: best_row(runs, r) for k, r in ABLATION.items()}
     scarcity = {k: best_row(runs, r) for k, r in SCARCITY.items()}
-    record = {"device": a.device, "date": datetime.date.today().isoformat(), "command": a.command, "note": a.note,
-              "ablation": {f"{arm}_p{p}": v for (arm, p), v in ablation.items()},
-              "scarcity": {f"{arm}_{pct}pct": v for (arm, pct), v in scarcity.items()}}
+    record = provenance.record(a) | {"ablation": {f"{arm}_p{p}": v for (arm, p), v in ablation.items()},
+                                     "scarcity": {f"{arm}_{pct}pct": v for (arm, pct), v in scarcity.items()}}
     Path(f"{a.out_prefix}.json").write_text(json.dumps(record, indent=1))
     plot(ablation, "message passes", "single-graph ablation (hybrid)", f"{a.out_prefix}_ablation.png")
     plot(scarcity, "% of training simulations", "data scarcity (5 passes)", f"{a.out_prefix}_scarcity.png")

@@ -73,7 +73,7 @@ LOG_FIELDS = ("epoch", "seconds", "lr", "loss", "data", "degeneracy", "val_q", "
 def unwrapped(model) -> TIGNN:
     """The TIGNN inside torch.compile and DistributedDataParallel wrappers."""
     while isinstance(model, torch.nn.Module) and not isinstance(model, TIGNN):
-        model = getattr(model, "_orig_mod", None) or model.module
+        model = model._orig_mod if hasattr(model, "_orig_mod") else model.module
     return model
 
 

@@ -1,0 +1,16 @@
+"""What every recorded benchmark result carries (device, date, command, note), for the report
+scripts that are run elsewhere than the measurement and so are told the device and command."""
+
+import argparse
+import datetime
+
+
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--device", required=True, help="the device the results were measured on")
+    ap.add_argument("--command", required=True, help="the command that produced them")
+    ap.add_argument("--note", default="")
+
+
+def record(args: argparse.Namespace) -> dict:
+    return {"device": args.device, "date": datetime.date.today().isoformat(), "command": args.command,
+            "note": args.note}
