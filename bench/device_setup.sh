@@ -6,7 +6,8 @@
 # There: call 1 carries .devwheels/a and runs  mkdir -p /opt/dw && cp .devwheels/a/* /opt/dw/
 #        call 2 carries .devwheels/b and .devdata and starts with  source bench/device_setup.sh
 # A machine is given back 30 s after a call ends: make every call copy what must survive
-# (checkpoints, logs) into $OUT, and chain long runs with setsid + bench/wait_runs.sh.
+# (checkpoints, logs) into $OUT (bench/wait_runs.sh RUNS SECONDS $OUT does), and chain long
+# runs with setsid + bench/wait_runs.sh.
 set -e
 [ -e warpgnn/fem_ref ] || ln -s ../fem_ref warpgnn/fem_ref; [ -e warpgnn/kernels ] || ln -s ../kernels warpgnn/kernels
 if [ ! -d /opt/site/warp ]; then

@@ -54,7 +54,7 @@ def main():
     rrmse_boxplot(test, f"{prefix}_boxplot_test.png", "per-rollout RRMSE on the unseen anatomy L5 (190 rollouts)")
     for run in record["runs"]:
         if run.startswith("hybrid_p5"):
-            rrmse_boxplot({SETS[s]: per[(run, s)] for s in SETS}, f"{prefix}_boxplot_sets.png",
+            rrmse_boxplot({SETS[s]: per[(run, s)] for s in SETS}, f"{prefix}_boxplot_sets_{run}.png",
                           f"{run}: per-rollout RRMSE by set")
     for run in record["runs"]:
         d = np.load(ev / run / "L5_median.npz")

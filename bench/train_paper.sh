@@ -42,8 +42,10 @@ for p in 1 5 12; do
 done
 # noise study: the paper's noise (the runs above) against larger noise, which teaches a rollout
 # to pull a drifted state back (the paper's 1e-4 x mean edge is ~1 um, rollout errors ~1 mm)
-for m in hybrid vanilla; do
-  run ${m}_p5_noise_s0 --model $m --passes 5 --latent 64 --seed 0 $NOISE
+for s in 0 1 2; do
+  for m in hybrid vanilla; do
+    run ${m}_p5_noise_s$s --model $m --passes 5 --latent 64 --seed $s $NOISE
+  done
 done
 for frac in 0.25 0.5; do
   for m in hybrid vanilla; do

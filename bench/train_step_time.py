@@ -3,11 +3,19 @@ against torch.compile (the peer, same run), with CUDA events, medians over repea
 a warm-up; batch stacking (host work, overlapped by training) is timed separately.
 
     python bench/train_step_time.py DATA --json OUT.json [--batch 32] [--steps 30] [--tf32]
+                                    [--modes eager,compiled,eager-bf16,compiled-bf16] [--profile]
+
+Modes ending in -bf16 run the step under torch.autocast(bfloat16) (a timing probe: training
+stays fp32 until its accuracy under bf16 is measured). --profile adds, per record, the ten CUDA
+kernels that take most of the step's time (torch.profiler over five steps). A -bcast suffix
+runs the hybrid decoder's operator products (A - A^T) x and B B^T x as broadcast multiply-sums
+instead of the model's einsums (batched gemv): a probe of what inductor fuses better.
 
 DATA needs only L1.h5 (the smoke preset's will do: step time depends on sizes, not values).
 """
 
 import argparse
+import contextlib
 import datetime
 import json
 import statistics
@@ -15,14 +23,26 @@ import time
 
 import torch
 
+from warpgnn import port_metriplectic
 from warpgnn.data import load_file, make_batch
 from warpgnn.model import ModelConfig, TIGNN
 from warpgnn.training import compiled, fit_normalizer, train_step
 
+EINSUM_PRODUCTS = (port_metriplectic.apply_L, port_metriplectic.apply_M)
+
+
+def apply_L_broadcast(A, x):
+    return (A * x[:, None, :]).sum(-1) - (A * x[:, :, None]).sum(-2)
+
+
+def apply_M_broadcast(B, x):
+    return (B * (B * x[:, :, None]).sum(-2)[:, None, :]).sum(-1)
+
+
 CONFIGS = [("hybrid", 5, 64), ("vanilla", 5, 64), ("hybrid", 12, 128), ("vanilla", 12, 128), ("hybrid", 1, 64)]
 
 
-def time_steps(net, model, chunks, sims, gen):
+def time_steps(net, model, chunks, sims, gen, precision=contextlib.nullcontext):
     """Step times [ms] (CUDA events) and batch-stacking times [ms]; the first step's wall time
     separately (compilation)."""
     opt = torch.optim.Adam(model.parameters(), 1e-4)
@@ -35,14 +55,33 @@ def time_steps(net, model, chunks, sims, gen):
         t0 = time.perf_counter()
         start.record()
         opt.zero_grad(set_to_none=True)
-        train_step(net, b)
+        with precision():
+            train_step(net, b)
         opt.step()
         end.record()
         torch.cuda.synchronize()
         if first is None:
             first = time.perf_counter() - t0
         gpu.append(start.elapsed_time(end))
-    return gpu, host, first, b
+    return gpu, host, first, b, opt
+
+
+def top_kernels(net, opt, batch, precision, steps=5, top=10) -> list[dict]:
+    """The CUDA kernels that take most of ``steps`` training steps, with their share of the time."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        for _ in range(steps):
+            opt.zero_grad(set_to_none=True)
+            with precision():
+                train_step(net, batch)
+            opt.step()
+        torch.cuda.synchronize()
+    events = [e for e in prof.key_averages() if e.device_time_total > 0]
+    total = sum(e.device_time_total for e in events)
+    events.sort(key=lambda e: -e.device_time_total)
+    return [{"kernel": e.key[:120], "calls_per_step": e.count / steps, "ms_per_step": e.device_time_total / steps / 1e3,
+             "share": e.device_time_total / total} for e in events[:top]]
 
 
 def main():
@@ -53,6 +92,8 @@ def main():
     ap.add_argument("--steps", type=int, default=30)
     ap.add_argument("--tf32", action="store_true")
     ap.add_argument("--configs", default="all", help="comma-separated kind:passes:latent, or all")
+    ap.add_argument("--modes", default="eager,compiled", help="eager, compiled, eager-bf16, compiled-bf16")
+    ap.add_argument("--profile", action="store_true", help="add each mode's ten most expensive CUDA kernels")
     a = ap.parse_args()
     torch.backends.cuda.matmul.allow_tf32 = a.tf32
     configs = CONFIGS if a.configs == "all" else [(k, int(p), int(f)) for k, p, f in
@@ -66,28 +107,36 @@ def main():
     chunks = [samples[i:i + a.batch - (i // a.batch) % 3] for i in range(0, len(samples), a.batch)]
     records = []
     for kind, passes, latent in configs:
-        for mode in ("eager", "compiled"):
+        for mode in a.modes.split(","):
+            port_metriplectic.apply_L, port_metriplectic.apply_M = (
+                (apply_L_broadcast, apply_M_broadcast) if mode.endswith("-bcast") else EINSUM_PRODUCTS)
             torch.manual_seed(0)
             model = TIGNN(ModelConfig(kind=kind, passes=passes, latent=latent)).to(dev)
             fit_normalizer(model, sims[:8])
-            net = compiled(model) if mode == "compiled" else model
+            net = compiled(model) if mode.startswith("compiled") else model
+            precision = ((lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if "-bf16" in mode
+                         else contextlib.nullcontext)
             torch.cuda.reset_peak_memory_stats()
-            gpu, host, first, b = time_steps(net, model, chunks, sims, gen)
+            gpu, host, first, b, opt = time_steps(net, model, chunks, sims, gen, precision)
             r = {"model": kind, "passes": passes, "latent": latent, "parameters": model.n_parameters(),
                  "mode": mode, "tf32": a.tf32, "batch": a.batch, "nodes_per_batch": int(b.topology.n_nodes),
                  "mesh_edges_per_batch": int(b.topology.senders.numel()),
                  "median_step_ms": statistics.median(gpu[warm:]), "min_step_ms": min(gpu[warm:]),
                  "first_step_s": first, "median_batch_stacking_ms": statistics.median(host[warm:]),
                  "peak_memory_gib": torch.cuda.max_memory_allocated() / 2**30}
+            if a.profile:
+                r["top_kernels"] = top_kernels(net, opt, b, precision)
             print(json.dumps(r), flush=True)
             records.append(r)
     out = {"device": torch.cuda.get_device_name(), "date": datetime.date.today().isoformat(),
            "command": f"python bench/train_step_time.py DATA --batch {a.batch} --steps {a.steps}"
-                      + (" --tf32" if a.tf32 else "") + (f" --configs {a.configs}" if a.configs != "all" else ""),
+                      + (" --tf32" if a.tf32 else "") + (f" --configs {a.configs}" if a.configs != "all" else "")
+                      + f" --modes {a.modes}" + (" --profile" if a.profile else ""),
            "note": "one training step alone on the GPU (forward, backward, Adam), CUDA events, median after "
                    f"{warm} warm-up steps, batches of batch, batch-1 and batch-2 snapshots in turn; batch stacking "
                    "is host time measured separately (training overlaps it on a worker thread). Peer: the same "
-                   "step eager against torch.compile(dynamic=True), same run; first_step_s includes compilation.",
+                   "step eager against torch.compile(dynamic=True), same run; first_step_s includes compilation; "
+                   "-bf16 modes: the same step under torch.autocast(bfloat16).",
            "records": records}
     open(a.json, "w").write(json.dumps(out, indent=1))
 
