@@ -42,6 +42,14 @@ def apply_M_broadcast(B, x):
 CONFIGS = [("hybrid", 5, 64), ("vanilla", 5, 64), ("hybrid", 12, 128), ("vanilla", 12, 128), ("hybrid", 1, 64)]
 
 
+def one_step(net, opt, batch, precision):
+    """Forward, backward and Adam, under ``precision`` (a context factory: fp32 or autocast)."""
+    opt.zero_grad(set_to_none=True)
+    with precision():
+        train_step(net, batch)
+    opt.step()
+
+
 def time_steps(net, model, chunks, sims, gen, precision=contextlib.nullcontext):
     """Step times [ms] (CUDA events) and batch-stacking times [ms]; the first step's wall time
     separately (compilation)."""
@@ -54,10 +62,7 @@ def time_steps(net, model, chunks, sims, gen, precision=contextlib.nullcontext):
         start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
         t0 = time.perf_counter()
         start.record()
-        opt.zero_grad(set_to_none=True)
-        with precision():
-            train_step(net, b)
-        opt.step()
+        one_step(net, opt, b, precision)
         end.record()
         torch.cuda.synchronize()
         if first is None:
@@ -72,10 +77,7 @@ def top_kernels(net, opt, batch, precision, steps=5, top=10) -> list[dict]:
 
     with profile(activities=[ProfilerActivity.CUDA]) as prof:
         for _ in range(steps):
-            opt.zero_grad(set_to_none=True)
-            with precision():
-                train_step(net, batch)
-            opt.step()
+            one_step(net, opt, batch, precision)
         torch.cuda.synchronize()
     events = [e for e in prof.key_averages() if e.device_time_total > 0]
     total = sum(e.device_time_total for e in events)
@@ -92,7 +94,7 @@ def main():
     ap.add_argument("--steps", type=int, default=30)
     ap.add_argument("--tf32", action="store_true")
     ap.add_argument("--configs", default="all", help="comma-separated kind:passes:latent, or all")
-    ap.add_argument("--modes", default="eager,compiled", help="eager, compiled, eager-bf16, compiled-bf16")
+    ap.add_argument("--modes", default="eager,compiled", help="eager or compiled, each optionally with -bf16 and/or -bcast")
     ap.add_argument("--profile", action="store_true", help="add each mode's ten most expensive CUDA kernels")
     a = ap.parse_args()
     torch.backends.cuda.matmul.allow_tf32 = a.tf32
