@@ -4,12 +4,12 @@
 # and a later call can wait for them. Each run trains for TIME_BUDGET seconds in all with the
 # exponential learning-rate schedule, resuming (--resume) if RUNS already holds it.
 #   usage: bench/train_paper.sh DATA RUNS TIME_BUDGET [NAME_REGEX]
-#   env: BATCH (default 32); EXTRA, flags for every run (e.g. --compile: a run that fails with
-#   them continues without them); NOISE, the noise study's flags (default 30x the paper's q noise,
+#   env: BATCH (default 32); EXTRA, flags for every run (e.g. --cuda-graphs: a run that fails with
+#   them continues with FALLBACK instead, e.g. --compile, default none); NOISE, the noise study's flags (default 30x the paper's q noise,
 #   10x its v/sigma noise)
 # Generates the paper dataset first if DATA lacks it. Then: bench/wait_runs.sh RUNS SECONDS.
 set -euo pipefail
-DATA=${1:-data}; RUNS=${2:-runs}; BUDGET=${3:-1200}; ONLY=${4:-.}; BATCH=${BATCH:-32}; EXTRA=${EXTRA:-}
+DATA=${1:-data}; RUNS=${2:-runs}; BUDGET=${3:-1200}; ONLY=${4:-.}; BATCH=${BATCH:-32}; EXTRA=${EXTRA:-}; FALLBACK=${FALLBACK:-}
 NOISE=${NOISE:---noise-q 3e-3 --noise-v 1e-2}
 GPUS=$(python3 -c 'import torch; print(max(1, torch.cuda.device_count()))')
 if [ ! -f "$DATA/manifest.json" ] && [ ! -f "$DATA/manifest.0-of-$GPUS.json" ]; then  # one shard of the sets per GPU
@@ -25,7 +25,7 @@ run() {
   [[ $name =~ $ONLY ]] || return 0
   mkdir -p "$RUNS/$name"
   local args="--data $DATA --out $RUNS/$name --resume --time-budget $BUDGET --lr-schedule exponential --batch $BATCH $*"
-  CUDA_VISIBLE_DEVICES=$((n % GPUS)) setsid nohup sh -c "warpgnn train $args $EXTRA || warpgnn train $args" \
+  CUDA_VISIBLE_DEVICES=$((n % GPUS)) setsid nohup sh -c "warpgnn train $args $EXTRA || warpgnn train $args $FALLBACK" \
     >> "$RUNS/$name/stdout.txt" 2>&1 < /dev/null &
   n=$((n + 1))
 }

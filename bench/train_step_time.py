@@ -3,7 +3,11 @@ against torch.compile (the peer, same run), with CUDA events, medians over repea
 a warm-up; batch stacking (host work, overlapped by training) is timed separately.
 
     python bench/train_step_time.py DATA --json OUT.json [--batch 32] [--steps 30] [--tf32]
-                                    [--modes eager,compiled,eager-bf16,compiled-bf16] [--profile]
+                                    [--modes eager,compiled,graphs,eager-bf16,compiled-bf16] [--profile]
+
+Mode graphs is `warpgnn train --cuda-graphs`: batches padded to one BatchShape, the network
+compiled with static shapes and replayed as CUDA graphs (reduce-overhead); its step time is for
+the padded batch, so it pays for the padding.
 
 Modes ending in -bf16 run the step under torch.autocast(bfloat16) (a timing probe: training
 stays fp32 until its accuracy under bf16 is measured). --profile adds, per record, the ten CUDA
@@ -21,12 +25,13 @@ import json
 import statistics
 import time
 
+import numpy as np
 import torch
 
 from warpgnn import port_metriplectic
-from warpgnn.data import load_file, make_batch
+from warpgnn.data import BatchShape, load_file, make_batch
 from warpgnn.model import ModelConfig, TIGNN
-from warpgnn.training import compiled, fit_normalizer, train_step
+from warpgnn.training import compiled, fit_normalizer, train_step, warm_up
 
 EINSUM_PRODUCTS = (port_metriplectic.apply_L, port_metriplectic.apply_M)
 
@@ -50,14 +55,14 @@ def one_step(net, opt, batch, precision):
     opt.step()
 
 
-def time_steps(net, model, chunks, sims, gen, precision=contextlib.nullcontext):
+def time_steps(net, model, chunks, sims, gen, precision=contextlib.nullcontext, shape=None):
     """Step times [ms] (CUDA events) and batch-stacking times [ms]; the first step's wall time
     separately (compilation)."""
-    opt = torch.optim.Adam(model.parameters(), 1e-4)
+    opt = torch.optim.Adam(model.parameters(), 1e-4, fused=True)  # as `warpgnn train` on CUDA
     host, gpu, first = [], [], None
     for i, c in enumerate(chunks):
         t0 = time.perf_counter()
-        b = make_batch(sims, c, 1e-4, 1e-3, gen)
+        b = make_batch(sims, c, 1e-4, 1e-3, gen, shape)
         host.append(1e3 * (time.perf_counter() - t0))
         start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
         t0 = time.perf_counter()
@@ -93,18 +98,23 @@ def main():
     ap.add_argument("--batch", type=int, default=32)
     ap.add_argument("--steps", type=int, default=30)
     ap.add_argument("--tf32", action="store_true")
+    ap.add_argument("--files", default="L1", help="dataset files to draw snapshots from (L1,L2,L3,L4: the "
+                    "training set's mix of meshes, which sets how much padding the graphs mode carries)")
     ap.add_argument("--configs", default="all", help="comma-separated kind:passes:latent, or all")
-    ap.add_argument("--modes", default="eager,compiled", help="eager or compiled, each optionally with -bf16 and/or -bcast")
+    ap.add_argument("--modes", default="eager,compiled,graphs",
+                    help="eager, compiled or graphs, each optionally with -bf16 and/or -bcast")
     ap.add_argument("--profile", action="store_true", help="add each mode's ten most expensive CUDA kernels")
     a = ap.parse_args()
     torch.backends.cuda.matmul.allow_tf32 = a.tf32
     configs = CONFIGS if a.configs == "all" else [(k, int(p), int(f)) for k, p, f in
                                                    (c.split(":") for c in a.configs.split(","))]
     dev = torch.device("cuda")
-    sims = load_file(f"{a.data}/L1.h5", dev)
+    sims = [s for stem in a.files.split(",") for s in load_file(f"{a.data}/{stem}.h5", dev)]
     gen = torch.Generator().manual_seed(0)
     warm = 5
-    samples = [(i % len(sims), i % sims[0].steps) for i in range(a.batch * (a.steps + warm))]
+    rng = np.random.default_rng(0)  # random snapshots of random simulations, as an epoch draws them
+    samples = [(int(i), int(t)) for i, t in zip(rng.integers(0, len(sims), a.batch * (a.steps + warm)),
+                                                rng.integers(0, sims[0].steps, a.batch * (a.steps + warm)))]
     # consecutive batches of different sizes, as in training (compiled graphs must not recompile)
     chunks = [samples[i:i + a.batch - (i // a.batch) % 3] for i in range(0, len(samples), a.batch)]
     records = []
@@ -115,16 +125,24 @@ def main():
             torch.manual_seed(0)
             model = TIGNN(ModelConfig(kind=kind, passes=passes, latent=latent)).to(dev)
             fit_normalizer(model, sims[:8])
-            net = compiled(model) if mode.startswith("compiled") else model
+            graphs = mode.startswith("graphs")
+            net = compiled(model, cuda_graphs=graphs) if mode.startswith(("compiled", "graphs")) else model
+            shape = BatchShape.fitting(sims, a.batch) if graphs else None
             precision = ((lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if "-bf16" in mode
                          else contextlib.nullcontext)
             torch.cuda.reset_peak_memory_stats()
-            gpu, host, first, b, opt = time_steps(net, model, chunks, sims, gen, precision)
+            t0 = time.perf_counter()
+            if graphs:  # compile and record before timing, as `warpgnn train --cuda-graphs` does
+                with precision():
+                    warm_up(net, make_batch(sims, chunks[0], shape=shape))
+            recording = time.perf_counter() - t0
+            gpu, host, first, b, opt = time_steps(net, model, chunks, sims, gen, precision, shape)
             r = {"model": kind, "passes": passes, "latent": latent, "parameters": model.n_parameters(),
                  "mode": mode, "tf32": a.tf32, "batch": a.batch, "nodes_per_batch": int(b.topology.n_nodes),
                  "mesh_edges_per_batch": int(b.topology.senders.numel()),
                  "median_step_ms": statistics.median(gpu[warm:]), "min_step_ms": min(gpu[warm:]),
-                 "first_step_s": first, "median_batch_stacking_ms": statistics.median(host[warm:]),
+                 "real_nodes_per_batch": int(b.node_mask.sum()) if b.node_mask is not None else int(b.topology.n_nodes),
+                 "first_step_s": first + recording, "median_batch_stacking_ms": statistics.median(host[warm:]),
                  "peak_memory_gib": torch.cuda.max_memory_allocated() / 2**30}
             if a.profile:
                 r["top_kernels"] = top_kernels(net, opt, b, precision)
@@ -132,13 +150,14 @@ def main():
             records.append(r)
     out = {"device": torch.cuda.get_device_name(), "date": datetime.date.today().isoformat(),
            "command": f"python bench/train_step_time.py DATA --batch {a.batch} --steps {a.steps}"
-                      + (" --tf32" if a.tf32 else "") + (f" --configs {a.configs}" if a.configs != "all" else "")
+                      + (" --tf32" if a.tf32 else "") + (f" --files {a.files}" if a.files != "L1" else "") + (f" --configs {a.configs}" if a.configs != "all" else "")
                       + f" --modes {a.modes}" + (" --profile" if a.profile else ""),
            "note": "one training step alone on the GPU (forward, backward, Adam), CUDA events, median after "
                    f"{warm} warm-up steps, batches of batch, batch-1 and batch-2 snapshots in turn; batch stacking "
                    "is host time measured separately (training overlaps it on a worker thread). Peer: the same "
                    "step eager against torch.compile(dynamic=True), same run; first_step_s includes compilation; "
-                   "-bf16 modes: the same step under torch.autocast(bfloat16).",
+                   "-bf16 modes: the same step under torch.autocast(bfloat16); graphs: padded batches (BatchShape), "
+                   "static-shape compile, CUDA-graph replay (warpgnn train --cuda-graphs). Adam fused in every mode.",
            "records": records}
     open(a.json, "w").write(json.dumps(out, indent=1))
 

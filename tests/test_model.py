@@ -13,7 +13,7 @@ import torch
 from synthetic import box, simulation
 
 from warpgnn import metrics
-from warpgnn.data import Simulation, make_batch
+from warpgnn.data import BatchShape, Simulation, make_batch
 from warpgnn.graphs import (NODE_FIXED, NODE_FREE, NODE_PRESCRIBED, apply_boundary_conditions, batch,
                             make_topology, raw_features)
 from warpgnn.core_model import EdgeMLP
@@ -468,6 +468,51 @@ def test_make_batch_noise(two_sims):
     again = make_batch(two_sims, samples, noise_q, noise_v, generator=torch.Generator().manual_seed(0))
     other = make_batch(two_sims, samples, noise_q, noise_v, generator=torch.Generator().manual_seed(1))
     assert torch.equal(again.z, b.z) and not torch.equal(other.z, b.z)
+
+
+def double_sim(sim: Simulation) -> Simulation:
+    return replace(sim, topology=to_double(sim.topology), z=sim.z.double(), u=sim.u.double())
+
+
+@pytest.mark.parametrize("kind,actuator_graphs", VARIANTS, ids=VARIANT_IDS)
+def test_padded_batch_gives_the_unpadded_loss_and_gradients(two_sims, kind, actuator_graphs):
+    """CUDA-graph training pads every batch to one shape: the padding must change nothing, in
+    the loss or in any gradient, and the real nodes must get the same noise and targets."""
+    sims = [double_sim(s) for s in two_sims]
+    samples = [(0, 1), (1, 2), (1, 0)]
+    shape = BatchShape.fitting(sims, batch_size=4)
+    plain = make_batch(sims, samples, 0.05, 0.1, torch.Generator().manual_seed(3))
+    padded = make_batch(sims, samples, 0.05, 0.1, torch.Generator().manual_seed(3), shape=shape)
+    n = plain.topology.n_nodes
+    assert padded.topology.n_nodes == shape.nodes > n and padded.topology.senders.numel() == shape.edges
+    assert padded.topology.act_senders.numel() == shape.actuator_edges and len(padded.u_next) == shape.tools
+    assert torch.equal(padded.node_mask, (torch.arange(shape.nodes) < n).double())
+    assert torch.equal(padded.z[:n], plain.z) and torch.equal(padded.zdot[:n], plain.zdot)
+    model = tiny(kind, actuator_graphs).double()
+    model.normalizer.fit([(raw_features(plain.topology, plain.z, plain.u_now, plain.u_next), plain.zdot)])
+    results = []
+    for b in (plain, padded):
+        model.zero_grad()
+        p = model(b.topology, b.z, b.u_now, b.u_next)
+        loss, parts = model.loss(p, b.zdot, b.node_mask)
+        loss.backward()
+        results.append((loss, parts, p.zdot[:n], [q.grad.clone() for q in model.parameters()]))
+    (l0, parts0, z0, g0), (l1, parts1, z1, g1) = results
+    assert float(l1.detach()) == pytest.approx(float(l0.detach()), rel=1e-12)
+    assert float(parts1["data"]) == pytest.approx(float(parts0["data"]), rel=1e-12)
+    torch.testing.assert_close(z1, z0, rtol=1e-12, atol=1e-12 * z0.abs().max().item())
+    for a, e in zip(g1, g0):
+        torch.testing.assert_close(a, e, rtol=1e-10, atol=1e-12)
+    assert max(float(g.abs().max()) for g in g0) > 0
+
+
+def test_batch_shape_fits_the_largest_batch_and_refuses_more(two_sims):
+    shape = BatchShape.fitting(two_sims, batch_size=2)
+    big = max(range(2), key=lambda i: two_sims[i].topology.n_nodes)
+    worst = make_batch(two_sims, [(big, 0), (big, 1)], shape=shape)  # the largest case just fits
+    assert int(worst.node_mask.sum()) == shape.nodes - 1
+    with pytest.raises(ValueError, match="exceeds"):
+        make_batch(two_sims, [(big, 0), (big, 1), (big, 2)], shape=shape)
 
 
 # --------------------------------------------------------------------- 10. normaliser

@@ -5,6 +5,7 @@ minute or two on two cores.
 """
 
 import csv
+import functools
 import json
 import os
 import shutil
@@ -21,7 +22,7 @@ import torch.multiprocessing as mp
 import synthetic
 from test_cli import assert_one_line_error, run_cli
 from warpgnn import checkpoint, training
-from warpgnn.data import all_samples, load_file, make_batch
+from warpgnn.data import BatchShape, all_samples, load_file, make_batch
 from warpgnn.errors import InputError
 from warpgnn.model import TIGNN, ModelConfig
 from warpgnn.training import TrainConfig
@@ -196,6 +197,47 @@ def test_compiled_step_matches_eager_on_batches_of_any_size(data):
             for a, e in zip(g1, g0):
                 torch.testing.assert_close(a, e, rtol=1e-4, atol=1e-6)
     torch._dynamo.reset()
+
+
+def test_cuda_graph_step_has_one_shape_and_the_eager_gradients(data):
+    """--cuda-graphs: batches padded to one BatchShape, compiled with static shapes, never
+    recompile whatever their real sizes, and give the unpadded eager loss and gradients. (CPU CI
+    traces with aot_eager; on a GPU, inductor's reduce-overhead mode replays them as CUDA graphs.)"""
+    sims = load_file(data / "L1.h5") + load_file(data / "L2.h5")
+    torch.manual_seed(0)
+    model = TIGNN(ModelConfig(kind="hybrid", passes=1, latent=8))
+    training.fit_normalizer(model, sims)
+    net = training.compiled(model, backend="aot_eager", cuda_graphs=True)
+    chunks = ([(0, 0), (3, 1)], [(1, 2), (2, 0), (4, 3)], [(5, 1), (5, 2), (0, 1), (1, 1)], [(2, 2)])
+    shape = BatchShape.fitting(sims, 4)
+    assert len({make_batch(sims, c).topology.act_senders.numel() for c in chunks}) > 2
+    with torch._dynamo.config.patch(error_on_recompile=True):
+        for c in chunks:
+            grads = []
+            for m, b in ((model, make_batch(sims, c)), (net, make_batch(sims, c, shape=shape))):
+                model.zero_grad()
+                loss, _ = training.train_step(m, b)
+                grads.append((loss, [p.grad.clone() for p in model.parameters()]))
+            (l0, g0), (l1, g1) = grads
+            assert float(l1) == pytest.approx(float(l0), rel=1e-5)
+            for a, e in zip(g1, g0):
+                torch.testing.assert_close(a, e, rtol=1e-4, atol=1e-6)
+    torch._dynamo.reset()
+
+
+def test_cuda_graph_run_follows_the_plain_run(hybrid_run, data, tmp_path, monkeypatch):
+    """A whole --cuda-graphs run (warm-up, padded batches, masked loss) trains like the plain
+    run of the same seed: the same losses and validation errors epoch by epoch."""
+    plain = functools.partial(training.compiled, backend="aot_eager")
+    monkeypatch.setattr(training, "compiled", plain)  # no C++ compiler run on CPU CI
+    result, _ = quiet_train(config(data, tmp_path / "graphs", epochs=3, cuda_graphs=True))
+    expected = hybrid_run[1]["history"][:3]
+    for got, want in zip(result["history"], expected):
+        for key in ("loss", "data", "val_q", "val_v", "val_sigma"):
+            assert got[key] == pytest.approx(want[key], rel=2e-3), (got["epoch"], key)
+    torch._dynamo.reset()
+    with pytest.raises(ValueError, match="drop --compile"):
+        config(data, tmp_path / "both", epochs=1, cuda_graphs=True, compile=True)
 
 
 def test_kill_during_an_epoch_costs_at_most_that_epoch(data, tmp_path):

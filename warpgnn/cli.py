@@ -154,7 +154,7 @@ def cmd_train(args):
                           lr=args.lr, lr_schedule=args.lr_schedule, lr_final=args.lr_final, patience=args.patience,
                           train_fraction=args.train_fraction, seed=args.seed, resume=args.resume,
                           time_limit=args.time_limit, time_budget=args.time_budget, tf32=args.tf32,
-                          compile=args.compile, device=args.device,
+                          compile=args.compile, cuda_graphs=args.cuda_graphs, device=args.device,
                           **{k: getattr(args, k) for k in ("noise_q", "noise_v") if getattr(args, k) is not None})
     except ValueError as exc:
         raise InputError(str(exc)) from None
@@ -237,6 +237,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--tf32", action="store_true", help="TF32 matmuls on CUDA (default: full fp32)")
     t.add_argument("--compile", action="store_true",
                    help="torch.compile the network for training (GPU: fused kernels; compiles once, ~1 min)")
+    t.add_argument("--cuda-graphs", action="store_true",
+                   help="pad batches to one shape, compile the network and replay each step as CUDA graphs "
+                        "(one GPU; removes the launch overhead that bounds --compile)")
     t.add_argument("--resume", action="store_true", help="continue RUN/last.pt")
     t.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     t.set_defaults(func=cmd_train)

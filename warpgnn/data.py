@@ -16,7 +16,7 @@ import torch
 
 from . import dataset
 from .errors import InputError
-from .graphs import Topology, batch, make_topology
+from .graphs import NODE_FREE, Topology, batch, make_topology
 
 TRAIN_FILES = ("L1", "L2", "L3", "L4")
 TEST_FILE = "L5"
@@ -96,18 +96,72 @@ class Batch:
     u_now: torch.Tensor  # (K, 3)
     u_next: torch.Tensor  # (K, 3)
     zdot: torch.Tensor  # (N, 12) target (z(t+1) - z(t)) / dt, from the noisy state
+    node_mask: torch.Tensor | None = None  # (N,) 1 on real nodes, 0 on padding (padded batches only)
+
+
+@dataclass(frozen=True)
+class BatchShape:
+    """The fixed sizes of padded batches. A CUDA graph replays one shape, while snapshots of
+    different meshes and tool counts stack to different sizes: padding every batch to the
+    largest a batch of ``batch_size`` snapshots can reach lets one graph serve them all.
+
+    Padding is inert by construction: the padded edges of both edge sets run between one
+    extra *sink* node and one extra *sink* tool, so their messages reach only the sink, and
+    the loss masks the padded nodes out (LayerNorm and the MLPs act row by row; nothing else
+    mixes nodes)."""
+
+    nodes: int
+    edges: int
+    tools: int
+    actuator_edges: int
+    prescribed: int
+
+    @classmethod
+    def fitting(cls, sims: list[Simulation], batch_size: int) -> "BatchShape":
+        def most(count) -> int:
+            return batch_size * max(count(s.topology) for s in sims)
+
+        return cls(nodes=most(lambda t: t.n_nodes) + 1, edges=most(lambda t: t.senders.numel()),
+                   tools=most(lambda t: t.n_tools) + 1, actuator_edges=most(lambda t: t.act_senders.numel()),
+                   prescribed=most(lambda t: t.prescribed.numel()))
+
+
+def _grow(x: torch.Tensor, size: int, fill) -> torch.Tensor:
+    """``x`` extended along its first axis to ``size`` rows of ``fill``."""
+    return torch.cat([x, x.new_full((size - x.shape[0], *x.shape[1:]), fill)])
+
+
+def pad_topology(top: Topology, shape: BatchShape) -> Topology:
+    n, k = top.n_nodes, top.n_tools
+    counts = (n, top.senders.numel(), k, top.act_senders.numel(), top.prescribed.numel())
+    limits = (shape.nodes - 1, shape.edges, shape.tools - 1, shape.actuator_edges, shape.prescribed)
+    if any(c > m for c, m in zip(counts, limits)):
+        raise ValueError(f"batch of (nodes, edges, tools, actuator edges, prescribed) {counts} exceeds {shape}")
+    sink, sink_tool = shape.nodes - 1, shape.tools - 1
+    return Topology(
+        rest=_grow(top.rest, shape.nodes, 0.0), senders=_grow(top.senders, shape.edges, sink),
+        receivers=_grow(top.receivers, shape.edges, sink), node_type=_grow(top.node_type, shape.nodes, NODE_FREE),
+        loaded=_grow(top.loaded, shape.tools, sink), act_senders=_grow(top.act_senders, shape.actuator_edges, sink_tool),
+        act_receivers=_grow(top.act_receivers, shape.actuator_edges, sink),
+        prescribed=_grow(top.prescribed, shape.prescribed, sink),
+        prescribed_tool=_grow(top.prescribed_tool, shape.prescribed, sink_tool),
+        prescribed_weight=_grow(top.prescribed_weight, shape.prescribed, 0.0),
+        graph_sizes=torch.cat([top.graph_sizes, torch.tensor([shape.nodes - n])]))
 
 
 def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: float = 0.0,
-               generator: torch.Generator | None = None) -> Batch:
-    """Stack snapshots ``samples`` = [(simulation index, t), ...] into one graph.
+               generator: torch.Generator | None = None, shape: BatchShape | None = None) -> Batch:
+    """Stack snapshots ``samples`` = [(simulation index, t), ...] into one graph, padded to
+    ``shape`` if given (the real nodes, their noise and targets are the same either way).
 
     Noise (paper appendix A): q' = q + mean_edge * eps * noise_q on free nodes, v' = v (1 + eps
     noise_v), sigma' = sigma (1 + eps noise_v), eps ~ U(-1, 1); the target is built from z'.
     """
     picked = [(sims[i], t) for i, t in samples]
     device = picked[0][0].z.device
-    top = batch([s.topology for s, _ in picked]).to(device)
+    top = batch([s.topology for s, _ in picked])
+    real_nodes = top.n_nodes
+    top = (top if shape is None else pad_topology(top, shape)).to(device)
     z = torch.cat([s.z[t] for s, t in picked])
     z_next = torch.cat([s.z[t + 1] for s, t in picked])
     sizes = torch.tensor([s.topology.n_nodes for s, _ in picked])
@@ -122,10 +176,15 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     dt = host[:, :1]
     if noisy:
         amp, eps = host[:, 1:2], host[:, 2:]
-        free = (top.node_type == 0)[:, None].to(z.dtype)
+        free = (top.node_type[:real_nodes] == NODE_FREE)[:, None].to(z.dtype)
         z = torch.cat([z[:, :3] + free * amp * eps[:, :3], z[:, 3:] * (1 + eps[:, 3:] * noise_v)], -1)
-    return Batch(top, z, torch.cat([s.u[t] for s, t in picked]), torch.cat([s.u[t + 1] for s, t in picked]),
-                 (z_next - z) / dt)
+    u_now, u_next = torch.cat([s.u[t] for s, t in picked]), torch.cat([s.u[t + 1] for s, t in picked])
+    zdot = (z_next - z) / dt
+    if shape is None:
+        return Batch(top, z, u_now, u_next, zdot)
+    mask = _grow(torch.ones(real_nodes, device=device), shape.nodes, 0.0)
+    return Batch(top, _grow(z, shape.nodes, 0.0), _grow(u_now, shape.tools, 0.0), _grow(u_next, shape.tools, 0.0),
+                 _grow(zdot, shape.nodes, 0.0), mask)
 
 
 def all_samples(sims: list[Simulation]) -> list[tuple[int, int]]:

@@ -93,12 +93,17 @@ class TIGNN(nn.Module):
         p = prediction if prediction is not None else self(top, z, u_now, u_next)
         return apply_boundary_conditions(top, z + dt * p.zdot, u_next)
 
-    def loss(self, p: Prediction, zdot_target: torch.Tensor) -> tuple[torch.Tensor, dict]:
-        """MSE over standardised components (+ lambda_d times the degeneracy residual)."""
-        data = (p.zdot_standardized - zdot_target / self.normalizer.zdot_scale).square().mean()
+    def loss(self, p: Prediction, zdot_target: torch.Tensor, node_mask: torch.Tensor | None = None
+             ) -> tuple[torch.Tensor, dict]:
+        """MSE over standardised components (+ lambda_d times the degeneracy residual), averaged
+        over the nodes ``node_mask`` keeps (padded batches) or over all of them."""
+        def node_mean(per_node):
+            return per_node.mean() if node_mask is None else (per_node * node_mask).sum() / node_mask.sum()
+
+        data = node_mean((p.zdot_standardized - zdot_target / self.normalizer.zdot_scale).square().mean(-1))
         if p.degeneracy is None:
             return data, {"data": data.detach()}
-        deg = p.degeneracy.mean()
+        deg = node_mean(p.degeneracy)
         return data + self.config.lambda_d * deg, {"data": data.detach(), "degeneracy": deg.detach()}
 
     def n_parameters(self) -> int:

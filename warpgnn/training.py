@@ -29,7 +29,7 @@ from tqdm.auto import tqdm
 
 from . import checkpoint, metrics
 from .dataset import write_text_atomically
-from .data import Batch, all_samples, load_splits, make_batch
+from .data import Batch, BatchShape, all_samples, load_splits, make_batch
 from .errors import InputError
 from .model import ModelConfig, TIGNN
 from .rollout import rollout
@@ -58,6 +58,7 @@ class TrainConfig:
     time_budget: float | None = None  # seconds of training in all, across resumes; the run ends when spent
     tf32: bool = False  # CUDA matmuls in TF32 (measured no faster at these widths: train_step_time_h200.json)
     compile: bool = False  # torch.compile the training forward (and backward), dynamic shapes
+    cuda_graphs: bool = False  # batches padded to one shape, compiled and replayed as CUDA graphs
     device: str | None = None
 
     def __post_init__(self):
@@ -65,6 +66,8 @@ class TrainConfig:
             raise ValueError(f"lr_schedule must be plateau or exponential, got {self.lr_schedule!r}")
         if self.lr_schedule == "exponential" and not self.time_budget:
             raise ValueError("the exponential schedule decays over --time-budget: give one")
+        if self.cuda_graphs and self.compile:
+            raise ValueError("--cuda-graphs compiles the network itself (static shapes): drop --compile")
 
 
 LOG_FIELDS = ("epoch", "seconds", "lr", "loss", "data", "degeneracy", "val_q", "val_v", "val_sigma", "val_mean", "best")
@@ -77,21 +80,38 @@ def unwrapped(model) -> TIGNN:
     return model
 
 
-def compiled(model, backend: str = "inductor"):
-    """``model`` under torch.compile with dynamic shapes: every batch stacks a different number
-    of nodes and edges, and one symbolic-size graph serves them all instead of a recompilation
-    per size. Inductor fuses the gathers, activations, layer norms and scatters of each
-    message-passing MLP (forward and backward) into a few kernels."""
-    return torch.compile(model, dynamic=True, backend=backend)
+def compiled(model, backend: str = "inductor", cuda_graphs: bool = False):
+    """``model`` under torch.compile. Inductor fuses the gathers, activations, layer norms and
+    scatters of each message-passing MLP (forward and backward) into a few kernels.
+
+    Without ``cuda_graphs`` the shapes are dynamic: every batch stacks a different number of
+    nodes and edges, and one symbolic-size graph serves them all instead of a recompilation per
+    size. Such a step is still bound by the host launching its ~hundreds of kernels. With
+    ``cuda_graphs`` the batches must all have one shape (``BatchShape``), and forward and
+    backward are each recorded once and replayed as CUDA graphs (mode reduce-overhead)."""
+    if not cuda_graphs:
+        return torch.compile(model, dynamic=True, backend=backend)
+    return torch.compile(model, dynamic=False, backend=backend,
+                         **({"mode": "reduce-overhead"} if backend == "inductor" else {}))
 
 
 def train_step(model, batch: Batch) -> tuple[torch.Tensor, dict]:
     """Forward and backward of one batch (``model`` may be DDP- or compile-wrapped); returns the loss."""
     core = unwrapped(model)
+    # a new step for CUDA-graph replay: the previous step's graph outputs may be overwritten
+    torch.compiler.cudagraph_mark_step_begin()
     p = model(batch.topology, batch.z, batch.u_now, batch.u_next)
-    loss, parts = core.loss(p, batch.zdot)
+    loss, parts = core.loss(p, batch.zdot, batch.node_mask)
     loss.backward()
     return loss.detach(), parts
+
+
+def warm_up(net, batch: Batch, steps: int = 3) -> None:
+    """Compile and record the CUDA graphs on ``batch`` (forward and backward only: the weights do
+    not change), before the batch-stacking thread starts putting work on the GPU beside them."""
+    for _ in range(steps):
+        train_step(net, batch)
+    unwrapped(net).zero_grad(set_to_none=True)
 
 
 def fit_normalizer(model: TIGNN, sims, batch_size: int = 64) -> None:
@@ -197,6 +217,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
         # CPU ops (batch stacking) of several processes on one host oversubscribe the cores
         # with torch's default thread count: 3 runs sharing an H200 ran 2-3x slower.
         torch.set_num_threads(max(1, min(4, (os.cpu_count() or 1) // world)))
+    if cfg.cuda_graphs and world > 1:
+        raise InputError("--cuda-graphs trains on one GPU; under torchrun use --compile")
     if device.type == "cuda":
         torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
     torch.manual_seed(cfg.seed)
@@ -207,7 +229,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
         fit_normalizer(model, train_sims)
     else:
         model.load_state_dict(state["model"])
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    # fused: one kernel for the whole update instead of a few per parameter group (CUDA only)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, fused=device.type == "cuda")
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=cfg.lr_factor, patience=cfg.lr_patience,
                                                        min_lr=cfg.min_lr)
     history, best, best_epoch, start = [], math.inf, -1, 0
@@ -216,8 +239,11 @@ def train(cfg: TrainConfig, log=print) -> dict:
         sched.load_state_dict(state["scheduler"])
         history, best, best_epoch, start = state["history"], state["best"], state["best_epoch"], state["epoch"] + 1
     net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
-    if cfg.compile:
-        net = compiled(net)
+    if cfg.compile or cfg.cuda_graphs:
+        net = compiled(net, cuda_graphs=cfg.cuda_graphs)
+    shape = BatchShape.fitting(train_sims, cfg.batch_size) if cfg.cuda_graphs else None
+    if shape is not None:
+        warm_up(net, make_batch(train_sims, all_samples(train_sims)[:cfg.batch_size], shape=shape))
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         log(f"{cfg.model.kind}, {cfg.model.passes} passes, F = {cfg.model.latent}: {model.n_parameters():,} parameters; "
@@ -237,7 +263,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
         model.train()
         sums, n = {}, 0
         chunks = [mine[i:i + cfg.batch_size] for i in range(0, len(mine), cfg.batch_size)]
-        batches = prefetched(lambda c: make_batch(train_sims, c, cfg.noise_q, cfg.noise_v, gen), chunks)
+        batches = prefetched(lambda c: make_batch(train_sims, c, cfg.noise_q, cfg.noise_v, gen, shape), chunks)
         bar = tqdm(batches, total=len(chunks), desc=f"epoch {epoch}", leave=False, disable=True if rank else None)
         for b in bar:
             opt.zero_grad(set_to_none=True)
