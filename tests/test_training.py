@@ -172,6 +172,20 @@ def test_prefetched_batches_keep_order_and_random_draws(data):
     assert list(training.prefetched(lambda c: c, [])) == []
 
 
+def assert_same_step(model, reference, candidate):
+    """train_step on two (network, batch) pairs gives the same loss and the same gradients of
+    ``model``'s parameters."""
+    results = []
+    for net, batch in (reference, candidate):
+        model.zero_grad()
+        loss, _ = training.train_step(net, batch)
+        results.append((loss, [p.grad.clone() for p in model.parameters()]))
+    (l0, g0), (l1, g1) = results
+    assert float(l1) == pytest.approx(float(l0), rel=1e-5)
+    for a, e in zip(g1, g0):
+        torch.testing.assert_close(a, e, rtol=1e-4, atol=1e-6)
+
+
 def test_compiled_step_matches_eager_on_batches_of_any_size(data):
     """--compile: the torch.compile'd network gives the eager loss and gradients, and batches of
     other sizes (other node, edge and tool counts) reuse the one dynamic-shape graph. CPU CI
@@ -187,22 +201,14 @@ def test_compiled_step_matches_eager_on_batches_of_any_size(data):
     assert len({b.topology.senders.numel() for b in batches}) == 3
     with torch._dynamo.config.patch(error_on_recompile=True):
         for b in batches:
-            grads = []
-            for m in (model, net):
-                model.zero_grad()
-                loss, _ = training.train_step(m, b)
-                grads.append((loss, [p.grad.clone() for p in model.parameters()]))
-            (l0, g0), (l1, g1) = grads
-            assert float(l1) == pytest.approx(float(l0), rel=1e-5)
-            for a, e in zip(g1, g0):
-                torch.testing.assert_close(a, e, rtol=1e-4, atol=1e-6)
+            assert_same_step(model, (model, b), (net, b))
     torch._dynamo.reset()
 
 
 def test_cuda_graph_step_has_one_shape_and_the_eager_gradients(data):
     """--cuda-graphs: batches padded to one BatchShape, compiled with static shapes, never
     recompile whatever their real sizes, and give the unpadded eager loss and gradients. (CPU CI
-    traces with aot_eager; on a GPU, inductor's reduce-overhead mode replays them as CUDA graphs.)"""
+    traces with aot_eager; on a GPU, inductor replays them as CUDA graphs, tested below.)"""
     sims = load_file(data / "L1.h5") + load_file(data / "L2.h5")
     torch.manual_seed(0)
     model = TIGNN(ModelConfig(kind="hybrid", passes=1, latent=8))
@@ -213,15 +219,28 @@ def test_cuda_graph_step_has_one_shape_and_the_eager_gradients(data):
     assert len({make_batch(sims, c).topology.act_senders.numel() for c in chunks}) > 2
     with torch._dynamo.config.patch(error_on_recompile=True):
         for c in chunks:
-            grads = []
-            for m, b in ((model, make_batch(sims, c)), (net, make_batch(sims, c, shape=shape))):
-                model.zero_grad()
-                loss, _ = training.train_step(m, b)
-                grads.append((loss, [p.grad.clone() for p in model.parameters()]))
-            (l0, g0), (l1, g1) = grads
-            assert float(l1) == pytest.approx(float(l0), rel=1e-5)
-            for a, e in zip(g1, g0):
-                torch.testing.assert_close(a, e, rtol=1e-4, atol=1e-6)
+            assert_same_step(model, (model, make_batch(sims, c)), (net, make_batch(sims, c, shape=shape)))
+    torch._dynamo.reset()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_graph_replays_give_the_eager_loss_and_gradients(data):
+    """On a GPU: after the warm-up records the graphs, every replay on a new batch, with weights
+    that moved since the last one (as Adam moves them), gives the eager loss and gradients."""
+    sims = load_file(data / "L1.h5", "cuda") + load_file(data / "L2.h5", "cuda")
+    torch.manual_seed(0)
+    model = TIGNN(ModelConfig(kind="hybrid", passes=2, latent=16)).cuda()
+    training.fit_normalizer(model, sims)
+    net = training.compiled(model, cuda_graphs=True)
+    shape = BatchShape.fitting(sims, 3)
+    batches = [make_batch(sims, [(i % 6, i % 4), ((i + 2) % 6, 1), ((i + 4) % 6, 3)], 1e-4, 1e-3, shape=shape)
+               for i in range(6)]
+    training.warm_up(net, batches[0])
+    for b in batches[1:]:
+        assert_same_step(model, (model, b), (net, b))
+        with torch.no_grad():
+            for p in model.parameters():
+                p.add_(1e-3 * torch.randn_like(p))
     torch._dynamo.reset()
 
 

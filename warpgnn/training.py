@@ -88,18 +88,22 @@ def compiled(model, backend: str = "inductor", cuda_graphs: bool = False):
     nodes and edges, and one symbolic-size graph serves them all instead of a recompilation per
     size. Such a step is still bound by the host launching its ~hundreds of kernels. With
     ``cuda_graphs`` the batches must all have one shape (``BatchShape``), and forward and
-    backward are each recorded once and replayed as CUDA graphs (mode reduce-overhead)."""
+    backward are each recorded once and replayed as CUDA graphs.
+
+    Plain per-graph CUDA graphs, not reduce-overhead's default cudagraph trees: under torch 2.11
+    the trees refused this step ("accessing tensor output of CUDAGraphs that has been
+    overwritten") while plain graphs gave the eager loss and gradients to 1e-7 (H100). A
+    training step runs forward then backward, strictly in turn, so the backward always reads
+    the forward's static outputs before the next replay overwrites them."""
     if not cuda_graphs:
         return torch.compile(model, dynamic=True, backend=backend)
-    return torch.compile(model, dynamic=False, backend=backend,
-                         **({"mode": "reduce-overhead"} if backend == "inductor" else {}))
+    graphs = {"options": {"triton.cudagraphs": True, "triton.cudagraph_trees": False}} if backend == "inductor" else {}
+    return torch.compile(model, dynamic=False, backend=backend, **graphs)
 
 
 def train_step(model, batch: Batch) -> tuple[torch.Tensor, dict]:
     """Forward and backward of one batch (``model`` may be DDP- or compile-wrapped); returns the loss."""
     core = unwrapped(model)
-    # a new step for CUDA-graph replay: the previous step's graph outputs may be overwritten
-    torch.compiler.cudagraph_mark_step_begin()
     p = model(batch.topology, batch.z, batch.u_now, batch.u_next)
     loss, parts = core.loss(p, batch.zdot, batch.node_mask)
     loss.backward()
