@@ -1,7 +1,8 @@
-"""Where a trained network's error comes from: one-step and rollout errors split by node class
-(tool tip, fixed face, free nodes within 2 cm of a loaded node, the free far field) and by
-phase (tool ramp, hold), beside how much of the ground truth's velocity is aliased vibration
-(a floor no network reaches from snapshots alone).
+"""Where a trained network's error comes from, by node class (tool tip, fixed face, free nodes
+within 2 cm of a loaded node, the free far field): the one-step error per class and component,
+the rollout error's share per class and its RMS per class after 5, 10, 15 and 20 steps (the tools
+ramp until step 10, then hold); beside it, how much of the ground truth's snapshot velocity is
+aliased vibration in each phase (a floor no network reaches from snapshots alone).
 
     python bench/error_breakdown.py CHECKPOINT DATA_FILE.h5 [...] --json OUT.json --device "..."
 
@@ -17,6 +18,7 @@ import torch
 
 import provenance  # bench/, beside this script
 from warpgnn.checkpoint import load_model
+from warpgnn.fem_ref.solver import SolverConfig
 from warpgnn.data import load_file, make_batch
 from warpgnn.graphs import GROUPS, NODE_FIXED, NODE_FREE, NODE_PRESCRIBED
 from warpgnn.rollout import rollout
@@ -52,28 +54,39 @@ def one_step(model, sims) -> dict:
 
 
 def rollout_errors(model, sims) -> dict:
-    """Each group's squared rollout error: share by class, and its RMS after 5, 10, 15, 20 steps."""
+    """Each group's squared rollout error: share by class, and its RMS (per component) after 5,
+    10, 15 and 20 steps, over all nodes and per class."""
     rolls, out = rollout(model, sims), {}
     steps = sims[0].steps
+    marks = [s for s in (5, 10, 15, 20) if s <= steps]
     for g, sl in GROUPS.items():
-        share, per_step = np.zeros(len(CLASSES)), np.zeros(steps)
+        sq, count = np.zeros((len(CLASSES), steps)), np.zeros(len(CLASSES))  # summed over nodes and rollouts
         for r, sim in zip(rolls, sims):
             cls, ref = node_classes(sim), sim.z.numpy()
             err = ((r.z[1:, :, sl] - ref[1:, :, sl]) ** 2).sum(-1)  # (steps, nodes)
-            share += [err[:, cls == k].sum() for k in range(len(CLASSES))]
-            per_step += err.mean(1)
-        rms = np.sqrt(per_step / len(sims) / (sl.stop - sl.start))
-        out[g] = {"share_by_class": dict(zip(CLASSES, (share / share.sum()).tolist())),
-                  "rms_after_steps": {str(s): float(rms[s - 1]) for s in (5, 10, 15, 20) if s <= steps}}
+            for k in range(len(CLASSES)):
+                sq[k] += err[:, cls == k].sum(1)
+                count[k] += (cls == k).sum()
+        width = sl.stop - sl.start
+
+        def rms(total, n):
+            return {str(s): float(np.sqrt(total[s - 1] / max(n, 1) / width)) for s in marks}
+
+        out[g] = {"share_by_class": dict(zip(CLASSES, (sq.sum(1) / sq.sum()).tolist())),
+                  "rms_after_steps": rms(sq.sum(0), count.sum()),
+                  "rms_after_steps_by_class": {name: rms(sq[k], count[k]) for k, name in enumerate(CLASSES)}}
     return out
 
 
-def velocity_floor(sims, ramp_snapshots: int = 10) -> dict:
+def velocity_floor(sims) -> dict:
     """How far the snapshot velocity of free nodes is from the velocity the positions imply
-    (central differences), and |second| / |first| time difference of v: ~0.1 for a smooth
-    signal, sqrt(3) for white noise (aliased vibration)."""
+    (central differences), and |v(t+1) - 2 v(t) + v(t-1)| / |v(t+1) - v(t)|: well below 1 for a
+    smooth signal, sqrt(3) for white noise (aliased vibration). Ramp: interior snapshots 1 ..
+    end - 1 of the tools' ramp; hold: end + 1 .. S - 1 (the snapshot where the ramp ends is left
+    out: its differences straddle both phases)."""
     sums = {}
     for sim in sims:
+        ramp_snapshots = round(SolverConfig().ramp_fraction * sim.steps)  # the generator's ramp (paper preset)
         cls = node_classes(sim)
         z = sim.z.numpy()
         q, v = z[..., :3], z[..., 3:6]

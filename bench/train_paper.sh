@@ -6,7 +6,7 @@
 #   usage: bench/train_paper.sh DATA RUNS TIME_BUDGET [NAME_REGEX]
 #   env: BATCH (default 32); EXTRA, flags for every run (e.g. --cuda-graphs: a run that fails with
 #   them continues with FALLBACK instead, e.g. --compile, default none); NOISE, the noise study's flags (default 30x the paper's q noise,
-#   10x its v/sigma noise)
+#   10x its v/sigma noise); PUSHFORWARD, the pushforward arms' lead-in steps (default 2)
 # Generates the paper dataset first if DATA lacks it. Then: bench/wait_runs.sh RUNS SECONDS.
 set -euo pipefail
 DATA=${1:-data}; RUNS=${2:-runs}; BUDGET=${3:-1200}; ONLY=${4:-.}; BATCH=${BATCH:-32}; EXTRA=${EXTRA:-}; FALLBACK=${FALLBACK:-}
@@ -46,6 +46,11 @@ for s in 0 1 2; do
   for m in hybrid vanilla; do
     run ${m}_p5_noise_s$s --model $m --passes 5 --latent 64 --seed $s $NOISE
   done
+done
+# pushforward (bench/results/error_breakdown_h100_solo.json: the far field's position error is made
+# during the ramp): each step trained from the network's own PUSHFORWARD-step rollout, larger noise
+for m in hybrid vanilla; do
+  run ${m}_p5_pushforward_s0 --model $m --passes 5 --latent 64 --seed 0 $NOISE --pushforward ${PUSHFORWARD:-2}
 done
 for frac in 0.25 0.5; do
   for m in hybrid vanilla; do

@@ -6,8 +6,8 @@ a warm-up; batch stacking (host work, overlapped by training) is timed separatel
                                     [--modes eager,compiled,graphs,eager-bf16,compiled-bf16] [--profile]
 
 Mode graphs is `warpgnn train --cuda-graphs`: batches padded to one BatchShape, the network
-compiled with static shapes and replayed as CUDA graphs (reduce-overhead); its step time is for
-the padded batch, so it pays for the padding.
+compiled with static shapes and replayed as plain CUDA graphs; its step time is for the padded
+batch, so it pays for the padding.
 
 Modes ending in -bf16 run the step under torch.autocast(bfloat16) (a timing probe: training
 stays fp32 until its accuracy under bf16 is measured). --profile adds, per record, the ten CUDA

@@ -515,6 +515,27 @@ def test_batch_shape_fits_the_largest_batch_and_refuses_more(two_sims):
         make_batch(two_sims, [(big, 0), (big, 1), (big, 2)], shape=shape)
 
 
+def test_batch_led_by_steps_starts_earlier_and_pads_alike(two_sims):
+    """Pushforward batches: z is the (noisy) state ``lead`` snapshots before the trained step,
+    lead_u the tools' path from there, and the target state the one after the trained step."""
+    samples, lead = [(0, 2), (1, 2)], 2  # 3-step simulations: the last step, led from the start
+    b = make_batch(two_sims, samples, lead=lead)
+    a, c = two_sims
+    assert torch.equal(b.z, torch.cat([a.z[0], c.z[0]])) and torch.equal(b.z_next, torch.cat([a.z[3], c.z[3]]))
+    assert b.lead_u.shape == (lead + 1, 4, 3)
+    for j in range(lead + 1):
+        assert torch.equal(b.lead_u[j], torch.cat([a.u[j], c.u[j]]))
+    assert torch.equal(b.u_now, b.lead_u[-1]) and torch.equal(b.u_next, torch.cat([a.u[3], c.u[3]]))
+    shape = BatchShape.fitting(two_sims, 2)
+    noisy = [make_batch(two_sims, samples, 0.05, 0.1, torch.Generator().manual_seed(5), sh, lead) for sh in (None, shape)]
+    n, k = noisy[0].topology.n_nodes, noisy[0].topology.n_tools
+    assert torch.equal(noisy[1].z[:n], noisy[0].z) and torch.equal(noisy[1].lead_u[:, :k], noisy[0].lead_u)
+    assert noisy[1].lead_u.shape == (lead + 1, shape.tools, 3) and not noisy[1].lead_u[:, k:].any()
+    assert make_batch(two_sims, samples).lead_u is None
+    with pytest.raises(ValueError, match="t >= 3"):
+        make_batch(two_sims, samples, lead=3)
+
+
 # --------------------------------------------------------------------- 10. normaliser
 def test_normalizer_fit_matches_numpy():
     rng = np.random.default_rng(0)

@@ -154,7 +154,8 @@ def cmd_train(args):
                           lr=args.lr, lr_schedule=args.lr_schedule, lr_final=args.lr_final, patience=args.patience,
                           train_fraction=args.train_fraction, seed=args.seed, resume=args.resume,
                           time_limit=args.time_limit, time_budget=args.time_budget, tf32=args.tf32,
-                          compile=args.compile, cuda_graphs=args.cuda_graphs, device=args.device,
+                          compile=args.compile, cuda_graphs=args.cuda_graphs, pushforward=args.pushforward,
+                          device=args.device,
                           **{k: getattr(args, k) for k in ("noise_q", "noise_v") if getattr(args, k) is not None})
     except ValueError as exc:
         raise InputError(str(exc)) from None
@@ -237,6 +238,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--tf32", action="store_true", help="TF32 matmuls on CUDA (default: full fp32)")
     t.add_argument("--compile", action="store_true",
                    help="torch.compile the network for training (GPU: fused kernels; compiles once, ~1 min)")
+    t.add_argument("--pushforward", type=int, default=0, metavar="K",
+                   help="train each step from the state the network reaches in K steps of its own (no gradient) "
+                        "instead of the true state; the target leads back to the ground truth (default 0: the paper)")
     t.add_argument("--cuda-graphs", action="store_true",
                    help="pad batches to one shape, compile the network and replay each step as CUDA graphs "
                         "(one GPU; removes the launch overhead that bounds --compile)")

@@ -95,8 +95,17 @@ class Batch:
     z: torch.Tensor  # (N, 12) input state (noisy when augmenting)
     u_now: torch.Tensor  # (K, 3)
     u_next: torch.Tensor  # (K, 3)
-    zdot: torch.Tensor  # (N, 12) target (z(t+1) - z(t)) / dt, from the noisy state
+    z_next: torch.Tensor  # (N, 12) the ground truth's state after the trained step
+    dt: torch.Tensor  # (N, 1) snapshot interval of each node's simulation (1 on padding)
     node_mask: torch.Tensor | None = None  # (N,) 1 on real nodes, 0 on padding (padded batches only)
+    # pushforward training: the tools' displacements (lead + 1, K, 3) over the ``lead`` steps
+    # the network takes from ``z`` (the state ``lead`` snapshots before the trained step) first
+    lead_u: torch.Tensor | None = None
+
+    @property
+    def zdot(self) -> torch.Tensor:
+        """The target: (z(t+1) - z) / dt, from the state the network is given (noisy, or its own)."""
+        return (self.z_next - self.z) / self.dt
 
 
 @dataclass(frozen=True)
@@ -150,20 +159,24 @@ def pad_topology(top: Topology, shape: BatchShape) -> Topology:
 
 
 def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: float = 0.0,
-               generator: torch.Generator | None = None, shape: BatchShape | None = None) -> Batch:
-    """Stack snapshots ``samples`` = [(simulation index, t), ...] into one graph, padded to
-    ``shape`` if given (the real nodes, their noise and targets are the same either way).
+               generator: torch.Generator | None = None, shape: BatchShape | None = None, lead: int = 0) -> Batch:
+    """Stack the steps t -> t+1 of ``samples`` = [(simulation index, t), ...] into one graph,
+    padded to ``shape`` if given (the real nodes, their noise and targets are the same either way).
 
     Noise (paper appendix A): q' = q + mean_edge * eps * noise_q on free nodes, v' = v (1 + eps
     noise_v), sigma' = sigma (1 + eps noise_v), eps ~ U(-1, 1); the target is built from z'.
+    With ``lead`` > 0 the batch starts ``lead`` snapshots earlier (t >= lead): ``z`` is the
+    (noisy) state at t - lead and ``lead_u`` the tools' path to t, for pushforward training.
     """
-    picked = [(sims[i], t) for i, t in samples]
+    if any(t < lead for _, t in samples):
+        raise ValueError(f"a batch led by {lead} steps needs t >= {lead}")
+    picked = [(sims[i], t - lead) for i, t in samples]
     device = picked[0][0].z.device
     top = batch([s.topology for s, _ in picked])
     real_nodes = top.n_nodes
     top = (top if shape is None else pad_topology(top, shape)).to(device)
     z = torch.cat([s.z[t] for s, t in picked])
-    z_next = torch.cat([s.z[t + 1] for s, t in picked])
+    z_next = torch.cat([s.z[t + lead + 1] for s, t in picked])
     sizes = torch.tensor([s.topology.n_nodes for s, _ in picked])
     # per-node columns: dt, then the position-noise amplitude and U(-1, 1) draws
     host = [torch.tensor([s.dt for s, _ in picked]).repeat_interleave(sizes)[:, None]]
@@ -178,14 +191,15 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
         amp, eps = host[:, 1:2], host[:, 2:]
         free = (top.node_type[:real_nodes] == NODE_FREE)[:, None].to(z.dtype)
         z = torch.cat([z[:, :3] + free * amp * eps[:, :3], z[:, 3:] * (1 + eps[:, 3:] * noise_v)], -1)
-    u_now, u_next = torch.cat([s.u[t] for s, t in picked]), torch.cat([s.u[t + 1] for s, t in picked])
-    zdot = (z_next - z) / dt
+    u = torch.stack([torch.cat([s.u[t + j] for s, t in picked]) for j in range(lead + 2)])  # (lead + 2, K, 3)
     if shape is None:
-        return Batch(top, z, u_now, u_next, zdot)
+        return Batch(top, z, u[-2], u[-1], z_next, dt, lead_u=u[:-1] if lead else None)
     mask = _grow(torch.ones(real_nodes, device=device), shape.nodes, 0.0)
-    return Batch(top, _grow(z, shape.nodes, 0.0), _grow(u_now, shape.tools, 0.0), _grow(u_next, shape.tools, 0.0),
-                 _grow(zdot, shape.nodes, 0.0), mask)
+    u = _grow(u.transpose(0, 1), shape.tools, 0.0).transpose(0, 1).contiguous()
+    return Batch(top, _grow(z, shape.nodes, 0.0), u[-2], u[-1], _grow(z_next, shape.nodes, 0.0),
+                 _grow(dt, shape.nodes, 1.0), mask, lead_u=u[:-1] if lead else None)
 
 
-def all_samples(sims: list[Simulation]) -> list[tuple[int, int]]:
-    return [(i, t) for i, s in enumerate(sims) for t in range(s.steps)]
+def all_samples(sims: list[Simulation], lead: int = 0) -> list[tuple[int, int]]:
+    """Every step t -> t+1 of every simulation (from t = lead on: pushforward needs a lead-in)."""
+    return [(i, t) for i, s in enumerate(sims) for t in range(lead, s.steps)]

@@ -19,7 +19,7 @@ import math
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +51,9 @@ class TrainConfig:
     patience: int = 30  # epochs without a better validation rollout before stopping
     noise_q: float = 1e-4  # times the mean edge length (paper appendix A)
     noise_v: float = 1e-3  # relative, on v and sigma
+    # steps the network takes (without gradient) from the true state before the trained step, whose
+    # target then leads from its own rollout back to the ground truth (0: the paper's one-step training)
+    pushforward: int = 0
     train_fraction: float = 1.0  # data-scarcity study
     seed: int = 0
     resume: bool = False
@@ -66,6 +69,8 @@ class TrainConfig:
             raise ValueError(f"lr_schedule must be plateau or exponential, got {self.lr_schedule!r}")
         if self.lr_schedule == "exponential" and not self.time_budget:
             raise ValueError("the exponential schedule decays over --time-budget: give one")
+        if self.pushforward < 0:
+            raise ValueError("--pushforward must be >= 0")
         if self.cuda_graphs and self.compile:
             raise ValueError("--cuda-graphs compiles the network itself (static shapes): drop --compile")
 
@@ -90,20 +95,36 @@ def compiled(model, backend: str = "inductor", cuda_graphs: bool = False):
     ``cuda_graphs`` the batches must all have one shape (``BatchShape``), and forward and
     backward are each recorded once and replayed as CUDA graphs.
 
-    Plain per-graph CUDA graphs, not reduce-overhead's default cudagraph trees: under torch 2.11
-    the trees refused this step ("accessing tensor output of CUDAGraphs that has been
-    overwritten") while plain graphs gave the eager loss and gradients to 1e-7 (H100). A
-    training step runs forward then backward, strictly in turn, so the backward always reads
-    the forward's static outputs before the next replay overwrites them."""
+    Plain per-graph CUDA graphs, not reduce-overhead's default cudagraph trees: the trees
+    refused our first warm-up (torch 2.11, H100: "accessing tensor output of CUDAGraphs that
+    has been overwritten"; that warm-up accumulated gradients across steps, which it no longer
+    does, so trees are untested since), while plain graphs gave the eager loss and gradients
+    to 1e-7 on fresh batches. A training step runs forward then backward, strictly in turn, so
+    the backward always reads the forward's static outputs before the next replay overwrites them."""
     if not cuda_graphs:
         return torch.compile(model, dynamic=True, backend=backend)
     graphs = {"options": {"triton.cudagraphs": True, "triton.cudagraph_trees": False}} if backend == "inductor" else {}
     return torch.compile(model, dynamic=False, backend=backend, **graphs)
 
 
+@torch.no_grad()
+def pushed_forward(model, batch: Batch) -> Batch:
+    """The batch with its state advanced by the network's own Euler steps along ``lead_u`` (no
+    gradient): the trained step then starts where the network's rollout got to, and its target
+    leads back to the ground truth, so training sees the network's own drift (the "pushforward
+    trick"; the paper's noise augmentation does the same with random perturbations)."""
+    core, z = unwrapped(model), batch.z
+    for u_now, u_next in zip(batch.lead_u[:-1], batch.lead_u[1:]):
+        p = model(batch.topology, z, u_now, u_next)
+        z = core.step(batch.topology, z, u_now, u_next, batch.dt, prediction=p)
+    return replace(batch, z=z, lead_u=None)
+
+
 def train_step(model, batch: Batch) -> tuple[torch.Tensor, dict]:
     """Forward and backward of one batch (``model`` may be DDP- or compile-wrapped); returns the loss."""
     core = unwrapped(model)
+    if batch.lead_u is not None:
+        batch = pushed_forward(model, batch)
     p = model(batch.topology, batch.z, batch.u_now, batch.u_next)
     loss, parts = core.loss(p, batch.zdot, batch.node_mask)
     loss.backward()
@@ -114,6 +135,7 @@ def warm_up(net, batch: Batch, steps: int = 3) -> None:
     """Compile and record the CUDA graphs on ``batch`` (forward and backward only: the weights do
     not change), before the batch-stacking thread starts putting work on the GPU beside them."""
     for _ in range(steps):
+        unwrapped(net).zero_grad(set_to_none=True)  # as every training step: no sums into graph-owned grads
         train_step(net, batch)
     unwrapped(net).zero_grad(set_to_none=True)
 
@@ -204,6 +226,8 @@ def _write_log(path: Path, history: list[dict]) -> None:
 
 
 def train(cfg: TrainConfig, log=print) -> dict:
+    if cfg.cuda_graphs and int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        raise InputError("--cuda-graphs trains on one GPU; under torchrun use --compile")
     rank, world = _distributed()
     device = _device(cfg.device, rank, world)
     out = Path(cfg.out)
@@ -221,8 +245,6 @@ def train(cfg: TrainConfig, log=print) -> dict:
         # CPU ops (batch stacking) of several processes on one host oversubscribe the cores
         # with torch's default thread count: 3 runs sharing an H200 ran 2-3x slower.
         torch.set_num_threads(max(1, min(4, (os.cpu_count() or 1) // world)))
-    if cfg.cuda_graphs and world > 1:
-        raise InputError("--cuda-graphs trains on one GPU; under torchrun use --compile")
     if device.type == "cuda":
         torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
     torch.manual_seed(cfg.seed)
@@ -246,16 +268,19 @@ def train(cfg: TrainConfig, log=print) -> dict:
     if cfg.compile or cfg.cuda_graphs:
         net = compiled(net, cuda_graphs=cfg.cuda_graphs)
     shape = BatchShape.fitting(train_sims, cfg.batch_size) if cfg.cuda_graphs else None
+    started = t0 = time.perf_counter()  # compilation and graph recording count as training time
     if shape is not None:
-        warm_up(net, make_batch(train_sims, all_samples(train_sims)[:cfg.batch_size], shape=shape))
+        if device.type != "cuda":
+            log(f"--cuda-graphs on {device}: batches padded and compiled with static shapes, no graph replay")
+        warm_up(net, make_batch(train_sims, all_samples(train_sims, cfg.pushforward)[:cfg.batch_size], shape=shape,
+                                lead=cfg.pushforward))
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         log(f"{cfg.model.kind}, {cfg.model.passes} passes, F = {cfg.model.latent}: {model.n_parameters():,} parameters; "
             f"{len(train_sims)} training and {len(val_sims)} validation simulations on {device}"
             + (f" x {world} processes" if world > 1 else ""))
-    samples = all_samples(train_sims)
+    samples = all_samples(train_sims, cfg.pushforward)
     per_rank = len(samples) // world
-    started = t0 = time.perf_counter()
     for epoch in range(start, cfg.epochs):
         if cfg.lr_schedule == "exponential":
             lr = _from_rank0(scheduled_lr(cfg, history[-1]["seconds"] if history else 0.0), world, device)
@@ -267,7 +292,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
         model.train()
         sums, n = {}, 0
         chunks = [mine[i:i + cfg.batch_size] for i in range(0, len(mine), cfg.batch_size)]
-        batches = prefetched(lambda c: make_batch(train_sims, c, cfg.noise_q, cfg.noise_v, gen, shape), chunks)
+        batches = prefetched(lambda c: make_batch(train_sims, c, cfg.noise_q, cfg.noise_v, gen, shape, cfg.pushforward),
+                             chunks)
         bar = tqdm(batches, total=len(chunks), desc=f"epoch {epoch}", leave=False, disable=True if rank else None)
         for b in bar:
             opt.zero_grad(set_to_none=True)
