@@ -1,5 +1,5 @@
-"""A CPU-sized probe of pushforward training: the same small hybrid (2 passes, F = 32) trained
-for the same number of steps with --pushforward 0 and K, from the same seed, on a few paper-preset
+"""A CPU-sized probe of training options: the same small hybrid (2 passes, F = 32) trained for
+the same number of steps with --pushforward 0 and K (and optionally --rate-weights), from the same seed, on a few paper-preset
 simulations made on the CPU, then rolled out on its training anatomy and an unseen one.
 
     python bench/pushforward_proxy.py TRAIN.h5 TEST.h5 --pushforward 0 2 --seeds 0 1 --steps 800 \\
@@ -23,12 +23,12 @@ from warpgnn.data import all_samples, load_file, make_batch
 from warpgnn.model import ModelConfig, TIGNN
 
 
-def run(train, test, lead: int, seed: int, steps: int) -> dict:
+def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1.0)) -> dict:
     torch.manual_seed(seed)
-    model = TIGNN(ModelConfig(kind="hybrid", passes=2, latent=32))
+    model = TIGNN(ModelConfig(kind="hybrid", passes=2, latent=32, rate_weights=rate_weights))
     training.fit_normalizer(model, train)
     opt = torch.optim.Adam(model.parameters(), 1e-3)
-    samples, rng, gen = all_samples(train, lead), np.random.default_rng(seed), torch.Generator().manual_seed(seed)
+    samples, rng, gen = all_samples(train), np.random.default_rng(seed), torch.Generator().manual_seed(seed)
     t0 = time.time()
     for k in range(steps):
         for group in opt.param_groups:
@@ -37,7 +37,8 @@ def run(train, test, lead: int, seed: int, steps: int) -> dict:
         opt.zero_grad()
         training.train_step(model, make_batch(train, chunk, 3e-3, 1e-2, gen, lead=lead))
         opt.step()
-    out = {"pushforward": lead, "seed": seed, "steps": steps, "seconds": time.time() - t0}
+    out = {"pushforward": lead, "rate_weights": list(rate_weights), "seed": seed, "steps": steps,
+           "seconds": time.time() - t0}
     for name, sims in (("train", train), ("test", test)):
         out[name] = training.validate(model, sims)["rrmse"]
     return out
@@ -50,6 +51,7 @@ def main():
     ap.add_argument("--pushforward", type=int, nargs="+", default=[0, 2])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--steps", type=int, default=800)
+    ap.add_argument("--rate-weights", type=float, nargs=3, default=(1.0, 1.0, 1.0), metavar=("Q", "V", "SIGMA"))
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
@@ -58,7 +60,7 @@ def main():
     runs = []
     for seed in a.seeds:
         for lead in a.pushforward:
-            runs.append(run(train, test, lead, seed, a.steps))
+            runs.append(run(train, test, lead, seed, a.steps, tuple(a.rate_weights)))
             print(json.dumps(runs[-1]), flush=True)
     json.dump(provenance.record(a) | {"train": a.train, "test": a.test, "runs": runs}, open(a.json, "w"), indent=1)
 

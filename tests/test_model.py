@@ -294,6 +294,16 @@ def test_loss_hand_values():
     assert info["degeneracy"].item() == pytest.approx(0.2, rel=1e-6)
     assert ModelConfig().lambda_d == 5.0
 
+    # group weights (q, v, sigma): squared errors 1 (q), 4 and 0 (sigma) over weights 3 * 2 + 3 * 0 + 6 * 0.5
+    weighted = tiny("vanilla", rate_weights=(2.0, 0.0, 0.5))
+    weighted.normalizer.zdot_scale.copy_(scale)
+    loss, _ = weighted.loss(Prediction(s * scale, s), target)
+    assert loss.item() == pytest.approx((2.0 * 1.0 + 0.5 * 4.0) / 2 / 9.0, rel=1e-6)
+    assert ModelConfig().rate_weights == (1.0, 1.0, 1.0)
+    for bad in ((1.0, -1.0, 1.0), (0.0, 0.0, 0.0), (1.0, 1.0)):
+        with pytest.raises(ValueError, match="rate weights"):
+            ModelConfig(rate_weights=bad)
+
 
 # --------------------------------------------------------------------------- 7. metrics
 def hand_rollouts():
@@ -516,24 +526,70 @@ def test_batch_shape_fits_the_largest_batch_and_refuses_more(two_sims):
 
 
 def test_batch_led_by_steps_starts_earlier_and_pads_alike(two_sims):
-    """Pushforward batches: z is the (noisy) state ``lead`` snapshots before the trained step,
-    lead_u the tools' path from there, and the target state the one after the trained step."""
-    samples, lead = [(0, 2), (1, 2)], 2  # 3-step simulations: the last step, led from the start
+    """Pushforward batches: z is the (noisy) state min(lead, t) snapshots before the trained step
+    t -> t+1, lead_u the tools' path from there (held at the start before t = 0), lead_active
+    which nodes each lead step moves, and the target state the one after the trained step."""
+    samples, lead = [(0, 2), (1, 1), (0, 0)], 2  # a full lead-in, a partial one, none
     b = make_batch(two_sims, samples, lead=lead)
     a, c = two_sims
-    assert torch.equal(b.z, torch.cat([a.z[0], c.z[0]])) and torch.equal(b.z_next, torch.cat([a.z[3], c.z[3]]))
-    assert b.lead_u.shape == (lead + 1, 4, 3)
+    na, nc = a.topology.n_nodes, c.topology.n_nodes
+    assert torch.equal(b.z, torch.cat([a.z[0], c.z[0], a.z[0]]))
+    assert torch.equal(b.z_next, torch.cat([a.z[3], c.z[2], a.z[1]]))
+    paths = ([0, 1, 2], [0, 0, 1], [0, 0, 0])  # u indices along the lead of each sample
+    assert b.lead_u.shape == (lead + 1, 6, 3)
     for j in range(lead + 1):
-        assert torch.equal(b.lead_u[j], torch.cat([a.u[j], c.u[j]]))
-    assert torch.equal(b.u_now, b.lead_u[-1]) and torch.equal(b.u_next, torch.cat([a.u[3], c.u[3]]))
-    shape = BatchShape.fitting(two_sims, 2)
+        assert torch.equal(b.lead_u[j], torch.cat([a.u[paths[0][j]], c.u[paths[1][j]], a.u[paths[2][j]]]))
+    assert torch.equal(b.u_now, torch.cat([a.u[2], c.u[1], a.u[0]])) and torch.equal(b.u_next, torch.cat([a.u[3], c.u[2], a.u[1]]))
+    expected = torch.tensor([[1] * na + [0] * nc + [0] * na, [1] * na + [1] * nc + [0] * na], dtype=torch.bool)
+    assert torch.equal(b.lead_active, expected)
+    dt = torch.cat([torch.full((na, 1), 0.05), torch.full((nc, 1), 0.02), torch.full((na, 1), 0.05)])
+    assert torch.equal(b.dt, dt) and torch.equal(b.zdot, (b.z_next - b.z) / dt)
+    shape = BatchShape.fitting(two_sims, 3)
     noisy = [make_batch(two_sims, samples, 0.05, 0.1, torch.Generator().manual_seed(5), sh, lead) for sh in (None, shape)]
     n, k = noisy[0].topology.n_nodes, noisy[0].topology.n_tools
     assert torch.equal(noisy[1].z[:n], noisy[0].z) and torch.equal(noisy[1].lead_u[:, :k], noisy[0].lead_u)
     assert noisy[1].lead_u.shape == (lead + 1, shape.tools, 3) and not noisy[1].lead_u[:, k:].any()
+    assert torch.equal(noisy[1].lead_active[:, :n], noisy[0].lead_active) and not noisy[1].lead_active[:, n:].any()
     assert make_batch(two_sims, samples).lead_u is None
-    with pytest.raises(ValueError, match="t >= 3"):
-        make_batch(two_sims, samples, lead=3)
+
+
+@pytest.mark.parametrize("padded", [False, True], ids=["plain", "padded"])
+def test_pushforward_step_starts_from_the_networks_own_rollout(two_sims, padded):
+    """--pushforward K: the trained step's input is the network's own Euler steps (with the tool
+    and fixed-face conditions, each simulation with its own dt) from the true state min(K, t)
+    snapshots earlier, and its target leads from there to the ground truth's next state; the
+    lead-in carries no gradient, and padding (which never moves) changes nothing."""
+    from warpgnn.training import pushed_forward, train_step
+
+    model = tiny("hybrid").double()
+    sims = [double_sim(s) for s in two_sims]
+    samples = [(0, 2), (1, 1), (0, 0)]
+    b = make_batch(sims, samples, lead=2, shape=BatchShape.fitting(sims, 3) if padded else None)
+    model.normalizer.fit([(raw_features(b.topology, b.z, b.u_now, b.u_next), b.zdot)])
+    pushed = pushed_forward(model, b)
+    # by hand: each sample alone, its own number of steps from its own start
+    expected = []
+    for (i, t), steps in zip(samples, (2, 1, 0)):
+        s = sims[i]
+        z = s.z[t - steps]
+        for j in range(t - steps, t):
+            z = model.step(s.topology, z, s.u[j], s.u[j + 1], s.dt)
+        expected.append(z)
+    expected = torch.cat(expected)
+    n = len(expected)
+    torch.testing.assert_close(pushed.z[:n], expected, rtol=1e-7, atol=1e-7 * expected.abs().max().item())
+    assert not pushed.z.requires_grad and pushed.lead_u is None
+    if padded:
+        assert torch.equal(pushed.z[n:], b.z[n:])  # the sink never moves
+    target = (b.z_next[:n] - expected) / b.dt[:n]
+    torch.testing.assert_close(pushed.zdot[:n], target, rtol=1e-6, atol=1e-6 * target.abs().max().item())
+    truth = torch.cat([sims[i].z[t] for i, t in samples])
+    assert not torch.allclose(pushed.z[:n], truth)  # the network's own state, not the truth's
+    # train_step trains that step: the loss of the one-step batch from the pushed state
+    model.zero_grad()
+    loss, _ = train_step(model, b)
+    p = model(pushed.topology, pushed.z, pushed.u_now, pushed.u_next)
+    assert float(loss) == pytest.approx(float(model.loss(p, pushed.zdot, pushed.node_mask)[0]), rel=1e-6)
 
 
 # --------------------------------------------------------------------- 10. normaliser

@@ -6,7 +6,6 @@ minute or two on two cores.
 
 import csv
 import functools
-from dataclasses import replace
 import json
 import os
 import shutil
@@ -263,37 +262,17 @@ def test_cuda_graph_run_follows_the_plain_run(hybrid_run, data, tmp_path, monkey
         config(data, tmp_path / "both", epochs=1, cuda_graphs=True, compile=True)
 
 
-def test_pushforward_step_starts_from_the_networks_own_rollout(data):
-    """--pushforward K: the trained step's input is the network's K Euler steps (with the tool
-    and fixed-face conditions) from the true state K snapshots earlier, and its target leads from
-    there to the ground truth's next state; the lead-in steps carry no gradient."""
-    sims = load_file(data / "L1.h5")
-    torch.manual_seed(0)
-    model = TIGNN(ModelConfig(kind="hybrid", **TINY))
-    training.fit_normalizer(model, sims)
-    b = make_batch(sims, [(0, 2), (1, 3)], lead=2)
-    pushed = training.pushed_forward(model, b)
-    z, dt = b.z, sims[0].dt
-    for j in range(2):
-        z = model.step(b.topology, z, b.lead_u[j], b.lead_u[j + 1], dt)
-    torch.testing.assert_close(pushed.z, z, rtol=1e-6, atol=1e-9)
-    assert not pushed.z.requires_grad and pushed.lead_u is None
-    torch.testing.assert_close(pushed.zdot, (b.z_next - z) / dt)
-    assert not torch.allclose(pushed.z, torch.cat([sims[0].z[2], sims[1].z[3]]))  # its own state, not the truth's
-    # train_step trains that step: the same loss and gradients as the one-step batch from that state
-    one_step = replace(make_batch(sims, [(0, 2), (1, 3)]), z=z)
-    assert_same_step(model, (model, one_step), (model, b))
-
-
 def test_pushforward_run_with_cuda_graph_batches(data, tmp_path, monkeypatch):
-    """A --pushforward 1 --cuda-graphs run (padded lead-in batches; aot_eager on CPU) trains:
-    its training loss falls and every sample starts at t >= 1."""
+    """A --pushforward 2 --cuda-graphs run (padded lead-in batches, static-shape compile; aot_eager
+    on CPU) trains exactly like the unpadded --pushforward 2 run: same losses and validation."""
+    plain, _ = quiet_train(config(data, tmp_path / "plain", epochs=3, pushforward=2))
     monkeypatch.setattr(training, "compiled", functools.partial(training.compiled, backend="aot_eager"))
-    result, _ = quiet_train(config(data, tmp_path / "pf", epochs=4, cuda_graphs=True, pushforward=1))
-    losses = [h["loss"] for h in result["history"]]
-    assert losses[-1] < 0.9 * losses[0]
+    graphs, _ = quiet_train(config(data, tmp_path / "pf", epochs=3, cuda_graphs=True, pushforward=2))
     torch._dynamo.reset()
-    assert min(t for _, t in all_samples(load_file(data / "L1.h5"), 1)) == 1
+    for got, want in zip(graphs["history"], plain["history"]):
+        for key in ("loss", "val_q", "val_v", "val_sigma"):
+            assert got[key] == pytest.approx(want[key], rel=1e-5), (got["epoch"], key)
+    assert plain["history"][-1]["loss"] < plain["history"][0]["loss"]
     with pytest.raises(ValueError, match="pushforward"):
         config(data, tmp_path / "neg", epochs=1, pushforward=-1)
 
@@ -459,6 +438,17 @@ def test_resume_with_other_model_flags(hybrid_run, data, tmp_path):
                    "--device", "cpu", "--out", out, "--resume")
     assert_one_line_error(proc)
     assert (out / "last.pt").read_bytes() == before
+
+
+def test_resume_a_checkpoint_from_before_a_model_setting_existed(hybrid_run, data, tmp_path):
+    """A checkpoint whose model settings lack one added since (rate_weights) resumes with its default."""
+    out = tmp_path / "run"
+    out.mkdir()
+    state = torch.load(hybrid_run[0] / "last.pt", weights_only=False)
+    del state["model_config"]["rate_weights"]
+    torch.save(state, out / "last.pt")
+    result, lines = quiet_train(config(data, out, epochs=7, resume=True))
+    assert trained_epochs(lines) == [6] and result["epochs"] == 7
 
 
 def test_eval_dataset_without_simulations(hybrid_run, data, tmp_path):

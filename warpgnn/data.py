@@ -98,9 +98,11 @@ class Batch:
     z_next: torch.Tensor  # (N, 12) the ground truth's state after the trained step
     dt: torch.Tensor  # (N, 1) snapshot interval of each node's simulation (1 on padding)
     node_mask: torch.Tensor | None = None  # (N,) 1 on real nodes, 0 on padding (padded batches only)
-    # pushforward training: the tools' displacements (lead + 1, K, 3) over the ``lead`` steps
-    # the network takes from ``z`` (the state ``lead`` snapshots before the trained step) first
+    # pushforward training: the tools' displacements (lead + 1, K, 3) along the ``lead`` steps the
+    # network takes from ``z`` first, and which nodes each of those steps moves (lead, N): a sample
+    # whose step t has fewer than ``lead`` snapshots before it starts at t = 0 and sits out the first ones
     lead_u: torch.Tensor | None = None
+    lead_active: torch.Tensor | None = None
 
     @property
     def zdot(self) -> torch.Tensor:
@@ -165,18 +167,18 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
 
     Noise (paper appendix A): q' = q + mean_edge * eps * noise_q on free nodes, v' = v (1 + eps
     noise_v), sigma' = sigma (1 + eps noise_v), eps ~ U(-1, 1); the target is built from z'.
-    With ``lead`` > 0 the batch starts ``lead`` snapshots earlier (t >= lead): ``z`` is the
-    (noisy) state at t - lead and ``lead_u`` the tools' path to t, for pushforward training.
+    With ``lead`` > 0 (pushforward training) ``z`` is the (noisy) state min(lead, t) snapshots
+    before t, ``lead_u`` the tools' path from there to t (its first entries repeat the start when
+    t < lead) and ``lead_active`` which nodes each lead step moves (none of the padding).
     """
-    if any(t < lead for _, t in samples):
-        raise ValueError(f"a batch led by {lead} steps needs t >= {lead}")
-    picked = [(sims[i], t - lead) for i, t in samples]
+    starts = [max(t - lead, 0) for _, t in samples]
+    picked = [(sims[i], t0) for (i, _), t0 in zip(samples, starts)]
     device = picked[0][0].z.device
     top = batch([s.topology for s, _ in picked])
     real_nodes = top.n_nodes
     top = (top if shape is None else pad_topology(top, shape)).to(device)
     z = torch.cat([s.z[t] for s, t in picked])
-    z_next = torch.cat([s.z[t + lead + 1] for s, t in picked])
+    z_next = torch.cat([sims[i].z[t + 1] for i, t in samples])
     sizes = torch.tensor([s.topology.n_nodes for s, _ in picked])
     # per-node columns: dt, then the position-noise amplitude and U(-1, 1) draws
     host = [torch.tensor([s.dt for s, _ in picked]).repeat_interleave(sizes)[:, None]]
@@ -191,15 +193,22 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
         amp, eps = host[:, 1:2], host[:, 2:]
         free = (top.node_type[:real_nodes] == NODE_FREE)[:, None].to(z.dtype)
         z = torch.cat([z[:, :3] + free * amp * eps[:, :3], z[:, 3:] * (1 + eps[:, 3:] * noise_v)], -1)
-    u = torch.stack([torch.cat([s.u[t + j] for s, t in picked]) for j in range(lead + 2)])  # (lead + 2, K, 3)
+    # the tools' path t - lead .. t + 1 of each sample, held at its start before t = 0
+    u = torch.stack([torch.cat([sims[i].u[max(t - lead + j, 0)] for i, t in samples]) for j in range(lead + 2)])
+    active = None
+    if lead:  # lead step j moves a sample's nodes once its path has begun (j >= lead - t)
+        first = torch.tensor([lead - (t - t0) for (_, t), t0 in zip(samples, starts)]).repeat_interleave(sizes)
+        active = (torch.arange(lead)[:, None] >= first[None]).to(device)
     if shape is None:
-        return Batch(top, z, u[-2], u[-1], z_next, dt, lead_u=u[:-1] if lead else None)
+        return Batch(top, z, u[-2], u[-1], z_next, dt, lead_u=u[:-1] if lead else None, lead_active=active)
     mask = _grow(torch.ones(real_nodes, device=device), shape.nodes, 0.0)
     u = _grow(u.transpose(0, 1), shape.tools, 0.0).transpose(0, 1).contiguous()
+    if active is not None:
+        active = _grow(active.T, shape.nodes, False).T.contiguous()
     return Batch(top, _grow(z, shape.nodes, 0.0), u[-2], u[-1], _grow(z_next, shape.nodes, 0.0),
-                 _grow(dt, shape.nodes, 1.0), mask, lead_u=u[:-1] if lead else None)
+                 _grow(dt, shape.nodes, 1.0), mask, lead_u=u[:-1] if lead else None, lead_active=active)
 
 
-def all_samples(sims: list[Simulation], lead: int = 0) -> list[tuple[int, int]]:
-    """Every step t -> t+1 of every simulation (from t = lead on: pushforward needs a lead-in)."""
-    return [(i, t) for i, s in enumerate(sims) for t in range(lead, s.steps)]
+def all_samples(sims: list[Simulation]) -> list[tuple[int, int]]:
+    """Every step t -> t+1 of every simulation."""
+    return [(i, t) for i, s in enumerate(sims) for t in range(s.steps)]

@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 from .core_model import EdgeSet, EncodeProcess, MultiGraph, mlp
-from .graphs import NODE_TYPES, STATE, Topology, apply_boundary_conditions, raw_features
+from .graphs import GROUPS, NODE_TYPES, STATE, Topology, apply_boundary_conditions, raw_features
 from .normalization import FEATURES, Normalizer
 from .port_metriplectic import PortMetriplecticDecoder
 
@@ -29,12 +29,18 @@ class ModelConfig:
     hidden_layers: int = 1  # per MLP
     actuator_graphs: bool = True  # False: the single-graph ablation
     lambda_d: float = 5.0  # weight of the degeneracy loss (hybrid)
+    # weights of the q, v and sigma rates in the data loss (the paper: equal). The snapshot velocity
+    # of the FEM data is partly aliased vibration, which no network predicts (bench/error_breakdown.py)
+    rate_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
     def __post_init__(self):
         if self.kind not in ("hybrid", "vanilla"):
             raise ValueError(f"model kind must be hybrid or vanilla, got {self.kind!r}")
         if self.passes < 1 or self.latent < 1:
             raise ValueError("passes and latent must be >= 1")
+        self.rate_weights = tuple(float(w) for w in self.rate_weights)
+        if len(self.rate_weights) != 3 or min(self.rate_weights) < 0 or sum(self.rate_weights) <= 0:
+            raise ValueError(f"rate weights are three non-negative numbers (q, v, sigma), not all 0: {self.rate_weights}")
 
 
 @dataclass
@@ -57,6 +63,10 @@ class TIGNN(nn.Module):
         c = config
         node_in = FEATURES["node"] + NODE_TYPES + (0 if c.actuator_graphs else FEATURES["actuator_node"])
         self.normalizer = Normalizer()
+        # per state component; not saved (it comes from the config, which every checkpoint holds)
+        widths = [sl.stop - sl.start for sl in GROUPS.values()]
+        self.register_buffer("component_weights", torch.repeat_interleave(torch.tensor(c.rate_weights), torch.tensor(widths)),
+                             persistent=False)
         self.core = EncodeProcess(node_in, FEATURES["mesh_edge"], FEATURES["actuator_node"], FEATURES["actuator_edge"],
                                   c.latent, c.passes, c.hidden_layers, c.actuator_graphs)
         if c.kind == "hybrid":
@@ -95,12 +105,14 @@ class TIGNN(nn.Module):
 
     def loss(self, p: Prediction, zdot_target: torch.Tensor, node_mask: torch.Tensor | None = None
              ) -> tuple[torch.Tensor, dict]:
-        """MSE over standardised components (+ lambda_d times the degeneracy residual), averaged
-        over the nodes ``node_mask`` keeps (padded batches) or over all of them."""
+        """MSE over standardised components, weighted by group (``rate_weights``; equal: the plain
+        MSE), + lambda_d times the degeneracy residual, averaged over the nodes ``node_mask``
+        keeps (padded batches) or over all of them."""
         def node_mean(per_node):
             return per_node.mean() if node_mask is None else (per_node * node_mask).sum() / node_mask.sum()
 
-        data = node_mean((p.zdot_standardized - zdot_target / self.normalizer.zdot_scale).square().mean(-1))
+        w = self.component_weights
+        data = node_mean(((p.zdot_standardized - zdot_target / self.normalizer.zdot_scale).square() * w).sum(-1) / w.sum())
         if p.degeneracy is None:
             return data, {"data": data.detach()}
         deg = node_mean(p.degeneracy)

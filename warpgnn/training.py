@@ -112,12 +112,14 @@ def pushed_forward(model, batch: Batch) -> Batch:
     """The batch with its state advanced by the network's own Euler steps along ``lead_u`` (no
     gradient): the trained step then starts where the network's rollout got to, and its target
     leads back to the ground truth, so training sees the network's own drift (the "pushforward
-    trick"; the paper's noise augmentation does the same with random perturbations)."""
+    trick"; the paper's noise augmentation does the same with random perturbations). Eager, not
+    through a compiled wrapper: inductor's no-grad graph of the hybrid gave wrong zdot on the CPU
+    (torch 2.13), and these steps need no gradient graph to replay."""
     core, z = unwrapped(model), batch.z
-    for u_now, u_next in zip(batch.lead_u[:-1], batch.lead_u[1:]):
-        p = model(batch.topology, z, u_now, u_next)
-        z = core.step(batch.topology, z, u_now, u_next, batch.dt, prediction=p)
-    return replace(batch, z=z, lead_u=None)
+    for j, (u_now, u_next) in enumerate(zip(batch.lead_u[:-1], batch.lead_u[1:])):
+        moved = core.step(batch.topology, z, u_now, u_next, batch.dt)
+        z = torch.where(batch.lead_active[j][:, None], moved, z)
+    return replace(batch, z=z, lead_u=None, lead_active=None)
 
 
 def train_step(model, batch: Batch) -> tuple[torch.Tensor, dict]:
@@ -239,7 +241,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
         log(f"{out}: already finished ({state['stopped']}); best validation {state['best']:.4e} at epoch {state['best_epoch']}")
         return {"best": state["best"], "best_epoch": state["best_epoch"], "epochs": len(state["history"]),
                 "history": state["history"]}
-    if state is not None and state["model_config"] != asdict(cfg.model):
+    # (settings added since a checkpoint was written take their defaults)
+    if state is not None and {**asdict(ModelConfig()), **state["model_config"]} != asdict(cfg.model):
         raise InputError(f"{out} was trained with model settings {state['model_config']}; resume it with the same flags")
     if "OMP_NUM_THREADS" not in os.environ:
         # CPU ops (batch stacking) of several processes on one host oversubscribe the cores
@@ -260,6 +263,9 @@ def train(cfg: TrainConfig, log=print) -> dict:
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=cfg.lr_factor, patience=cfg.lr_patience,
                                                        min_lr=cfg.min_lr)
     history, best, best_epoch, start = [], math.inf, -1, 0
+    if state is not None and rank == 0 and state.get("train_config", {}).get("pushforward", 0) != cfg.pushforward:
+        log(f"note: {out} was trained with --pushforward {state['train_config'].get('pushforward', 0)}; "
+            f"it continues with {cfg.pushforward}")
     if state is not None:
         opt.load_state_dict(state["optimizer"])
         sched.load_state_dict(state["scheduler"])
@@ -272,14 +278,13 @@ def train(cfg: TrainConfig, log=print) -> dict:
     if shape is not None:
         if device.type != "cuda":
             log(f"--cuda-graphs on {device}: batches padded and compiled with static shapes, no graph replay")
-        warm_up(net, make_batch(train_sims, all_samples(train_sims, cfg.pushforward)[:cfg.batch_size], shape=shape,
-                                lead=cfg.pushforward))
+        warm_up(net, make_batch(train_sims, all_samples(train_sims)[:cfg.batch_size], shape=shape, lead=cfg.pushforward))
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         log(f"{cfg.model.kind}, {cfg.model.passes} passes, F = {cfg.model.latent}: {model.n_parameters():,} parameters; "
             f"{len(train_sims)} training and {len(val_sims)} validation simulations on {device}"
             + (f" x {world} processes" if world > 1 else ""))
-    samples = all_samples(train_sims, cfg.pushforward)
+    samples = all_samples(train_sims)
     per_rank = len(samples) // world
     for epoch in range(start, cfg.epochs):
         if cfg.lr_schedule == "exponential":
