@@ -21,6 +21,7 @@ from warpgnn.mesh import TetMesh, box_tet_mesh
 from warpgnn.model import ModelConfig, Prediction, TIGNN
 from warpgnn.normalization import FEATURES, Normalizer
 from warpgnn.port_metriplectic import N_L, N_M, PortMetriplecticDecoder, apply_L, apply_M, lower_triangular
+from warpgnn.training import pushed_forward, train_step
 
 VARIANTS = [("hybrid", True), ("hybrid", False), ("vanilla", True), ("vanilla", False)]
 VARIANT_IDS = [f"{k}-{'actuators' if a else 'single'}" for k, a in VARIANTS]
@@ -559,8 +560,6 @@ def test_pushforward_step_starts_from_the_networks_own_rollout(two_sims, padded)
     and fixed-face conditions, each simulation with its own dt) from the true state min(K, t)
     snapshots earlier, and its target leads from there to the ground truth's next state; the
     lead-in carries no gradient, and padding (which never moves) changes nothing."""
-    from warpgnn.training import pushed_forward, train_step
-
     model = tiny("hybrid").double()
     sims = [double_sim(s) for s in two_sims]
     samples = [(0, 2), (1, 1), (0, 0)]

@@ -137,9 +137,11 @@ class BatchShape:
                    prescribed=most(lambda t: t.prescribed.numel()))
 
 
-def _grow(x: torch.Tensor, size: int, fill) -> torch.Tensor:
-    """``x`` extended along its first axis to ``size`` rows of ``fill``."""
-    return torch.cat([x, x.new_full((size - x.shape[0], *x.shape[1:]), fill)])
+def _grow(x: torch.Tensor, size: int, fill, dim: int = 0) -> torch.Tensor:
+    """``x`` extended along axis ``dim`` to ``size`` entries of ``fill``."""
+    pad = list(x.shape)
+    pad[dim] = size - x.shape[dim]
+    return torch.cat([x, x.new_full(pad, fill)], dim)
 
 
 def pad_topology(top: Topology, shape: BatchShape) -> Topology:
@@ -171,8 +173,7 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     before t, ``lead_u`` the tools' path from there to t (its first entries repeat the start when
     t < lead) and ``lead_active`` which nodes each lead step moves (none of the padding).
     """
-    starts = [max(t - lead, 0) for _, t in samples]
-    picked = [(sims[i], t0) for (i, _), t0 in zip(samples, starts)]
+    picked = [(sims[i], max(t - lead, 0)) for i, t in samples]  # where each sample's lead-in starts
     device = picked[0][0].z.device
     top = batch([s.topology for s, _ in picked])
     real_nodes = top.n_nodes
@@ -197,14 +198,14 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     u = torch.stack([torch.cat([sims[i].u[max(t - lead + j, 0)] for i, t in samples]) for j in range(lead + 2)])
     active = None
     if lead:  # lead step j moves a sample's nodes once its path has begun (j >= lead - t)
-        first = torch.tensor([lead - (t - t0) for (_, t), t0 in zip(samples, starts)]).repeat_interleave(sizes)
+        first = torch.tensor([max(lead - t, 0) for _, t in samples]).repeat_interleave(sizes)
         active = (torch.arange(lead)[:, None] >= first[None]).to(device)
     if shape is None:
         return Batch(top, z, u[-2], u[-1], z_next, dt, lead_u=u[:-1] if lead else None, lead_active=active)
     mask = _grow(torch.ones(real_nodes, device=device), shape.nodes, 0.0)
-    u = _grow(u.transpose(0, 1), shape.tools, 0.0).transpose(0, 1).contiguous()
+    u = _grow(u, shape.tools, 0.0, dim=1)
     if active is not None:
-        active = _grow(active.T, shape.nodes, False).T.contiguous()
+        active = _grow(active, shape.nodes, False, dim=1)
     return Batch(top, _grow(z, shape.nodes, 0.0), u[-2], u[-1], _grow(z_next, shape.nodes, 0.0),
                  _grow(dt, shape.nodes, 1.0), mask, lead_u=u[:-1] if lead else None, lead_active=active)
 

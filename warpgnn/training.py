@@ -263,9 +263,9 @@ def train(cfg: TrainConfig, log=print) -> dict:
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=cfg.lr_factor, patience=cfg.lr_patience,
                                                        min_lr=cfg.min_lr)
     history, best, best_epoch, start = [], math.inf, -1, 0
-    if state is not None and rank == 0 and state.get("train_config", {}).get("pushforward", 0) != cfg.pushforward:
-        log(f"note: {out} was trained with --pushforward {state['train_config'].get('pushforward', 0)}; "
-            f"it continues with {cfg.pushforward}")
+    trained_with = state.get("train_config", {}).get("pushforward", 0) if state is not None else cfg.pushforward
+    if rank == 0 and trained_with != cfg.pushforward:
+        log(f"note: {out} was trained with --pushforward {trained_with}; it continues with {cfg.pushforward}")
     if state is not None:
         opt.load_state_dict(state["optimizer"])
         sched.load_state_dict(state["scheduler"])
