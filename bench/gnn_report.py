@@ -8,6 +8,7 @@ writes one JSON record, box plots like the paper's, final-step renders and a nod
 import argparse
 import csv
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +49,7 @@ def main():
                 k: m[k] for k in ("entropy_production_min", "negative_entropy_rollouts", "rollout_seconds") if k in m}
             per[(run, s)] = m["per_rollout"]
         record["runs"][run] = entry
+    record["seed_means_L5"] = seed_means(record["runs"])
     out_json = prefix.with_suffix(".json")
     out_json.write_text(json.dumps(record, indent=1))
     test = {run: per[(run, "L5")] for run in record["runs"]}
@@ -70,6 +72,25 @@ def main():
         r, m = e["sets"]["L5"]["rrmse"], e["sets"]["L5"]["rmse"]
         print(f"| {run} | {e['parameters']:,} | {e['epochs']} | {r['q']:.2e} | {r['v']:.2e} | {r['sigma']:.2e} | "
               f"{m['q']:.2e} | {m['v']:.2e} | {m['sigma']:.2e} |")
+    for arm, e in record["seed_means_L5"].items():
+        print(f"{arm} ({e['seeds']} seeds) L5 RRMSE mean " + " ".join(
+            f"{g} {e['rrmse']['mean'][g]:.2e} +- {e['rrmse']['std'][g]:.1e}" for g in e["rrmse"]["mean"]))
+
+
+def seed_means(runs: dict) -> dict:
+    """Mean and standard deviation over the seeds of each arm (runs named ARM_sN), on L5: the
+    targets are means of three seeds."""
+    arms = {}
+    for run, e in runs.items():
+        arms.setdefault(re.sub(r"_s\d+$", "", run), []).append(e["sets"]["L5"])
+    out = {}
+    for arm, sets in arms.items():
+        if len(sets) < 2:
+            continue
+        out[arm] = {"seeds": len(sets)} | {kind: {stat: {g: float(f([s[kind][g] for s in sets])) for g in sets[0][kind]}
+                                                  for stat, f in (("mean", np.mean), ("std", np.std))}
+                                           for kind in ("rmse", "rrmse")}
+    return out
 
 
 if __name__ == "__main__":

@@ -49,8 +49,10 @@ for s in 0 1 2; do
 done
 # pushforward (bench/results/error_breakdown_h100_solo.json: the far field's position error is made
 # during the ramp): each step trained from the network's own PUSHFORWARD-step rollout, larger noise
-for m in hybrid vanilla; do
-  run ${m}_p5_pushforward_s0 --model $m --passes 5 --latent 64 --seed 0 $NOISE --pushforward ${PUSHFORWARD:-2}
+for s in 0 1 2; do
+  for m in hybrid vanilla; do
+    run ${m}_p5_pushforward_s$s --model $m --passes 5 --latent 64 --seed $s $NOISE --pushforward ${PUSHFORWARD:-2}
+  done
 done
 for frac in 0.25 0.5; do
   for m in hybrid vanilla; do
