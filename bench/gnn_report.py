@@ -87,9 +87,11 @@ def seed_means(runs: dict) -> dict:
     for arm, sets in arms.items():
         if len(sets) < 2:
             continue
-        out[arm] = {"seeds": len(sets)} | {kind: {stat: {g: float(f([s[kind][g] for s in sets])) for g in sets[0][kind]}
-                                                  for stat, f in (("mean", np.mean), ("std", np.std))}
-                                           for kind in ("rmse", "rrmse")}
+        out[arm] = {"seeds": len(sets)}
+        for kind in ("rmse", "rrmse"):
+            values = {g: [s[kind][g] for s in sets] for g in sets[0][kind]}
+            out[arm][kind] = {"mean": {g: float(np.mean(v)) for g, v in values.items()},
+                              "std": {g: float(np.std(v)) for g, v in values.items()}}
     return out
 
 
