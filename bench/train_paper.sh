@@ -54,6 +54,7 @@ for s in 0 1 2; do
     run ${m}_p5_pushforward_s$s --model $m --passes 5 --latent 64 --seed $s $NOISE --pushforward ${PUSHFORWARD:-2}
   done
 done
+run hybrid_p12_pushforward_s0 --model hybrid --passes 12 --latent 128 --seed 0 $NOISE --pushforward ${PUSHFORWARD:-2}
 for frac in 0.25 0.5; do
   for m in hybrid vanilla; do
     run scarcity_${m}_${frac#0.} --model $m --passes 5 --latent 64 --seed 0 --train-fraction $frac

@@ -4,6 +4,7 @@ a warm-up; batch stacking (host work, overlapped by training) is timed separatel
 
     python bench/train_step_time.py DATA --json OUT.json [--batch 32] [--steps 30] [--tf32]
                                     [--modes eager,compiled,graphs,eager-bf16,compiled-bf16] [--profile]
+                                    [--pushforward 0,2] [--lead-in compiled,eager]
 
 Mode graphs is `warpgnn train --cuda-graphs`: batches padded to one BatchShape, the network
 compiled with static shapes and replayed as plain CUDA graphs; its step time is for the padded
@@ -14,6 +15,11 @@ stays fp32 until its accuracy under bf16 is measured). --profile adds, per recor
 kernels that take most of the step's time (torch.profiler over five steps). A -bcast suffix
 runs the hybrid decoder's operator products (A - A^T) x and B B^T x as broadcast multiply-sums
 instead of the model's einsums (batched gemv): a probe of what inductor fuses better.
+
+--pushforward K[,K...] times each mode with K lead-in steps (`warpgnn train --pushforward K`:
+K network steps without gradient before the trained one); 0, the default, is one-step training.
+--lead-in: those K steps through their own compiled graph (compiled and graphs modes, as `warpgnn
+train` takes them) and/or the eager network (the peer).
 
 DATA needs only L1.h5 (the smoke preset's will do: step time depends on sizes, not values).
 """
@@ -31,7 +37,7 @@ import torch
 from warpgnn import port_metriplectic
 from warpgnn.data import BatchShape, load_file, make_batch
 from warpgnn.model import ModelConfig, TIGNN
-from warpgnn.training import compiled, fit_normalizer, train_step, warm_up
+from warpgnn.training import compiled, fit_normalizer, lead_in_rate, train_step, warm_up
 
 EINSUM_PRODUCTS = (port_metriplectic.apply_L, port_metriplectic.apply_M)
 
@@ -47,27 +53,27 @@ def apply_M_broadcast(B, x):
 CONFIGS = [("hybrid", 5, 64), ("vanilla", 5, 64), ("hybrid", 12, 128), ("vanilla", 12, 128), ("hybrid", 1, 64)]
 
 
-def one_step(net, opt, batch, precision):
+def one_step(net, opt, batch, precision, lead_rate=None):
     """Forward, backward and Adam, under ``precision`` (a context factory: fp32 or autocast)."""
     opt.zero_grad(set_to_none=True)
     with precision():
-        train_step(net, batch)
+        train_step(net, batch, lead_rate)
     opt.step()
 
 
-def time_steps(net, model, chunks, sims, gen, precision=contextlib.nullcontext, shape=None):
+def time_steps(net, model, chunks, sims, gen, precision=contextlib.nullcontext, shape=None, lead=0, lead_rate=None):
     """Step times [ms] (CUDA events) and batch-stacking times [ms]; the first step's wall time
     separately (compilation)."""
     opt = torch.optim.Adam(model.parameters(), 1e-4, fused=True)  # as `warpgnn train` on CUDA
     host, gpu, first = [], [], None
     for i, c in enumerate(chunks):
         t0 = time.perf_counter()
-        b = make_batch(sims, c, 1e-4, 1e-3, gen, shape)
+        b = make_batch(sims, c, 1e-4, 1e-3, gen, shape, lead)
         host.append(1e3 * (time.perf_counter() - t0))
         start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
         t0 = time.perf_counter()
         start.record()
-        one_step(net, opt, b, precision)
+        one_step(net, opt, b, precision, lead_rate)
         end.record()
         torch.cuda.synchronize()
         if first is None:
@@ -76,13 +82,13 @@ def time_steps(net, model, chunks, sims, gen, precision=contextlib.nullcontext, 
     return gpu, host, first, b, opt
 
 
-def top_kernels(net, opt, batch, precision, steps=5, top=10) -> list[dict]:
+def top_kernels(net, opt, batch, precision, lead_rate=None, steps=5, top=10) -> list[dict]:
     """The CUDA kernels that take most of ``steps`` training steps, with their share of the time."""
     from torch.profiler import ProfilerActivity, profile
 
     with profile(activities=[ProfilerActivity.CUDA]) as prof:
         for _ in range(steps):
-            one_step(net, opt, batch, precision)
+            one_step(net, opt, batch, precision, lead_rate)
         torch.cuda.synchronize()
     events = [e for e in prof.key_averages() if e.device_time_total > 0]
     total = sum(e.device_time_total for e in events)
@@ -104,6 +110,8 @@ def main():
     ap.add_argument("--modes", default="eager,compiled,graphs",
                     help="eager, compiled or graphs, each optionally with -bf16 and/or -bcast")
     ap.add_argument("--profile", action="store_true", help="add each mode's ten most expensive CUDA kernels")
+    ap.add_argument("--pushforward", default="0", help="comma-separated lead-in steps to time each mode with")
+    ap.add_argument("--lead-in", default="compiled", help="comma-separated: compiled and/or eager lead-in steps")
     a = ap.parse_args()
     torch.backends.cuda.matmul.allow_tf32 = a.tf32
     configs = CONFIGS if a.configs == "all" else [(k, int(p), int(f)) for k, p, f in
@@ -118,10 +126,15 @@ def main():
     # consecutive batches of different sizes, as in training (compiled graphs must not recompile)
     chunks = [samples[i:i + a.batch - (i // a.batch) % 3] for i in range(0, len(samples), a.batch)]
     records = []
+    modes = [(m, int(k), how) for m in a.modes.split(",") for k in a.pushforward.split(",")
+             for how in (a.lead_in.split(",") if int(k) and m.startswith(("compiled", "graphs")) else ["eager"])]
     for kind, passes, latent in configs:
-        for mode in a.modes.split(","):
+        for mode, lead, lead_in in modes:
             port_metriplectic.apply_L, port_metriplectic.apply_M = (
                 (apply_L_broadcast, apply_M_broadcast) if mode.endswith("-bcast") else EINSUM_PRODUCTS)
+            # a fresh compile per record: a graph compiled for an earlier model would replay CUDA
+            # graphs recorded on that model's parameters (inductor asserts the static inputs' addresses)
+            torch._dynamo.reset()
             torch.manual_seed(0)
             model = TIGNN(ModelConfig(kind=kind, passes=passes, latent=latent)).to(dev)
             fit_normalizer(model, sims[:8])
@@ -132,32 +145,42 @@ def main():
                          else contextlib.nullcontext)
             torch.cuda.reset_peak_memory_stats()
             t0 = time.perf_counter()
+            first_batch = make_batch(sims, chunks[0], shape=shape, lead=lead)
+            lead_rate = lead_in_rate(model, first_batch, graphs) if lead_in == "compiled" and lead else None
             if graphs:  # compile and record before timing, as `warpgnn train --cuda-graphs` does
                 with precision():
-                    warm_up(net, make_batch(sims, chunks[0], shape=shape))
+                    warm_up(net, first_batch, lead_rate=lead_rate)
             recording = time.perf_counter() - t0
-            gpu, host, first, b, opt = time_steps(net, model, chunks, sims, gen, precision, shape)
+            gpu, host, first, b, opt = time_steps(net, model, chunks, sims, gen, precision, shape, lead, lead_rate)
             r = {"model": kind, "passes": passes, "latent": latent, "parameters": model.n_parameters(),
-                 "mode": mode, "tf32": a.tf32, "batch": a.batch, "nodes_per_batch": int(b.topology.n_nodes),
+                 "mode": mode, "pushforward": lead, "lead_in": (lead_in if lead_rate or lead_in == "eager" else "eager (compiled refused)") if lead else None,
+                 "tf32": a.tf32, "batch": a.batch, "nodes_per_batch": int(b.topology.n_nodes),
                  "mesh_edges_per_batch": int(b.topology.senders.numel()),
                  "median_step_ms": statistics.median(gpu[warm:]), "min_step_ms": min(gpu[warm:]),
                  "real_nodes_per_batch": int(b.node_mask.sum()) if b.node_mask is not None else int(b.topology.n_nodes),
                  "first_step_s": first + recording, "median_batch_stacking_ms": statistics.median(host[warm:]),
                  "peak_memory_gib": torch.cuda.max_memory_allocated() / 2**30}
             if a.profile:
-                r["top_kernels"] = top_kernels(net, opt, b, precision)
+                r["top_kernels"] = top_kernels(net, opt, b, precision, lead_rate)
             print(json.dumps(r), flush=True)
             records.append(r)
+            write_record(a, warm, records)  # after every record: a run cut short keeps what it measured
+
+
+def write_record(a, warm, records):
     out = {"device": torch.cuda.get_device_name(), "date": datetime.date.today().isoformat(),
            "command": f"python bench/train_step_time.py DATA --batch {a.batch} --steps {a.steps}"
                       + (" --tf32" if a.tf32 else "") + (f" --files {a.files}" if a.files != "L1" else "") + (f" --configs {a.configs}" if a.configs != "all" else "")
-                      + f" --modes {a.modes}" + (" --profile" if a.profile else ""),
+                      + f" --modes {a.modes}" + (" --profile" if a.profile else "")
+                      + (f" --pushforward {a.pushforward} --lead-in {a.lead_in}" if a.pushforward != "0" else ""),
            "note": "one training step alone on the GPU (forward, backward, Adam), CUDA events, median after "
                    f"{warm} warm-up steps, batches of batch, batch-1 and batch-2 snapshots in turn; batch stacking "
                    "is host time measured separately (training overlaps it on a worker thread). Peer: the same "
                    "step eager against torch.compile(dynamic=True), same run; first_step_s includes compilation; "
                    "-bf16 modes: the same step under torch.autocast(bfloat16); graphs: padded batches (BatchShape), "
-                   "static-shape compile, CUDA-graph replay (warpgnn train --cuda-graphs). Adam fused in every mode.",
+                   "static-shape compile, CUDA-graph replay (warpgnn train --cuda-graphs). Adam fused in every mode. "
+                   "pushforward K: K lead-in network steps (no gradient) before the trained step, eager or through "
+                   "their own compiled graph (lead_in).",
            "records": records}
     open(a.json, "w").write(json.dumps(out, indent=1))
 

@@ -15,6 +15,11 @@ if [ -n "$OUT" ]; then
   for d in "$RUNS"/*/; do
     name=$(basename "$d")
     (cd "$RUNS" && tar -cf "$OUT/$name.tar" --ignore-failed-read "$name"/{log.csv,stdout.txt,best.pt,last.pt} 2>/dev/null)
+    # a device call returns files of at most 16 MiB (a 12-pass run's checkpoints are ~40 MB):
+    # larger tars travel in parts; cat NAME.tar.* | tar -x joins them
+    if [ "$(stat -c %s "$OUT/$name.tar")" -gt 15000000 ]; then
+      split -b 15000000 -d "$OUT/$name.tar" "$OUT/$name.tar." && rm "$OUT/$name.tar"
+    fi
   done
   ls -la "$OUT"
 fi

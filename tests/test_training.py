@@ -277,6 +277,63 @@ def test_pushforward_run_with_cuda_graph_batches(data, tmp_path, monkeypatch):
         config(data, tmp_path / "neg", epochs=1, pushforward=-1)
 
 
+def lead_in_case(data):
+    """A tiny hybrid and a padded --pushforward 2 batch of samples at t = 0..3 (lead-ins of 0-2 steps)."""
+    sims = load_file(data / "L1.h5") + load_file(data / "L2.h5")
+    torch.manual_seed(0)
+    model = TIGNN(ModelConfig(kind="hybrid", passes=1, latent=8))
+    training.fit_normalizer(model, sims)
+    return model, make_batch(sims, [(0, 3), (3, 1), (4, 2), (1, 0)], 1e-4, 1e-3, shape=BatchShape.fitting(sims, 4), lead=2)
+
+
+def test_compiled_lead_in_takes_the_eager_steps(data, monkeypatch):
+    """The pushforward lead-in through its own compiled graph (aot_eager on CPU CI) moves the state
+    exactly as the eager network does."""
+    model, b = lead_in_case(data)
+    monkeypatch.setattr(training, "compiled", functools.partial(training.compiled, backend="aot_eager"))
+    rate = training.lead_in_rate(model, b, cuda_graphs=True)
+    assert rate is not None
+    eager, fast = training.pushed_forward(model, b), training.pushed_forward(model, b, rate)
+    assert not torch.equal(eager.z, b.z)  # the lead-in moved something
+    torch.testing.assert_close(fast.z, eager.z, rtol=1e-6, atol=1e-9)
+    torch._dynamo.reset()
+
+
+def test_a_compiled_lead_in_that_differs_from_eager_is_refused(data, monkeypatch):
+    """A compiled rate that disagrees with the eager network (as inductor's no-grad CPU graph once
+    did, by a factor) is logged and dropped: the lead-in stays eager."""
+    model, b = lead_in_case(data)
+    monkeypatch.setattr(training, "compiled", lambda fn, **kw: (lambda *args: fn(*args) * (1 + 1e-3)))
+    lines = []
+    assert training.lead_in_rate(model, b, cuda_graphs=True, log=lines.append) is None
+    assert len(lines) == 1 and "stays eager" in lines[0] and "1.0e-03" in lines[0]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_compiled_lead_in_replays_cuda_graphs_with_the_eager_steps(data):
+    """On a GPU: inductor's no-grad lead-in graph, replayed as a CUDA graph on new batches with
+    weights that moved since, takes the eager network's steps."""
+    sims = load_file(data / "L1.h5", "cuda") + load_file(data / "L2.h5", "cuda")
+    torch.manual_seed(0)
+    model = TIGNN(ModelConfig(kind="hybrid", passes=2, latent=16)).cuda()
+    training.fit_normalizer(model, sims)
+    shape = BatchShape.fitting(sims, 3)
+    batches = [make_batch(sims, [(i % 6, 3), ((i + 2) % 6, 1), ((i + 4) % 6, 2)], 1e-4, 1e-3, shape=shape, lead=2)
+               for i in range(4)]
+    torch._dynamo.utils.counters.clear()
+    rate = training.lead_in_rate(model, batches[0], cuda_graphs=True)
+    assert rate is not None
+    for b in batches[1:]:
+        want = training.pushed_forward(model, b).z
+        torch.testing.assert_close(training.pushed_forward(model, b, rate).z, want, rtol=1e-4,
+                                   atol=1e-5 * want.abs().max().item())
+        with torch.no_grad():
+            for p in model.parameters():
+                p.add_(1e-3 * torch.randn_like(p))
+    assert torch._dynamo.utils.counters["inductor"]["cudagraph_skips"] == 0
+    torch._dynamo.reset()
+
+
 def test_kill_during_an_epoch_costs_at_most_that_epoch(data, tmp_path):
     out = tmp_path / "run"
     quiet_train(config(data, out, epochs=2))

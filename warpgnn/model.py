@@ -98,12 +98,13 @@ class TIGNN(nn.Module):
         return Prediction(gen.zdot * self.normalizer.zdot_scale, gen.zdot, gen.degeneracy, gen.entropy_production)
 
     @torch.no_grad()
-    def step(self, top: Topology, z, u_now, u_next, dt: float | torch.Tensor, prediction: Prediction | None = None
+    def step(self, top: Topology, z, u_now, u_next, dt: float | torch.Tensor, zdot: torch.Tensor | None = None
              ) -> torch.Tensor:
         """Explicit Euler z + dt zdot (dt one number, or (N, 1) per node for stacked simulations),
-        then the Dirichlet and tool conditions at t + dt."""
-        p = prediction if prediction is not None else self(top, z, u_now, u_next)
-        return apply_boundary_conditions(top, z + dt * p.zdot, u_next)
+        then the Dirichlet and tool conditions at t + dt. ``zdot``: the network's rate at (z, t), if
+        the caller already has it."""
+        zdot = zdot if zdot is not None else self(top, z, u_now, u_next).zdot
+        return apply_boundary_conditions(top, z + dt * zdot, u_next)
 
     def loss(self, p: Prediction, zdot_target: torch.Tensor, node_mask: torch.Tensor | None = None
              ) -> tuple[torch.Tensor, dict]:

@@ -37,7 +37,7 @@ def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None) -> li
             u_now = torch.cat([s.u[t] for s in part])
             u_next = torch.cat([s.u[t + 1] for s in part])
             p = model(top, z, u_now, u_next)
-            z = model.step(top, z, u_now, u_next, part[0].dt, prediction=p)
+            z = model.step(top, z, u_now, u_next, part[0].dt, zdot=p.zdot)
             states.append(z)
             if p.degeneracy is not None:
                 per = torch.zeros(len(part), device=z.device)

@@ -108,37 +108,58 @@ def compiled(model, backend: str = "inductor", cuda_graphs: bool = False):
 
 
 @torch.no_grad()
-def pushed_forward(model, batch: Batch) -> Batch:
+def pushed_forward(model, batch: Batch, rate=None) -> Batch:
     """The batch with its state advanced by the network's own Euler steps along ``lead_u`` (no
     gradient): the trained step then starts where the network's rollout got to, and its target
     leads back to the ground truth, so training sees the network's own drift (the "pushforward
-    trick"; the paper's noise augmentation does the same with random perturbations). Eager, not
-    through a compiled wrapper: inductor's no-grad graph of the hybrid gave wrong zdot on the CPU
-    (torch 2.13), and these steps need no gradient graph to replay."""
+    trick"; the paper's noise augmentation does the same with random perturbations). ``rate``:
+    a compiled (topology, z, u_now, u_next) -> zdot to take those steps with (``lead_in_rate``),
+    or None for the eager network."""
     core, z = unwrapped(model), batch.z
     for j, (u_now, u_next) in enumerate(zip(batch.lead_u[:-1], batch.lead_u[1:])):
-        moved = core.step(batch.topology, z, u_now, u_next, batch.dt)
+        zdot = rate(batch.topology, z, u_now, u_next) if rate is not None else None
+        moved = core.step(batch.topology, z, u_now, u_next, batch.dt, zdot)
         z = torch.where(batch.lead_active[j][:, None], moved, z)
     return replace(batch, z=z, lead_u=None, lead_active=None)
 
 
-def train_step(model, batch: Batch) -> tuple[torch.Tensor, dict]:
-    """Forward and backward of one batch (``model`` may be DDP- or compile-wrapped); returns the loss."""
+def lead_in_rate(model: TIGNN, batch: Batch, cuda_graphs: bool, log=print):
+    """The network's zdot compiled for the pushforward lead-in (its own no-grad graph, replayed as a
+    CUDA graph with ``cuda_graphs``; eager, those steps cost more than the trained step itself:
+    bench/results/train_step_pushforward_h100.json), or None if on ``batch`` it differs from the
+    eager zdot. It returns zdot alone: inductor's no-grad graph that returned both zdot and its
+    standardised twin gave both wrong on the CPU (torch 2.13), while either alone was right."""
+    rate = compiled(lambda top, z, u_now, u_next: model(top, z, u_now, u_next).zdot, cuda_graphs=cuda_graphs)
+    args = (batch.topology, batch.z, batch.lead_u[0], batch.lead_u[1])
+    with torch.no_grad():
+        want = model(*args).zdot
+        for _ in range(3):  # compile, record, replay
+            got = rate(*args).clone()
+    error = float((got - want).abs().max() / want.abs().max().clamp_min(1e-30))
+    if not error <= 1e-4:
+        log(f"the compiled lead-in differs from the eager network (relative {error:.1e}): the lead-in stays eager")
+        return None
+    return rate
+
+
+def train_step(model, batch: Batch, lead_rate=None) -> tuple[torch.Tensor, dict]:
+    """Forward and backward of one batch (``model`` may be DDP- or compile-wrapped); returns the
+    loss. ``lead_rate``: the pushforward lead-in's compiled rate (``lead_in_rate``), if any."""
     core = unwrapped(model)
     if batch.lead_u is not None:
-        batch = pushed_forward(model, batch)
+        batch = pushed_forward(model, batch, lead_rate)
     p = model(batch.topology, batch.z, batch.u_now, batch.u_next)
     loss, parts = core.loss(p, batch.zdot, batch.node_mask)
     loss.backward()
     return loss.detach(), parts
 
 
-def warm_up(net, batch: Batch, steps: int = 3) -> None:
+def warm_up(net, batch: Batch, steps: int = 3, lead_rate=None) -> None:
     """Compile and record the CUDA graphs on ``batch`` (forward and backward only: the weights do
     not change), before the batch-stacking thread starts putting work on the GPU beside them."""
     for _ in range(steps):
         unwrapped(net).zero_grad(set_to_none=True)  # as every training step: no sums into graph-owned grads
-        train_step(net, batch)
+        train_step(net, batch, lead_rate)
     unwrapped(net).zero_grad(set_to_none=True)
 
 
@@ -275,10 +296,14 @@ def train(cfg: TrainConfig, log=print) -> dict:
         net = compiled(net, cuda_graphs=cfg.cuda_graphs)
     shape = BatchShape.fitting(train_sims, cfg.batch_size) if cfg.cuda_graphs else None
     started = t0 = time.perf_counter()  # compilation and graph recording count as training time
+    first = make_batch(train_sims, all_samples(train_sims)[:cfg.batch_size], shape=shape, lead=cfg.pushforward)
+    lead_rate = None
+    if cfg.pushforward and (cfg.compile or cfg.cuda_graphs):
+        lead_rate = lead_in_rate(model, first, cfg.cuda_graphs, log if rank == 0 else lambda _: None)
     if shape is not None:
         if device.type != "cuda":
             log(f"--cuda-graphs on {device}: batches padded and compiled with static shapes, no graph replay")
-        warm_up(net, make_batch(train_sims, all_samples(train_sims)[:cfg.batch_size], shape=shape, lead=cfg.pushforward))
+        warm_up(net, first, lead_rate=lead_rate)
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         log(f"{cfg.model.kind}, {cfg.model.passes} passes, F = {cfg.model.latent}: {model.n_parameters():,} parameters; "
@@ -302,7 +327,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
         bar = tqdm(batches, total=len(chunks), desc=f"epoch {epoch}", leave=False, disable=True if rank else None)
         for b in bar:
             opt.zero_grad(set_to_none=True)
-            loss, parts = train_step(net, b)
+            loss, parts = train_step(net, b, lead_rate)
             opt.step()
             for k, v in {"loss": loss, **parts}.items():
                 sums[k] = sums.get(k, 0.0) + v
