@@ -6,9 +6,10 @@ a warm-up; batch stacking (host work, overlapped by training) is timed separatel
                                     [--modes eager,compiled,graphs,eager-bf16,compiled-bf16] [--profile]
                                     [--pushforward 0,2] [--lead-in compiled,eager]
 
-Mode graphs is `warpgnn train --cuda-graphs`: batches padded to one BatchShape, the network
-compiled with static shapes and replayed as plain CUDA graphs; its step time is for the padded
-batch, so it pays for the padding.
+Mode graphs is `warpgnn train --cuda-graphs`: batches padded to the first shape of a
+BatchShape.ladder they fit (graphs-single: all to one shape, BatchShape.fitting, as before the
+ladder), the network compiled with static shapes and replayed as plain CUDA graphs, one per shape;
+its step time is for the padded batch, so it pays for the padding.
 
 Modes ending in -bf16 run the step under torch.autocast(bfloat16) (a timing probe: training
 stays fp32 until its accuracy under bf16 is measured). --profile adds, per record, the ten CUDA
@@ -26,6 +27,7 @@ DATA needs only L1.h5 (the smoke preset's will do: step time depends on sizes, n
 
 import argparse
 import contextlib
+import dataclasses
 import datetime
 import json
 import statistics
@@ -37,7 +39,7 @@ import torch
 from warpgnn import port_metriplectic
 from warpgnn.data import BatchShape, load_file, make_batch
 from warpgnn.model import ModelConfig, TIGNN
-from warpgnn.training import compiled, fit_normalizer, lead_in_rate, train_step, warm_up
+from warpgnn.training import compiled, fit_normalizer, lead_in_rate, train_step, warm_up, warm_up_batches
 
 EINSUM_PRODUCTS = (port_metriplectic.apply_L, port_metriplectic.apply_M)
 
@@ -140,21 +142,23 @@ def main():
             fit_normalizer(model, sims[:8])
             graphs = mode.startswith("graphs")
             net = compiled(model, cuda_graphs=graphs) if mode.startswith(("compiled", "graphs")) else model
-            shape = BatchShape.fitting(sims, a.batch) if graphs else None
+            shape = ((BatchShape.fitting(sims, a.batch),) if "-single" in mode else BatchShape.ladder(sims, a.batch)) if graphs else None
             precision = ((lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if "-bf16" in mode
                          else contextlib.nullcontext)
             torch.cuda.reset_peak_memory_stats()
             t0 = time.perf_counter()
-            first_batch = make_batch(sims, chunks[0], shape=shape, lead=lead)
-            lead_rate = lead_in_rate(model, first_batch, graphs) if lead_in == "compiled" and lead else None
-            if graphs:  # compile and record before timing, as `warpgnn train --cuda-graphs` does
+            firsts = warm_up_batches(sims, shape, a.batch, lead)
+            lead_rate = lead_in_rate(model, firsts, graphs) if lead_in == "compiled" and lead else None
+            if graphs:  # compile and record every shape before timing, as `warpgnn train --cuda-graphs` does
                 with precision():
-                    warm_up(net, first_batch, lead_rate=lead_rate)
+                    for first_batch in firsts:
+                        warm_up(net, first_batch, lead_rate=lead_rate)
             recording = time.perf_counter() - t0
             gpu, host, first, b, opt = time_steps(net, model, chunks, sims, gen, precision, shape, lead, lead_rate)
             r = {"model": kind, "passes": passes, "latent": latent, "parameters": model.n_parameters(),
                  "mode": mode, "pushforward": lead, "lead_in": (lead_in if lead_rate or lead_in == "eager" else "eager (compiled refused)") if lead else None,
-                 "tf32": a.tf32, "batch": a.batch, "nodes_per_batch": int(b.topology.n_nodes),
+                 "tf32": a.tf32, "batch": a.batch, "shapes": [dataclasses.astuple(s) for s in shape or ()],
+                 "nodes_per_batch": int(b.topology.n_nodes),
                  "mesh_edges_per_batch": int(b.topology.senders.numel()),
                  "median_step_ms": statistics.median(gpu[warm:]), "min_step_ms": min(gpu[warm:]),
                  "real_nodes_per_batch": int(b.node_mask.sum()) if b.node_mask is not None else int(b.topology.n_nodes),

@@ -22,7 +22,7 @@ import torch.multiprocessing as mp
 import synthetic
 from test_cli import assert_one_line_error, run_cli
 from warpgnn import checkpoint, training
-from warpgnn.data import BatchShape, all_samples, load_file, make_batch
+from warpgnn.data import BatchShape, all_samples, load_file, make_batch, smallest
 from warpgnn.errors import InputError
 from warpgnn.model import TIGNN, ModelConfig
 from warpgnn.training import TrainConfig
@@ -225,19 +225,23 @@ def test_cuda_graph_step_has_one_shape_and_the_eager_gradients(data):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_graph_replays_give_the_eager_loss_and_gradients(data):
-    """On a GPU: after the warm-up records the graphs, every replay on a new batch, with weights
-    that moved since the last one (as Adam moves them), gives the eager loss and gradients."""
+    """On a GPU: after the warm-up records the graphs of every shape of the ladder, every replay
+    on a new batch (of either shape), with weights that moved since the last one (as Adam moves
+    them), gives the eager loss and gradients."""
     sims = load_file(data / "L1.h5", "cuda") + load_file(data / "L2.h5", "cuda")
     torch.manual_seed(0)
     model = TIGNN(ModelConfig(kind="hybrid", passes=2, latent=16)).cuda()
     training.fit_normalizer(model, sims)
     net = training.compiled(model, cuda_graphs=True)
-    shape = BatchShape.fitting(sims, 3)
-    batches = [make_batch(sims, [(i % 6, i % 4), ((i + 2) % 6, 1), ((i + 4) % 6, 3)], 1e-4, 1e-3, shape=shape)
+    shapes = BatchShape.ladder(sims, 3)
+    batches = [make_batch(sims, [(i % 6, i % 4), ((i + 2) % 6, 1), ((i + 4) % 6, 3)], 1e-4, 1e-3, shape=shapes)
                for i in range(6)]
+    assert len({b.topology.act_senders.numel() for b in batches}) > 1  # more than one graph replays
     torch._dynamo.utils.counters.clear()
-    training.warm_up(net, batches[0])
-    for b in batches[1:]:
+    least = smallest(sims)
+    for s in shapes:
+        training.warm_up(net, make_batch(sims, [(least, t) for t in range(3)], shape=s))
+    for b in batches:
         assert_same_step(model, (model, b), (net, b))
         with torch.no_grad():
             for p in model.parameters():
@@ -277,6 +281,33 @@ def test_pushforward_run_with_cuda_graph_batches(data, tmp_path, monkeypatch):
         config(data, tmp_path / "neg", epochs=1, pushforward=-1)
 
 
+def test_shape_ladder_pads_every_batch_to_the_first_shape_it_fits(data):
+    """--cuda-graphs pads to BatchShape.ladder: shapes that grow in every size and end with
+    ``fitting`` (which any batch fits); each batch of an epoch is padded to the first shape it fits,
+    and with simulations of one and two tools more than one shape serves an epoch."""
+    sims = load_file(data / "L1.h5") + load_file(data / "L2.h5")
+    shapes = BatchShape.ladder(sims, 4)
+    assert shapes[-1] == BatchShape.fitting(sims, 4) and len(shapes) > 1
+    for small, large in zip(shapes, shapes[1:]):
+        assert all(a <= b for a, b in zip(small.capacity, large.capacity)) and small != large
+    least = smallest(sims)
+    assert all(s.fits(make_batch(sims, [(least, t % 4) for t in range(4)]).topology) for s in shapes)
+    samples = all_samples(sims)
+    order = np.random.default_rng(0).permutation(len(samples))
+    used = []
+    for i in range(0, len(order), 4):
+        chunk = [samples[j] for j in order[i:i + 4]]
+        plain, padded = make_batch(sims, chunk), make_batch(sims, chunk, shape=shapes)
+        fitting = [s for s in shapes if s.fits(plain.topology)]
+        assert fitting and padded.topology.n_nodes == fitting[0].nodes
+        assert padded.topology.act_senders.numel() == fitting[0].actuator_edges
+        torch.testing.assert_close(padded.z[:plain.topology.n_nodes], plain.z)
+        used.append(fitting[0])
+    assert len(set(used)) > 1
+    with pytest.raises(ValueError, match="exceeds"):
+        make_batch(sims, samples[:5], shape=shapes)  # five snapshots: more than any shape for four holds
+
+
 def lead_in_case(data):
     """A tiny hybrid and a padded --pushforward 2 batch of samples at t = 0..3 (lead-ins of 0-2 steps)."""
     sims = load_file(data / "L1.h5") + load_file(data / "L2.h5")
@@ -291,7 +322,7 @@ def test_compiled_lead_in_takes_the_eager_steps(data, monkeypatch):
     exactly as the eager network does."""
     model, b = lead_in_case(data)
     monkeypatch.setattr(training, "compiled", functools.partial(training.compiled, backend="aot_eager"))
-    rate = training.lead_in_rate(model, b, cuda_graphs=True)
+    rate = training.lead_in_rate(model, [b], cuda_graphs=True)
     assert rate is not None
     eager, fast = training.pushed_forward(model, b), training.pushed_forward(model, b, rate)
     assert not torch.equal(eager.z, b.z)  # the lead-in moved something
@@ -305,7 +336,7 @@ def test_a_compiled_lead_in_that_differs_from_eager_is_refused(data, monkeypatch
     model, b = lead_in_case(data)
     monkeypatch.setattr(training, "compiled", lambda fn, **kw: (lambda *args: fn(*args) * (1 + 1e-3)))
     lines = []
-    assert training.lead_in_rate(model, b, cuda_graphs=True, log=lines.append) is None
+    assert training.lead_in_rate(model, [b], cuda_graphs=True, log=lines.append) is None
     assert len(lines) == 1 and "stays eager" in lines[0] and "1.0e-03" in lines[0]
 
 
@@ -321,7 +352,7 @@ def test_compiled_lead_in_replays_cuda_graphs_with_the_eager_steps(data):
     batches = [make_batch(sims, [(i % 6, 3), ((i + 2) % 6, 1), ((i + 4) % 6, 2)], 1e-4, 1e-3, shape=shape, lead=2)
                for i in range(4)]
     torch._dynamo.utils.counters.clear()
-    rate = training.lead_in_rate(model, batches[0], cuda_graphs=True)
+    rate = training.lead_in_rate(model, batches[:1], cuda_graphs=True)
     assert rate is not None
     for b in batches[1:]:
         want = training.pushed_forward(model, b).z

@@ -244,7 +244,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="train each step from the state the network reaches in K steps of its own (no gradient) "
                         "instead of the true state; the target leads back to the ground truth (default 0: the paper)")
     t.add_argument("--cuda-graphs", action="store_true",
-                   help="pad batches to one shape, compile the network and replay each step as CUDA graphs "
+                   help="pad batches to a few fixed shapes, compile the network and replay each step as CUDA graphs "
                         "(one GPU; removes the launch overhead that bounds --compile)")
     t.add_argument("--resume", action="store_true", help="continue RUN/last.pt")
     t.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")

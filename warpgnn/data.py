@@ -7,6 +7,7 @@ on all 190, validation ones included); Extra and Extra* are their own files.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -110,11 +111,18 @@ class Batch:
         return (self.z_next - self.z) / self.dt
 
 
+def _counts(top: Topology) -> tuple[int, ...]:
+    """What a padded shape must hold: (nodes, mesh edges, tools, actuator edges, prescribed nodes)."""
+    return top.n_nodes, top.senders.numel(), top.n_tools, top.act_senders.numel(), top.prescribed.numel()
+
+
 @dataclass(frozen=True)
 class BatchShape:
     """The fixed sizes of padded batches. A CUDA graph replays one shape, while snapshots of
     different meshes and tool counts stack to different sizes: padding every batch to the
-    largest a batch of ``batch_size`` snapshots can reach lets one graph serve them all.
+    largest a batch of ``batch_size`` snapshots can reach lets one graph serve them all
+    (``fitting``), and a short ladder of shapes (``ladder``) lets a few graphs serve them with
+    far less padding.
 
     Padding is inert by construction: the padded edges of both edge sets run between one
     extra *sink* node and one extra *sink* tool, so their messages reach only the sink, and
@@ -128,13 +136,56 @@ class BatchShape:
     prescribed: int
 
     @classmethod
-    def fitting(cls, sims: list[Simulation], batch_size: int) -> "BatchShape":
-        def most(count) -> int:
-            return batch_size * max(count(s.topology) for s in sims)
+    def holding(cls, counts) -> "BatchShape":
+        """The shape for ``counts`` real (nodes, edges, tools, actuator edges, prescribed), plus the sinks."""
+        n, e, k, a, p = (int(c) for c in counts)
+        return cls(nodes=n + 1, edges=e, tools=k + 1, actuator_edges=a, prescribed=p)
 
-        return cls(nodes=most(lambda t: t.n_nodes) + 1, edges=most(lambda t: t.senders.numel()),
-                   tools=most(lambda t: t.n_tools) + 1, actuator_edges=most(lambda t: t.act_senders.numel()),
-                   prescribed=most(lambda t: t.prescribed.numel()))
+    @property
+    def capacity(self) -> tuple[int, ...]:
+        """The real (nodes, edges, tools, actuator edges, prescribed) it holds, the sinks aside."""
+        return self.nodes - 1, self.edges, self.tools - 1, self.actuator_edges, self.prescribed
+
+    def fits(self, top: Topology) -> bool:
+        return all(c <= m for c, m in zip(_counts(top), self.capacity))
+
+    @classmethod
+    def fitting(cls, sims: list[Simulation], batch_size: int) -> "BatchShape":
+        """The largest batch of ``batch_size`` snapshots: each size of the largest simulation, times batch_size."""
+        return cls.holding(batch_size * np.array([_counts(s.topology) for s in sims]).max(0))
+
+    @classmethod
+    def ladder(cls, sims: list[Simulation], batch_size: int, quantiles=(0.5, 0.999), draws: int = 4000
+               ) -> tuple["BatchShape", ...]:
+        """Shapes from small to large, each size at these quantiles of random batches (``draws``
+        batches of ``batch_size`` snapshots drawn as an epoch draws them, with a fixed seed), then
+        ``fitting``, which every batch fits. A batch is padded to the first it fits
+        (``make_batch``). On the paper's training set (1-3 tools on four meshes) one shape pads an
+        average batch by 24 % in nodes, 27 % in mesh edges and 86 % in actuator edges; the
+        0.999 rung alone would pad 9 %, 10 % and 23 %. Rungs that the smallest batch (``smallest``)
+        does not fit are left out, so that every rung can be recorded before training."""
+        counts = np.array([_counts(s.topology) for s in sims])
+        weights = np.array([s.steps for s in sims], dtype=float)
+        picks = np.random.default_rng(0).choice(len(sims), (draws, batch_size), p=weights / weights.sum())
+        totals = counts[picks].sum(1)
+        least = counts[smallest(sims)] * batch_size
+        rungs = [cls.holding(np.quantile(totals, q, axis=0, method="higher")) for q in quantiles]
+        rungs = [r for r in rungs if (np.array(r.capacity) >= least).all()] + [cls.fitting(sims, batch_size)]
+        return tuple(sorted(set(rungs), key=lambda r: r.capacity))  # quantiles grow in every size together
+
+
+def smallest(sims: list[Simulation]) -> int:
+    """The simulation with the fewest nodes, tools and edges (in that order): a batch of its
+    snapshots alone fits every rung of a ``BatchShape.ladder``."""
+    return min(range(len(sims)), key=lambda i: (sims[i].topology.n_nodes, sims[i].topology.n_tools, _counts(sims[i].topology)))
+
+
+def first_fitting(shapes: BatchShape | Sequence[BatchShape], top: Topology) -> BatchShape:
+    """The first of ``shapes`` (smallest first) that ``top`` fits."""
+    for shape in (shapes,) if isinstance(shapes, BatchShape) else shapes:
+        if shape.fits(top):
+            return shape
+    raise ValueError(f"batch of (nodes, edges, tools, actuator edges, prescribed) {_counts(top)} exceeds {shapes}")
 
 
 def _grow(x: torch.Tensor, size: int, fill, dim: int = 0) -> torch.Tensor:
@@ -146,10 +197,7 @@ def _grow(x: torch.Tensor, size: int, fill, dim: int = 0) -> torch.Tensor:
 
 def pad_topology(top: Topology, shape: BatchShape) -> Topology:
     n, k = top.n_nodes, top.n_tools
-    counts = (n, top.senders.numel(), k, top.act_senders.numel(), top.prescribed.numel())
-    limits = (shape.nodes - 1, shape.edges, shape.tools - 1, shape.actuator_edges, shape.prescribed)
-    if any(c > m for c, m in zip(counts, limits)):
-        raise ValueError(f"batch of (nodes, edges, tools, actuator edges, prescribed) {counts} exceeds {shape}")
+    shape = first_fitting(shape, top)
     sink, sink_tool = shape.nodes - 1, shape.tools - 1
     return Topology(
         rest=_grow(top.rest, shape.nodes, 0.0), senders=_grow(top.senders, shape.edges, sink),
@@ -163,9 +211,11 @@ def pad_topology(top: Topology, shape: BatchShape) -> Topology:
 
 
 def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: float = 0.0,
-               generator: torch.Generator | None = None, shape: BatchShape | None = None, lead: int = 0) -> Batch:
+               generator: torch.Generator | None = None, shape: BatchShape | Sequence[BatchShape] | None = None,
+               lead: int = 0) -> Batch:
     """Stack the steps t -> t+1 of ``samples`` = [(simulation index, t), ...] into one graph,
-    padded to ``shape`` if given (the real nodes, their noise and targets are the same either way).
+    padded to ``shape`` if given, or to the first of several shapes that it fits (the real nodes,
+    their noise and targets are the same either way).
 
     Noise (paper appendix A): q' = q + mean_edge * eps * noise_q on free nodes, v' = v (1 + eps
     noise_v), sigma' = sigma (1 + eps noise_v), eps ~ U(-1, 1); the target is built from z'.
@@ -177,6 +227,7 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     device = picked[0][0].z.device
     top = batch([s.topology for s, _ in picked])
     real_nodes = top.n_nodes
+    shape = None if shape is None else first_fitting(shape, top)
     top = (top if shape is None else pad_topology(top, shape)).to(device)
     z = torch.cat([s.z[t] for s, t in picked])
     z_next = torch.cat([sims[i].z[t + 1] for i, t in samples])

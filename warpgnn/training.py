@@ -29,7 +29,7 @@ from tqdm.auto import tqdm
 
 from . import checkpoint, metrics
 from .dataset import write_text_atomically
-from .data import Batch, BatchShape, all_samples, load_splits, make_batch
+from .data import Batch, BatchShape, all_samples, load_splits, make_batch, smallest
 from .errors import InputError
 from .model import ModelConfig, TIGNN
 from .rollout import rollout
@@ -61,7 +61,7 @@ class TrainConfig:
     time_budget: float | None = None  # seconds of training in all, across resumes; the run ends when spent
     tf32: bool = False  # CUDA matmuls in TF32 (measured no faster at these widths: train_step_time_h200.json)
     compile: bool = False  # torch.compile the training forward (and backward), dynamic shapes
-    cuda_graphs: bool = False  # batches padded to one shape, compiled and replayed as CUDA graphs
+    cuda_graphs: bool = False  # batches padded to a few fixed shapes, compiled and replayed as CUDA graphs
     device: str | None = None
 
     def __post_init__(self):
@@ -92,8 +92,8 @@ def compiled(model, backend: str = "inductor", cuda_graphs: bool = False):
     Without ``cuda_graphs`` the shapes are dynamic: every batch stacks a different number of
     nodes and edges, and one symbolic-size graph serves them all instead of a recompilation per
     size. Such a step is still bound by the host launching its ~hundreds of kernels. With
-    ``cuda_graphs`` the batches must all have one shape (``BatchShape``), and forward and
-    backward are each recorded once and replayed as CUDA graphs.
+    ``cuda_graphs`` the batches come in a few fixed shapes (``BatchShape.ladder``), and forward
+    and backward are recorded once per shape and replayed as CUDA graphs.
 
     Plain per-graph CUDA graphs, not reduce-overhead's default cudagraph trees: the trees
     refused our first warm-up (torch 2.11, H100: "accessing tensor output of CUDAGraphs that
@@ -123,22 +123,24 @@ def pushed_forward(model, batch: Batch, rate=None) -> Batch:
     return replace(batch, z=z, lead_u=None, lead_active=None)
 
 
-def lead_in_rate(model: TIGNN, batch: Batch, cuda_graphs: bool, log=print):
+def lead_in_rate(model: TIGNN, batches: list[Batch], cuda_graphs: bool, log=print):
     """The network's zdot compiled for the pushforward lead-in (its own no-grad graph, replayed as a
-    CUDA graph with ``cuda_graphs``; eager, those steps cost more than the trained step itself:
-    bench/results/train_step_pushforward_h100.json), or None if on ``batch`` it differs from the
-    eager zdot. It returns zdot alone: inductor's no-grad graph that returned both zdot and its
-    standardised twin gave both wrong on the CPU (torch 2.13), while either alone was right."""
+    CUDA graph with ``cuda_graphs``, one per batch shape; eager, those steps cost more than the
+    trained step itself: bench/results/train_step_pushforward_h100.json), or None if on any of
+    ``batches`` it differs from the eager zdot. It returns zdot alone: inductor's no-grad graph
+    that returned both zdot and its standardised twin gave both wrong on the CPU (torch 2.13),
+    while either alone was right."""
     rate = compiled(lambda top, z, u_now, u_next: model(top, z, u_now, u_next).zdot, cuda_graphs=cuda_graphs)
-    args = (batch.topology, batch.z, batch.lead_u[0], batch.lead_u[1])
-    with torch.no_grad():
-        want = model(*args).zdot
-        for _ in range(3):  # compile, record, replay
-            got = rate(*args).clone()
-    error = float((got - want).abs().max() / want.abs().max().clamp_min(1e-30))
-    if not error <= 1e-4:
-        log(f"the compiled lead-in differs from the eager network (relative {error:.1e}): the lead-in stays eager")
-        return None
+    for batch in batches:
+        args = (batch.topology, batch.z, batch.lead_u[0], batch.lead_u[1])
+        with torch.no_grad():
+            want = model(*args).zdot
+            for _ in range(3):  # compile, record, replay
+                got = rate(*args).clone()
+        error = float((got - want).abs().max() / want.abs().max().clamp_min(1e-30))
+        if not error <= 1e-4:
+            log(f"the compiled lead-in differs from the eager network (relative {error:.1e}): the lead-in stays eager")
+            return None
     return rate
 
 
@@ -161,6 +163,17 @@ def warm_up(net, batch: Batch, steps: int = 3, lead_rate=None) -> None:
         unwrapped(net).zero_grad(set_to_none=True)  # as every training step: no sums into graph-owned grads
         train_step(net, batch, lead_rate)
     unwrapped(net).zero_grad(set_to_none=True)
+
+
+def warm_up_batches(sims, shapes, batch_size: int, lead: int) -> list[Batch]:
+    """One batch per padded shape, to compile and record each before training (the smallest
+    simulation's snapshots fit every shape of a ``BatchShape.ladder``), or, with no shapes, the
+    first batch unpadded."""
+    if not shapes:
+        return [make_batch(sims, all_samples(sims)[:batch_size], lead=lead)]
+    least = smallest(sims)
+    samples = [(least, t % sims[least].steps) for t in range(batch_size)]
+    return [make_batch(sims, samples, shape=s, lead=lead) for s in shapes]
 
 
 def fit_normalizer(model: TIGNN, sims, batch_size: int = 64) -> None:
@@ -294,16 +307,20 @@ def train(cfg: TrainConfig, log=print) -> dict:
     net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
     if cfg.compile or cfg.cuda_graphs:
         net = compiled(net, cuda_graphs=cfg.cuda_graphs)
-    shape = BatchShape.fitting(train_sims, cfg.batch_size) if cfg.cuda_graphs else None
+    shapes = BatchShape.ladder(train_sims, cfg.batch_size) if cfg.cuda_graphs else None
     started = t0 = time.perf_counter()  # compilation and graph recording count as training time
-    first = make_batch(train_sims, all_samples(train_sims)[:cfg.batch_size], shape=shape, lead=cfg.pushforward)
+    firsts = warm_up_batches(train_sims, shapes, cfg.batch_size, cfg.pushforward)
     lead_rate = None
     if cfg.pushforward and (cfg.compile or cfg.cuda_graphs):
-        lead_rate = lead_in_rate(model, first, cfg.cuda_graphs, log if rank == 0 else lambda _: None)
-    if shape is not None:
+        lead_rate = lead_in_rate(model, firsts, cfg.cuda_graphs, log if rank == 0 else lambda _: None)
+    if shapes is not None:
         if device.type != "cuda":
             log(f"--cuda-graphs on {device}: batches padded and compiled with static shapes, no graph replay")
-        warm_up(net, first, lead_rate=lead_rate)
+        if rank == 0:
+            log("padded batch shapes (nodes / mesh edges / actuator edges): "
+                + ", ".join(f"{s.nodes} / {s.edges} / {s.actuator_edges}" for s in shapes))
+        for b in firsts:
+            warm_up(net, b, lead_rate=lead_rate)
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         log(f"{cfg.model.kind}, {cfg.model.passes} passes, F = {cfg.model.latent}: {model.n_parameters():,} parameters; "
@@ -322,7 +339,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
         model.train()
         sums, n = {}, 0
         chunks = [mine[i:i + cfg.batch_size] for i in range(0, len(mine), cfg.batch_size)]
-        batches = prefetched(lambda c: make_batch(train_sims, c, cfg.noise_q, cfg.noise_v, gen, shape, cfg.pushforward),
+        batches = prefetched(lambda c: make_batch(train_sims, c, cfg.noise_q, cfg.noise_v, gen, shapes, cfg.pushforward),
                              chunks)
         bar = tqdm(batches, total=len(chunks), desc=f"epoch {epoch}", leave=False, disable=True if rank else None)
         for b in bar:
