@@ -148,9 +148,9 @@ def main():
             torch.cuda.reset_peak_memory_stats()
             t0 = time.perf_counter()
             firsts = warm_up_batches(sims, shape, a.batch, lead)
-            lead_rate = lead_in_rate(model, firsts, graphs) if lead_in == "compiled" and lead else None
-            if graphs:  # compile and record every shape before timing, as `warpgnn train --cuda-graphs` does
-                with precision():
+            with precision():  # the lead-in is checked as it is timed, under the mode's precision
+                lead_rate = lead_in_rate(model, firsts, graphs) if lead_in == "compiled" and lead else None
+                if graphs:  # compile and record every shape before timing, as `warpgnn train --cuda-graphs` does
                     for first_batch in firsts:
                         warm_up(net, first_batch, lead_rate=lead_rate)
             recording = time.perf_counter() - t0
