@@ -168,10 +168,11 @@ def main():
                 r["top_kernels"] = top_kernels(net, opt, b, precision, lead_rate)
             print(json.dumps(r), flush=True)
             records.append(r)
-            write_record(a, warm, records)  # after every record: a run cut short keeps what it measured
+            write_json(a, warm, records)  # after every record: a run cut short keeps what it measured
 
 
-def write_record(a, warm, records):
+def write_json(a, warm, records):
+    """All ``records`` so far, with the device, date and command, into --json."""
     out = {"device": torch.cuda.get_device_name(), "date": datetime.date.today().isoformat(),
            "command": f"python bench/train_step_time.py DATA --batch {a.batch} --steps {a.steps}"
                       + (" --tf32" if a.tf32 else "") + (f" --files {a.files}" if a.files != "L1" else "") + (f" --configs {a.configs}" if a.configs != "all" else "")

@@ -375,9 +375,9 @@ def test_compiled_lead_in_replays_cuda_graphs_with_the_eager_steps(data):
             want = training.pushed_forward(model, b).z
             got = training.pushed_forward(model, b, rate).z
             assert ((got - want).abs() <= 1e-4 * want.abs() + 1e-5 * want.abs().amax(0)).all()
-        with torch.no_grad():
-            for p in model.parameters():
-                p.add_(1e-3 * torch.randn_like(p))
+            with torch.no_grad():
+                for p in model.parameters():
+                    p.add_(1e-3 * torch.randn_like(p))
     assert torch._dynamo.utils.counters["inductor"]["cudagraph_skips"] == 0
     torch._dynamo.reset()
 

@@ -313,9 +313,10 @@ def train(cfg: TrainConfig, log=print) -> dict:
         net = compiled(net, cuda_graphs=cfg.cuda_graphs)
     shapes = BatchShape.ladder(train_sims, cfg.batch_size) if cfg.cuda_graphs else None
     started = t0 = time.perf_counter()  # compilation and graph recording count as training time
-    firsts = warm_up_batches(train_sims, shapes, cfg.batch_size, cfg.pushforward)
+    compiled_lead_in = cfg.pushforward and (cfg.compile or cfg.cuda_graphs)
+    firsts = warm_up_batches(train_sims, shapes, cfg.batch_size, cfg.pushforward) if shapes or compiled_lead_in else []
     lead_rate = None
-    if cfg.pushforward and (cfg.compile or cfg.cuda_graphs):
+    if compiled_lead_in:
         lead_rate = lead_in_rate(model, firsts, cfg.cuda_graphs, log if rank == 0 else lambda _: None)
     if shapes is not None:
         if device.type != "cuda":
