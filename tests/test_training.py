@@ -158,6 +158,29 @@ def test_time_budget_ends_the_run_and_sets_each_epochs_rate(data, tmp_path):
                                                          h["seconds"]))
 
 
+def test_patience_defaults_follow_the_schedule():
+    assert TrainConfig().stop_patience == 30  # the paper's plateau schedule
+    exponential = TrainConfig(lr_schedule="exponential", time_budget=100.0)
+    assert exponential.stop_patience == float("inf")  # its budget ends the run
+    assert exponential.stop_reason(epoch=10_000, best_epoch=0, budget_spent=False) is None
+    assert "time budget" in exponential.stop_reason(epoch=3, best_epoch=3, budget_spent=True)
+    assert "early stop" in TrainConfig(patience=5).stop_reason(epoch=5, best_epoch=0, budget_spent=True)
+    assert TrainConfig(patience=5).stop_reason(epoch=4, best_epoch=0, budget_spent=False) is None
+    with pytest.raises(ValueError, match="patience"):
+        TrainConfig(patience=0)
+
+
+def test_a_run_stopped_early_goes_on_when_resumed_with_more_patience(data, tmp_path):
+    out = tmp_path / "run"
+    # lr = 0: the weights never move, so no epoch after the first has a better validation rollout
+    _, lines = quiet_train(config(data, out, epochs=10, lr=0.0, patience=1))
+    assert trained_epochs(lines) == [0, 1] and "early stop" in lines[-1]
+    _, lines = quiet_train(config(data, out, epochs=10, lr=0.0, patience=1, resume=True))
+    assert trained_epochs(lines) == [] and "already finished" in lines[0]
+    result, lines = quiet_train(config(data, out, epochs=10, lr=0.0, patience=3, resume=True))
+    assert "had stopped" in lines[0] and trained_epochs(lines) == [2, 3] and "early stop" in lines[-1]
+    assert result["best_epoch"] == 0 and [h["epoch"] for h in result["history"]] == [0, 1, 2, 3]
+
 def test_prefetched_batches_keep_order_and_random_draws(data):
     sims = load_file(data / "L1.h5")
     chunks = [[(0, 0), (1, 1)], [(1, 2)], [(0, 3), (1, 0), (0, 1)]]

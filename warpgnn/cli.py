@@ -226,7 +226,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="plateau: halve on a training-loss plateau (the paper); exponential: lr -> --lr-final "
                         "over --time-budget")
     t.add_argument("--lr-final", type=float, default=1e-5, help="exponential schedule: the rate at the budget's end")
-    t.add_argument("--patience", type=int, default=30, help="epochs without a better validation rollout")
+    t.add_argument("--patience", type=int, default=None,
+                   help="epochs without a better validation rollout before stopping (default: 30 under the "
+                        "plateau schedule, none under the exponential one: its --time-budget ends the run); "
+                        "raise it and --resume to continue a run that stopped early")
     t.add_argument("--train-fraction", type=float, default=1.0, help="use this share of the training simulations")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--time-limit", type=float, default=None,
