@@ -4,8 +4,12 @@ where it ended, and records per step the RMS velocity of the free nodes and how 
 moved since step 20. The FEM's hold phase sets the scale: its free nodes' snapshot velocity is
 aliased vibration of ~1e-4 m/s, and viscoelastic creep moves them by well under a millimetre.
 A network whose velocity grows step after step here is unstable under the Euler step.
+--impose-tool-velocity adds, per network, a rollout whose tool-tip nodes take the tool's velocity
+after every step (central differences of the imposed displacements, zero while held): whether
+the growth comes from the tip's own predicted velocity.
 
-    python bench/long_hold.py DATA_FILE.h5 CHECKPOINT [...] --hold 80 --json OUT.json --png OUT.png --device "..." --command "..."
+    python bench/long_hold.py DATA_FILE.h5 CHECKPOINT [...] --hold 80 [--impose-tool-velocity] \
+        --json OUT.json --png OUT.png --device "..." --command "..."
 """
 
 import argparse
@@ -23,10 +27,11 @@ import provenance  # bench/, beside this script
 from warpgnn.checkpoint import load_model
 from warpgnn.data import load_file
 from warpgnn.graphs import NODE_FREE
+from tool_velocity_oracle import tool_velocity
 
 
 @torch.no_grad()
-def free_node_history(model, sim, hold: int) -> tuple[np.ndarray, np.ndarray]:
+def free_node_history(model, sim, hold: int, impose_tool_velocity: bool) -> tuple[np.ndarray, np.ndarray]:
     """Per step (0 .. steps + hold): RMS |v| of the free nodes [m/s] and their RMS distance from
     where they were at the last snapshot [m] (zero before it)."""
     top, z = sim.topology, sim.z[0]
@@ -36,6 +41,10 @@ def free_node_history(model, sim, hold: int) -> tuple[np.ndarray, np.ndarray]:
     for t in range(sim.steps + hold + 1):
         if t:
             z = model.step(top, z, u[t - 1], u[t], sim.dt)
+            if impose_tool_velocity:
+                v_tool = tool_velocity(sim, t - 1, "central") if t <= sim.steps else torch.zeros_like(sim.u[0])
+                v_tip = top.prescribed_weight[:, None] * v_tool[top.prescribed_tool]
+                z = torch.cat([z[:, :3], z[:, 3:6].index_put((top.prescribed,), v_tip), z[:, 6:]], -1)
         speeds.append(z[free, 3:6].norm(dim=1).pow(2).mean().sqrt().item())
         qs.append(z[free, :3])
     q_end = qs[sim.steps]
@@ -53,6 +62,8 @@ def main():
     ap.add_argument("data")
     ap.add_argument("checkpoints", nargs="+")
     ap.add_argument("--hold", type=int, default=80, help="steps beyond the last snapshot, tools held")
+    ap.add_argument("--impose-tool-velocity", action="store_true",
+                    help="also roll each network out with the tool tips' velocity imposed")
     ap.add_argument("--json", required=True)
     ap.add_argument("--png", required=True)
     provenance.add_arguments(ap)
@@ -62,30 +73,34 @@ def main():
     record = provenance.record(a) | {"data": a.data, "simulations": len(sims), "hold_steps": a.hold,
                                      "fem_free_rms_speed": np.mean([fem_speed(s) for s in sims], 0).tolist(),
                                      "networks": {}}
-    fig, (ax_v, ax_q) = plt.subplots(1, 2, figsize=(12, 4.2))
+    fig, (ax_v, ax_q) = plt.subplots(1, 2, figsize=(12, 5.6))
     t_axis = np.arange(steps + a.hold + 1)
     ax_v.plot(np.arange(steps + 1), record["fem_free_rms_speed"], "k-", lw=2, label="FEM")
-    for path in a.checkpoints:
+    for colour, path in zip(plt.rcParams["axes.prop_cycle"].by_key()["color"][1:] * 9, a.checkpoints):
         model, _ = load_model(path)
         model.eval()
-        speed, moved = (np.mean(x, 0) for x in zip(*(free_node_history(model, s, a.hold) for s in sims)))
-        name = f"{Path(path).parent.parent.name}/{Path(path).parent.name}"  # RESULTS_runs/RUN
-        record["networks"][name] = {"checkpoint": path, "free_rms_speed": speed.tolist(), "free_rms_moved": moved.tolist()}
-        print(f"{name}: free-node RMS speed at steps {steps // 2}, {steps}, {steps + a.hold // 2}, {steps + a.hold}: "
-              + ", ".join(f"{speed[t]:.2e}" for t in (steps // 2, steps, steps + a.hold // 2, steps + a.hold))
-              + f" m/s; moved {moved[-1] * 1e3:.2f} mm during the hold")
-        ax_v.plot(t_axis, speed, label=name)
-        ax_q.plot(t_axis[steps:], moved[steps:] * 1e3, label=name)
+        for imposed in (False, True) if a.impose_tool_velocity else (False,):
+            speed, moved = (np.mean(x, 0) for x in zip(*(free_node_history(model, s, a.hold, imposed) for s in sims)))
+            name = f"{Path(path).parent.parent.name}/{Path(path).parent.name}"  # RESULTS_runs/RUN
+            name += ", tool velocity imposed" if imposed else ""
+            record["networks"][name] = {"checkpoint": path, "tool_velocity_imposed": imposed,
+                                        "free_rms_speed": speed.tolist(), "free_rms_moved": moved.tolist()}
+            print(f"{name}: free-node RMS speed at steps {steps // 2}, {steps}, {steps + a.hold // 2}, {steps + a.hold}: "
+                  + ", ".join(f"{speed[t]:.2e}" for t in (steps // 2, steps, steps + a.hold // 2, steps + a.hold))
+                  + f" m/s; moved {moved[-1] * 1e3:.2f} mm during the hold")
+            style = dict(color=colour, ls="--" if imposed else "-")  # one colour per network
+            ax_v.plot(t_axis, speed, label=name, **style)
+            ax_q.plot(t_axis[steps:], moved[steps:] * 1e3, **style)
     for ax in (ax_v, ax_q):
         ax.axvline(steps, color="gray", ls=":", lw=1)
         ax.set_xlabel("step (tools ramp to step 10, hold after; dotted: last FEM snapshot)")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
     ax_v.set_yscale("log")
     ax_v.set_ylabel("free-node RMS speed [m/s]")
     ax_q.set_ylabel("free-node RMS drift since the last snapshot [mm]")
     fig.suptitle(f"tools held for {a.hold} more steps ({len(sims)} simulations of {Path(a.data).name}, mean)")
-    fig.tight_layout(rect=(0, 0, 1, 0.95))
+    fig.legend(loc="lower center", ncol=2, fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.17, 1, 0.95))
     fig.savefig(a.png, dpi=120)
     with open(a.json, "w") as f:
         json.dump(record, f, indent=1)
