@@ -27,7 +27,7 @@ import provenance  # bench/, beside this script
 from warpgnn.checkpoint import load_model
 from warpgnn.data import load_file
 from warpgnn.graphs import NODE_FREE
-from tool_velocity_oracle import tool_velocity
+from tool_velocity_oracle import tool_velocity, with_tool_velocity
 
 
 @torch.no_grad()
@@ -43,8 +43,7 @@ def free_node_history(model, sim, hold: int, impose_tool_velocity: bool) -> tupl
             z = model.step(top, z, u[t - 1], u[t], sim.dt)
             if impose_tool_velocity:
                 v_tool = tool_velocity(sim, t - 1, "central") if t <= sim.steps else torch.zeros_like(sim.u[0])
-                v_tip = top.prescribed_weight[:, None] * v_tool[top.prescribed_tool]
-                z = torch.cat([z[:, :3], z[:, 3:6].index_put((top.prescribed,), v_tip), z[:, 6:]], -1)
+                z = with_tool_velocity(top, z, v_tool)
         speeds.append(z[free, 3:6].norm(dim=1).pow(2).mean().sqrt().item())
         qs.append(z[free, :3])
     q_end = qs[sim.steps]
@@ -79,10 +78,10 @@ def main():
     for colour, path in zip(plt.rcParams["axes.prop_cycle"].by_key()["color"][1:] * 9, a.checkpoints):
         model, _ = load_model(path)
         model.eval()
+        run = f"{Path(path).parent.parent.name}/{Path(path).parent.name}"  # RESULTS_runs/RUN
         for imposed in (False, True) if a.impose_tool_velocity else (False,):
             speed, moved = (np.mean(x, 0) for x in zip(*(free_node_history(model, s, a.hold, imposed) for s in sims)))
-            name = f"{Path(path).parent.parent.name}/{Path(path).parent.name}"  # RESULTS_runs/RUN
-            name += ", tool velocity imposed" if imposed else ""
+            name = run + (", tool velocity imposed" if imposed else "")
             record["networks"][name] = {"checkpoint": path, "tool_velocity_imposed": imposed,
                                         "free_rms_speed": speed.tolist(), "free_rms_moved": moved.tolist()}
             print(f"{name}: free-node RMS speed at steps {steps // 2}, {steps}, {steps + a.hold // 2}, {steps + a.hold}: "

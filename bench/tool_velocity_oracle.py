@@ -31,6 +31,12 @@ def tool_velocity(sim, t: int, mode: str) -> torch.Tensor:
     return (sim.u[after] - sim.u[t]) / (sim.dt * (after - t))
 
 
+def with_tool_velocity(top, z: torch.Tensor, v_tool: torch.Tensor) -> torch.Tensor:
+    """``z`` with every tool-tip node's velocity set to its weight x its tool's velocity ``v_tool`` (K, 3)."""
+    v_tip = top.prescribed_weight[:, None] * v_tool[top.prescribed_tool]
+    return torch.cat([z[:, :3], z[:, 3:6].index_put((top.prescribed,), v_tip), z[:, 6:]], -1)
+
+
 @torch.no_grad()
 def rollout_rrmse(model, sims, mode: str) -> dict:
     per = []
@@ -40,8 +46,7 @@ def rollout_rrmse(model, sims, mode: str) -> dict:
         for t in range(sim.steps):
             z = model.step(top, z, sim.u[t], sim.u[t + 1], sim.dt)
             if mode != "none":
-                v_tip = top.prescribed_weight[:, None] * tool_velocity(sim, t, mode)[top.prescribed_tool]
-                z = torch.cat([z[:, :3], z[:, 3:6].index_put((top.prescribed,), v_tip), z[:, 6:]], -1)
+                z = with_tool_velocity(top, z, tool_velocity(sim, t, mode))
             states.append(z)
         per.append(rollout_metrics(torch.stack(states).numpy(), sim.z.numpy()))
     return set_metrics(per)["rrmse"]

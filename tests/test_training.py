@@ -181,6 +181,7 @@ def test_a_run_stopped_early_goes_on_when_resumed_with_more_patience(data, tmp_p
     assert "had stopped" in lines[0] and trained_epochs(lines) == [2, 3] and "early stop" in lines[-1]
     assert result["best_epoch"] == 0 and [h["epoch"] for h in result["history"]] == [0, 1, 2, 3]
 
+
 def test_prefetched_batches_keep_order_and_random_draws(data):
     sims = load_file(data / "L1.h5")
     chunks = [[(0, 0), (1, 1)], [(1, 2)], [(0, 3), (1, 0), (0, 1)]]
