@@ -6,10 +6,12 @@ aliased vibration of ~1e-4 m/s, and viscoelastic creep moves them by well under 
 A network whose velocity grows step after step here is unstable under the Euler step.
 --impose-tool-velocity adds, per network, a rollout whose tool-tip nodes take the tool's velocity
 after every step (central differences of the imposed displacements, zero while held): whether
-the growth comes from the tip's own predicted velocity.
+the growth comes from the tip's own predicted velocity. --growth adds each network's growth per
+step: the largest eigenvalue modulus of its held Euler step's Jacobian at its own state at the
+last snapshot (power iteration, forward-mode derivatives), and where that mode lives.
 
     python bench/long_hold.py DATA_FILE.h5 CHECKPOINT [...] --hold 80 [--impose-tool-velocity] \
-        --json OUT.json --png OUT.png --device "..." --command "..."
+        [--growth] --json OUT.json --png OUT.png --device "..." --command "..."
 """
 
 import argparse
@@ -26,7 +28,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import provenance  # bench/, beside this script
 from warpgnn.checkpoint import load_model
 from warpgnn.data import load_file
-from warpgnn.graphs import NODE_FREE
+from warpgnn.graphs import GROUPS, NODE_FREE, apply_boundary_conditions
 from tool_velocity_oracle import tool_velocity, with_tool_velocity
 
 
@@ -51,6 +53,42 @@ def free_node_history(model, sim, hold: int, impose_tool_velocity: bool) -> tupl
     return np.array(speeds), np.array(moved)
 
 
+# perturbations are measured in 1 mm, 1 mm/s and 1 kPa (the eigenvalues do not depend on this
+# scaling, only the shares of the mode do)
+PERTURBATION_UNITS = torch.tensor([1e-3] * 6 + [1e3] * 6)
+
+
+def held_step_growth(model, sim, iterations: int = 40) -> dict:
+    """Power iteration on the Jacobian of z -> Euler step with the tools held, at the network's own
+    state at the last snapshot: the geometric mean of the last 10 growth factors (above 1: a
+    perturbation grows every step), the mode's share per group and in its 10 largest nodes, and
+    how far those lie from the nearest tool (mm)."""
+    top, z = sim.topology, sim.z[0]
+    with torch.no_grad():
+        for t in range(sim.steps):
+            z = model.step(top, z, sim.u[t], sim.u[t + 1], sim.dt)
+    u, units = sim.u[-1], PERTURBATION_UNITS.to(z.dtype)
+
+    def held_step(x):
+        moved = z + x * units
+        return apply_boundary_conditions(top, moved + sim.dt * model(top, moved, u, u).zdot, u) / units
+
+    d = torch.randn(z.shape, generator=torch.Generator().manual_seed(0), dtype=z.dtype)
+    d[top.node_type != NODE_FREE] = 0
+    factors = []
+    for _ in range(iterations):
+        _, jd = torch.func.jvp(held_step, (torch.zeros_like(z),), (d / d.norm(),))
+        factors.append(jd.norm().item())
+        d = jd.detach()
+    share = (d / d.norm()).square()
+    nodes = share.sum(1).argsort(descending=True)[:10]
+    tool_distance = (top.rest[nodes, None] - top.rest[top.loaded][None]).norm(dim=-1).min(1).values
+    return {"growth_per_step": float(np.exp(np.mean(np.log(factors[-10:])))),
+            "share": {g: float(share[:, sl].sum()) for g, sl in GROUPS.items()},
+            "share_10_largest_nodes": float(share[nodes].sum()),
+            "their_distance_to_a_tool_mm": (tool_distance * 1e3).round().tolist()}
+
+
 def fem_speed(sim) -> np.ndarray:
     free = sim.topology.node_type == NODE_FREE
     return sim.z[:, free, 3:6].norm(dim=2).pow(2).mean(1).sqrt().numpy()
@@ -63,6 +101,7 @@ def main():
     ap.add_argument("--hold", type=int, default=80, help="steps beyond the last snapshot, tools held")
     ap.add_argument("--impose-tool-velocity", action="store_true",
                     help="also roll each network out with the tool tips' velocity imposed")
+    ap.add_argument("--growth", action="store_true", help="also each network's growth per held step (Jacobian)")
     ap.add_argument("--json", required=True)
     ap.add_argument("--png", required=True)
     provenance.add_arguments(ap)
@@ -77,8 +116,14 @@ def main():
     ax_v.plot(np.arange(steps + 1), record["fem_free_rms_speed"], "k-", lw=2, label="FEM")
     for colour, path in zip(plt.rcParams["axes.prop_cycle"].by_key()["color"][1:] * 9, a.checkpoints):
         model, _ = load_model(path)
-        model.eval()
+        model.eval().requires_grad_(False)
         run = f"{Path(path).parent.parent.name}/{Path(path).parent.name}"  # RESULTS_runs/RUN
+        if a.growth:
+            growth = [held_step_growth(model, s) for s in sims[:3]]
+            record.setdefault("growth", {})[run] = growth
+            print(f"{run}: growth per held step " + ", ".join(f"{g['growth_per_step']:.3f}" for g in growth)
+                  + f" (first {len(growth)} simulations); mode shares q/v/sigma "
+                  + "/".join(f"{growth[0]['share'][k]:.2f}" for k in GROUPS))
         for imposed in (False, True) if a.impose_tool_velocity else (False,):
             speed, moved = (np.mean(x, 0) for x in zip(*(free_node_history(model, s, a.hold, imposed) for s in sims)))
             name = run + (", tool velocity imposed" if imposed else "")

@@ -481,6 +481,30 @@ def test_make_batch_noise(two_sims):
     assert torch.equal(again.z, b.z) and not torch.equal(other.z, b.z)
 
 
+def test_make_batch_additive_velocity_noise(two_sims):
+    """--noise-v-add: v' = v + mean_edge / dt * eps * noise_v_add on free nodes only, even where v is
+    zero (the relative noise is not), on top of the paper's noise, whose draws it leaves as they were."""
+    samples, add = [(0, 0), (1, 2)], 0.02
+    paper = make_batch(two_sims, samples, 0.05, 0.1, generator=torch.Generator().manual_seed(0))
+    b = make_batch(two_sims, samples, 0.05, 0.1, generator=torch.Generator().manual_seed(0), noise_v_add=add)
+    n0 = two_sims[0].topology.n_nodes
+    free = b.topology.node_type == NODE_FREE
+    # positions, stresses: the paper's noise, draw for draw; velocities of fixed and tool nodes: too
+    assert torch.equal(b.z[:, :3], paper.z[:, :3]) and torch.equal(b.z[:, 6:], paper.z[:, 6:])
+    assert torch.equal(b.z[~free, 3:6], paper.z[~free, 3:6])
+    dv = (b.z[:, 3:6] - paper.z[:, 3:6]).abs()
+    for part, s in ((slice(0, n0), two_sims[0]), (slice(n0, None), two_sims[1])):
+        bound = s.mean_edge / s.dt * add
+        assert dv[part].max() <= bound * (1 + 1e-5)
+        assert dv[part][free[part]].max() > 0.5 * bound
+    still = [replace(s, z=torch.cat([s.z[:, :, :3], torch.zeros_like(s.z[:, :, 3:6]), s.z[:, :, 6:]], -1)) for s in two_sims]
+    at_rest = make_batch(still, samples, 0.05, 0.1, generator=torch.Generator().manual_seed(0), noise_v_add=add)
+    torch.testing.assert_close(at_rest.z[:, 3:6], b.z[:, 3:6] - paper.z[:, 3:6], rtol=0, atol=1e-6)  # where v = 0 too
+    z1 = torch.cat([two_sims[0].z[1], two_sims[1].z[3]])
+    dt = torch.cat([torch.full((n0, 1), 0.05), torch.full((len(z1) - n0, 1), 0.02)])
+    assert torch.equal(b.zdot, (z1 - b.z) / dt)  # the target leads back from the noisy velocity
+
+
 def double_sim(sim: Simulation) -> Simulation:
     return replace(sim, topology=to_double(sim.topology), z=sim.z.double(), u=sim.u.double())
 

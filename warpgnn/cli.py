@@ -156,7 +156,7 @@ def cmd_train(args):
                           time_limit=args.time_limit, time_budget=args.time_budget, tf32=args.tf32,
                           compile=args.compile, cuda_graphs=args.cuda_graphs, pushforward=args.pushforward,
                           device=args.device,
-                          **{k: getattr(args, k) for k in ("noise_q", "noise_v") if getattr(args, k) is not None})
+                          **{k: getattr(args, k) for k in ("noise_q", "noise_v", "noise_v_add") if getattr(args, k) is not None})
     except ValueError as exc:
         raise InputError(str(exc)) from None
     result = train(cfg)
@@ -238,6 +238,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seconds of training in all, across resumes; the run ends once they are spent")
     t.add_argument("--noise-q", type=float, help="position noise, times the mean edge length (default: the paper's 1e-4)")
     t.add_argument("--noise-v", type=float, help="relative noise on velocity and stress (default: the paper's 1e-3)")
+    t.add_argument("--noise-v-add", type=float, help="additive velocity noise on free nodes, times mean edge / dt "
+                   "(default 0, the paper: none); keeps the hold phase stable")
     t.add_argument("--tf32", action="store_true", help="TF32 matmuls on CUDA (default: full fp32)")
     t.add_argument("--compile", action="store_true",
                    help="torch.compile the network for training (GPU: fused kernels; compiles once, ~1 min)")

@@ -212,13 +212,15 @@ def pad_topology(top: Topology, shape: BatchShape) -> Topology:
 
 def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: float = 0.0,
                generator: torch.Generator | None = None, shape: BatchShape | Sequence[BatchShape] | None = None,
-               lead: int = 0) -> Batch:
+               lead: int = 0, noise_v_add: float = 0.0) -> Batch:
     """Stack the steps t -> t+1 of ``samples`` = [(simulation index, t), ...] into one graph,
     padded to ``shape`` if given, or to the first of several shapes that it fits (the real nodes,
     their noise and targets are the same either way).
 
     Noise (paper appendix A): q' = q + mean_edge * eps * noise_q on free nodes, v' = v (1 + eps
     noise_v), sigma' = sigma (1 + eps noise_v), eps ~ U(-1, 1); the target is built from z'.
+    ``noise_v_add`` > 0 adds v' += mean_edge / dt * eps' * noise_v_add on free nodes (own draws):
+    relative noise vanishes where v does (once the tools stop), additive noise does not.
     With ``lead`` > 0 (pushforward training) ``z`` is the (noisy) state min(lead, t) snapshots
     before t, ``lead_u`` the tools' path from there to t (its first entries repeat the start when
     t < lead) and ``lead_active`` which nodes each lead step moves (none of the padding).
@@ -234,17 +236,22 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     sizes = torch.tensor([s.topology.n_nodes for s, _ in picked])
     # per-node columns: dt, then the position-noise amplitude and U(-1, 1) draws
     host = [torch.tensor([s.dt for s, _ in picked]).repeat_interleave(sizes)[:, None]]
-    noisy = noise_q > 0 or noise_v > 0
+    noisy = noise_q > 0 or noise_v > 0 or noise_v_add > 0
     if noisy:
         host += [torch.tensor([s.mean_edge * noise_q for s, _ in picked]).repeat_interleave(sizes)[:, None],
                  torch.rand((len(z), 12), generator=generator) * 2 - 1]
+    if noise_v_add > 0:  # drawn only then: the paper's noise keeps its random stream
+        host += [torch.tensor([s.mean_edge / s.dt * noise_v_add for s, _ in picked]).repeat_interleave(sizes)[:, None],
+                 torch.rand((len(z), 3), generator=generator) * 2 - 1]
     host = torch.cat(host, 1).float()
     host = (host.pin_memory() if device.type == "cuda" else host).to(device, non_blocking=True)
     dt = host[:, :1]
     if noisy:
-        amp, eps = host[:, 1:2], host[:, 2:]
+        amp, eps = host[:, 1:2], host[:, 2:14]
         free = (top.node_type[:real_nodes] == NODE_FREE)[:, None].to(z.dtype)
         z = torch.cat([z[:, :3] + free * amp * eps[:, :3], z[:, 3:] * (1 + eps[:, 3:] * noise_v)], -1)
+        if noise_v_add > 0:
+            z[:, 3:6] += free * host[:, 14:15] * host[:, 15:18]
     # the tools' path t - lead .. t + 1 of each sample, held at its start before t = 0
     u = torch.stack([torch.cat([sims[i].u[max(t - lead + j, 0)] for i, t in samples]) for j in range(lead + 2)])
     active = None

@@ -56,6 +56,10 @@ class TrainConfig:
     patience: int | None = None
     noise_q: float = 1e-4  # times the mean edge length (paper appendix A)
     noise_v: float = 1e-3  # relative, on v and sigma
+    # additive velocity noise on free nodes, times mean edge / dt (0: the paper). The relative noise
+    # vanishes once the tools stop and v does; a hybrid trained without it grew an unstable velocity
+    # mode near the tool in the hold phase (bench/long_hold.py)
+    noise_v_add: float = 0.0
     # steps the network takes (without gradient) from the true state before the trained step, whose
     # target then leads from its own rollout back to the ground truth (0: the paper's one-step training)
     pushforward: int = 0
@@ -371,7 +375,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
         model.train()
         sums, n = {}, 0
         chunks = [mine[i:i + cfg.batch_size] for i in range(0, len(mine), cfg.batch_size)]
-        batches = prefetched(lambda c: make_batch(train_sims, c, cfg.noise_q, cfg.noise_v, gen, shapes, cfg.pushforward),
+        batches = prefetched(lambda c: make_batch(train_sims, c, cfg.noise_q, cfg.noise_v, gen, shapes, cfg.pushforward,
+                                                         cfg.noise_v_add),
                              chunks)
         bar = tqdm(batches, total=len(chunks), desc=f"epoch {epoch}", leave=False, disable=True if rank else None)
         for b in bar:
