@@ -4,6 +4,9 @@
 #              python -c "from warpgnn.fem_ref.generate import anatomy_mesh as a; [a('.devdata', f'L{i}') for i in range(1, 6)]"
 #              echo /.devdata/ >> .git/info/exclude
 # There: call 1 carries .devwheels/a and runs  mkdir -p /opt/dw && cp .devwheels/a/* /opt/dw/
+#   (a call carries at most 64 MiB with the working tree; once the tree passed ~18 MB, split
+#   .devwheels/a/warp.part.00 in two with split -b 23592960 into .devwheels/a1, a2 and carry them in
+#   two calls: cp a1/wp.00 /opt/dw/, then cat /opt/dw/wp.00 a2/wp.01 > /opt/dw/warp.part.00)
 #        call 2 carries .devwheels/b and .devdata and starts with  source bench/device_setup.sh
 # A machine is given back 30 s after a call ends: make every call copy what must survive
 # (checkpoints, logs) into $OUT (bench/wait_runs.sh RUNS SECONDS $OUT does), and chain long
