@@ -29,6 +29,7 @@ import provenance  # bench/, beside this script
 from warpgnn.checkpoint import load_model
 from warpgnn.data import load_file
 from warpgnn.graphs import GROUPS, NODE_FREE, apply_boundary_conditions
+from warpgnn.rollout import rollout
 from tool_velocity_oracle import tool_velocity, with_tool_velocity
 
 
@@ -63,10 +64,7 @@ def held_step_growth(model, sim, iterations: int = 40) -> dict:
     state at the last snapshot: the geometric mean of the last 10 growth factors (above 1: a
     perturbation grows every step), the mode's share per group and in its 10 largest nodes, and
     how far those lie from the nearest tool (mm)."""
-    top, z = sim.topology, sim.z[0]
-    with torch.no_grad():
-        for t in range(sim.steps):
-            z = model.step(top, z, sim.u[t], sim.u[t + 1], sim.dt)
+    top, z = sim.topology, torch.from_numpy(rollout(model, [sim])[0].z[-1])
     u, units = sim.u[-1], PERTURBATION_UNITS.to(z.dtype)
 
     def held_step(x):

@@ -234,7 +234,8 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     z = torch.cat([s.z[t] for s, t in picked])
     z_next = torch.cat([sims[i].z[t + 1] for i, t in samples])
     sizes = torch.tensor([s.topology.n_nodes for s, _ in picked])
-    # per-node columns: dt, then the position-noise amplitude and U(-1, 1) draws
+    # per-node columns: dt, then the position-noise amplitude and 12 U(-1, 1) draws, then (noise_v_add)
+    # the additive velocity amplitude and 3 more draws
     host = [torch.tensor([s.dt for s, _ in picked]).repeat_interleave(sizes)[:, None]]
     noisy = noise_q > 0 or noise_v > 0 or noise_v_add > 0
     if noisy:

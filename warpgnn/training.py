@@ -376,8 +376,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
         sums, n = {}, 0
         chunks = [mine[i:i + cfg.batch_size] for i in range(0, len(mine), cfg.batch_size)]
         batches = prefetched(lambda c: make_batch(train_sims, c, cfg.noise_q, cfg.noise_v, gen, shapes, cfg.pushforward,
-                                                         cfg.noise_v_add),
-                             chunks)
+                                                  cfg.noise_v_add), chunks)
         bar = tqdm(batches, total=len(chunks), desc=f"epoch {epoch}", leave=False, disable=True if rank else None)
         for b in bar:
             opt.zero_grad(set_to_none=True)
