@@ -11,6 +11,10 @@
 # A machine is given back 30 s after a call ends: make every call copy what must survive
 # (checkpoints, logs) into $OUT (bench/wait_runs.sh RUNS SECONDS $OUT does), and chain long
 # runs with setsid + bench/wait_runs.sh.
+# A machine also goes back once held 30 minutes, unless a call is then in flight (that call
+# finishes): a 30-minute run plus setup outlasts that, so time the last wait to start less than
+# 10 minutes before the run ends (e.g. a short wait in between); otherwise resume it from $OUT's
+# last.pt on a fresh machine (its recompilation is not charged to --time-budget).
 set -e
 [ -e warpgnn/fem_ref ] || ln -s ../fem_ref warpgnn/fem_ref; [ -e warpgnn/kernels ] || ln -s ../kernels warpgnn/kernels
 if [ ! -d /opt/site/warp ]; then

@@ -7,7 +7,7 @@
 #   env: BATCH (default 32); EXTRA, flags for every run (e.g. --cuda-graphs: a run that fails with
 #   them continues with FALLBACK instead, e.g. --compile, default none); NOISE, the noise study's flags (default 30x the paper's q noise,
 #   10x its v/sigma noise); PUSHFORWARD, the pushforward arms' lead-in steps (default 2);
-#   NOISE_V_ADD, the stable arms' additive velocity noise (default 5e-3)
+#   NOISE_V_ADD, the stable arms' additive velocity noise (default 1e-2: bench/results/gnn_stable1800_h100.json)
 # Generates the paper dataset first if DATA lacks it. Then: bench/wait_runs.sh RUNS SECONDS.
 set -euo pipefail
 DATA=${1:-data}; RUNS=${2:-runs}; BUDGET=${3:-1200}; ONLY=${4:-.}; BATCH=${BATCH:-32}; EXTRA=${EXTRA:-}; FALLBACK=${FALLBACK:-}
@@ -61,7 +61,7 @@ run hybrid_p12_pushforward_s0 --model hybrid --passes 12 --latent 128 --seed 0 $
 for s in 0 1 2; do
   for m in hybrid vanilla; do
     run ${m}_p5_stable_s$s --model $m --passes 5 --latent 64 --seed $s $NOISE --pushforward ${PUSHFORWARD:-2} \
-      --noise-v-add ${NOISE_V_ADD:-5e-3}
+      --noise-v-add ${NOISE_V_ADD:-1e-2}
   done
 done
 for frac in 0.25 0.5; do

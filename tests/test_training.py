@@ -11,6 +11,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 
 import h5py
 import numpy as np
@@ -156,6 +157,23 @@ def test_time_budget_ends_the_run_and_sets_each_epochs_rate(data, tmp_path):
     for h, lr in zip(result["history"][:-1], rates[1:]):
         assert lr == pytest.approx(training.scheduled_lr(TrainConfig(lr_schedule="exponential", time_budget=1e4),
                                                          h["seconds"]))
+
+
+def test_only_the_first_warm_up_counts_as_training_time(data, tmp_path, monkeypatch):
+    """The compilation before the first epoch counts in --time-budget's seconds; after --resume
+    (a device machine taken back) compiling again does not: an uninterrupted run pays it once."""
+    pause = 2.0
+    monkeypatch.setattr(training, "compiled", lambda model, **kw: model)  # padded shapes, no compiler
+    eager = training.warm_up
+    monkeypatch.setattr(training, "warm_up", lambda *a, **kw: (time.sleep(pause), eager(*a, **kw)))
+    out = tmp_path / "run"
+    first, _ = quiet_train(config(data, out, epochs=1, cuda_graphs=True))
+    fresh = first["history"][0]["seconds"]
+    assert fresh >= pause  # at least one padded shape warmed up, and charged
+    again, lines = quiet_train(config(data, out, epochs=2, cuda_graphs=True, resume=True))
+    resumed = again["history"][1]["seconds"] - again["history"][0]["seconds"]
+    assert resumed < fresh - pause / 2, (fresh, resumed)
+    assert any(line.startswith("resumed: this invocation's warm-up") for line in lines)
 
 
 def test_patience_defaults_follow_the_schedule():

@@ -235,7 +235,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--time-limit", type=float, default=None,
                    help="seconds of this invocation; stop after the epoch passing it (--resume continues)")
     t.add_argument("--time-budget", type=float, default=None,
-                   help="seconds of training in all, across resumes; the run ends once they are spent")
+                   help="seconds of training in all, across resumes, the first compilation included (a resumed "
+                        "run's recompilation is not); the run ends once they are spent")
     t.add_argument("--noise-q", type=float, help="position noise, times the mean edge length (default: the paper's 1e-4)")
     t.add_argument("--noise-v", type=float, help="relative noise on velocity and stress (default: the paper's 1e-3)")
     t.add_argument("--noise-v-add", type=float, help="additive velocity noise on free nodes, times mean edge / dt "

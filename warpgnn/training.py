@@ -67,7 +67,8 @@ class TrainConfig:
     seed: int = 0
     resume: bool = False
     time_limit: float | None = None  # seconds of this invocation; stop after the epoch that passes it (resume later)
-    time_budget: float | None = None  # seconds of training in all, across resumes; the run ends when spent
+    # seconds of training in all, across resumes (a resumed run's warm-up not counted); the run ends when spent
+    time_budget: float | None = None
     tf32: bool = False  # CUDA matmuls in TF32 (measured no faster at these widths: train_step_time_h200.json)
     compile: bool = False  # torch.compile the training forward (and backward), dynamic shapes
     cuda_graphs: bool = False  # batches padded to a few fixed shapes, compiled and replayed as CUDA graphs
@@ -343,7 +344,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
     if cfg.compile or cfg.cuda_graphs:
         net = compiled(net, cuda_graphs=cfg.cuda_graphs)
     shapes = BatchShape.ladder(train_sims, cfg.batch_size) if cfg.cuda_graphs else None
-    started = t0 = time.perf_counter()  # compilation and graph recording count as training time
+    started = t0 = time.perf_counter()  # compilation and graph recording count as training time (once)
     compiled_lead_in = cfg.pushforward and (cfg.compile or cfg.cuda_graphs)
     firsts = warm_up_batches(train_sims, shapes, cfg.batch_size, cfg.pushforward) if shapes or compiled_lead_in else []
     lead_rate = None
@@ -357,6 +358,13 @@ def train(cfg: TrainConfig, log=print) -> dict:
                 + ", ".join(f"{s.nodes} / {s.edges} / {s.actuator_edges}" for s in shapes))
         for b in firsts:
             warm_up(net, b, lead_rate=lead_rate)
+    if state is not None and firsts:
+        # an uninterrupted run compiles once, and that counts; compiling again after an interruption
+        # (a device machine taken back) would shorten the budget's training by as much (~130 s on an H100)
+        t0 = time.perf_counter()
+        if rank == 0:
+            log(f"resumed: this invocation's warm-up ({t0 - started:.1f} s of compiling and recording) "
+                "is not counted against --time-budget")
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         log(f"{cfg.model.kind}, {cfg.model.passes} passes, F = {cfg.model.latent}: {model.n_parameters():,} parameters; "
