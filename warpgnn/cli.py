@@ -236,7 +236,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seconds of this invocation; stop after the epoch passing it (--resume continues)")
     t.add_argument("--time-budget", type=float, default=None,
                    help="seconds of training in all, across resumes, the first compilation included (a resumed "
-                        "run's recompilation is not); the run ends once they are spent")
+                        "run's warm-up before its first epoch, which compiles and records the --cuda-graphs shapes, "
+                        "is not; --compile's lazy compilation in the first epoch is); the run ends once they are spent")
     t.add_argument("--noise-q", type=float, help="position noise, times the mean edge length (default: the paper's 1e-4)")
     t.add_argument("--noise-v", type=float, help="relative noise on velocity and stress (default: the paper's 1e-3)")
     t.add_argument("--noise-v-add", type=float, help="additive velocity noise on free nodes, times mean edge / dt "

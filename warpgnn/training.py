@@ -359,8 +359,9 @@ def train(cfg: TrainConfig, log=print) -> dict:
         for b in firsts:
             warm_up(net, b, lead_rate=lead_rate)
     if state is not None and firsts:
-        # an uninterrupted run compiles once, and that counts; compiling again after an interruption
-        # (a device machine taken back) would shorten the budget's training by as much (~130 s on an H100)
+        # an uninterrupted run warms up (compiles, records the CUDA graphs) once, and that counts; doing it
+        # again after an interruption (a device machine taken back) would shorten the budget's training by
+        # as much (~130 s on an H100). --compile's lazy compilation inside the first epoch still counts.
         t0 = time.perf_counter()
         if rank == 0:
             log(f"resumed: this invocation's warm-up ({t0 - started:.1f} s of compiling and recording) "
