@@ -4,7 +4,11 @@ the rollout error's share per class and its RMS per class after 5, 10, 15 and 20
 ramp until step 10, then hold); beside it, how much of the ground truth's snapshot velocity is
 aliased vibration in each phase (a floor no network reaches from snapshots alone).
 
-    python bench/error_breakdown.py CHECKPOINT DATA_FILE.h5 [...] --json OUT.json --device "..."
+    python bench/error_breakdown.py CHECKPOINT.pt [...] DATA_FILE.h5 [...] --json OUT.json --device "..."
+
+Several checkpoints are peers on the same data in one record: runs/<run> (the checkpoint's folder
+name) holds each one's errors, files/<data file> the data's own figures. (Records made before
+2026-11-24 hold one checkpoint at the top level.)
 
 Runs on the CPU in minutes for a few simulations: `warpgnn generate` on a GPU makes the paper
 preset; a handful of its simulations (same seeds) can be made here, see --help's epilog.
@@ -12,6 +16,7 @@ preset; a handful of its simulations (same seeds) can be made here, see --help's
 
 import argparse
 import json
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -107,22 +112,31 @@ def main():
                                  "GPU's paper preset; set index 0 = L1, 4 = L5): python -c \"from warpgnn.cli import "
                                  "init_warp; init_warp(); from warpgnn.fem_ref.generate import generate_set, PRESETS, "
                                  "SimulationSet as S; generate_set('d', S('L5', 'L5', 10), 4, PRESETS['paper'](), 0, 'cpu')\"")
-    ap.add_argument("checkpoint")
-    ap.add_argument("data", nargs="+")
+    ap.add_argument("paths", nargs="+", metavar="FILE", help="checkpoints (*.pt), then data files (*.h5)")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
+    checkpoints = [p for p in a.paths if p.endswith(".pt")]
+    data = [p for p in a.paths if not p.endswith(".pt")]
+    if not checkpoints or not data:
+        ap.error("give at least one checkpoint (*.pt) and one data file")
     torch.set_num_threads(2)
-    model, _ = load_model(a.checkpoint)
-    record = provenance.record(a) | {"checkpoint": a.checkpoint, "near_m": NEAR, "files": {}}
-    for path in a.data:
-        sims = load_file(path)
-        entry = {"simulations": len(sims), "nodes": sims[0].topology.n_nodes, "one_step": one_step(model, sims),
-                 "rollout": rollout_errors(model, sims), "velocity_floor": velocity_floor(sims)}
-        record["files"][path] = entry
-        print(path, json.dumps({"one_step_mse": entry["one_step"]["mse"],
-                                "rollout_share": {g: r["share_by_class"] for g, r in entry["rollout"].items()},
-                                "velocity_floor": entry["velocity_floor"]}, indent=1))
+    sims = {path: load_file(path) for path in data}
+    record = provenance.record(a) | {"near_m": NEAR, "files": {
+        path: {"simulations": len(s), "nodes": s[0].topology.n_nodes, "velocity_floor": velocity_floor(s)}
+        for path, s in sims.items()}, "runs": {}}
+    for checkpoint in checkpoints:
+        model, _ = load_model(checkpoint)
+        run = Path(checkpoint).parent.name
+        run = run if run not in record["runs"] else f"{run}_{len(record['runs'])}"
+        record["runs"][run] = {"checkpoint": checkpoint, "files": {}}
+        for path, s in sims.items():
+            entry = {"one_step": one_step(model, s), "rollout": rollout_errors(model, s)}
+            record["runs"][run]["files"][path] = entry
+            print(run, path, json.dumps({"one_step_mse": entry["one_step"]["mse"],
+                                         "rollout_share": {g: r["share_by_class"] for g, r in entry["rollout"].items()}},
+                                        indent=1), flush=True)
+    print(json.dumps({path: f["velocity_floor"] for path, f in record["files"].items()}, indent=1))
     open(a.json, "w").write(json.dumps(record, indent=1))
 
 
