@@ -30,10 +30,16 @@ run() {
     >> "$RUNS/$name/stdout.txt" 2>&1 < /dev/null &
   n=$((n + 1))
 }
-for s in 0 1 2; do
-  run hybrid_p5_s$s --model hybrid --passes 5 --latent 64 --seed $s
-  run vanilla_p5_s$s --model vanilla --passes 5 --latent 64 --seed $s
-done
+# ARM's 5-pass runs, hybrid and vanilla for seeds 0-2, named <model>_p5[_ARM]_s<seed>, with FLAGS
+seeds() {
+  local arm=$1 s m; shift
+  for s in 0 1 2; do
+    for m in hybrid vanilla; do
+      run ${m}_p5${arm:+_$arm}_s$s --model $m --passes 5 --latent 64 --seed $s "$@"
+    done
+  done
+}
+seeds ''
 run hybrid_p12_s0 --model hybrid --passes 12 --latent 128 --seed 0
 # the paper's studies (their remaining arms are the runs above: hybrid_p5_s0 is the 5-pass
 # multi-graph arm and the 100 % arm, hybrid_p12_s0 the 12-pass multi-graph arm)
@@ -43,27 +49,14 @@ for p in 1 5 12; do
 done
 # noise study: the paper's noise (the runs above) against larger noise, which teaches a rollout
 # to pull a drifted state back (the paper's 1e-4 x mean edge is ~1 um, rollout errors ~1 mm)
-for s in 0 1 2; do
-  for m in hybrid vanilla; do
-    run ${m}_p5_noise_s$s --model $m --passes 5 --latent 64 --seed $s $NOISE
-  done
-done
+seeds noise $NOISE
 # pushforward (bench/results/error_breakdown_h100_solo.json: the far field's position error is made
 # during the ramp): each step trained from the network's own PUSHFORWARD-step rollout, larger noise
-for s in 0 1 2; do
-  for m in hybrid vanilla; do
-    run ${m}_p5_pushforward_s$s --model $m --passes 5 --latent 64 --seed $s $NOISE --pushforward ${PUSHFORWARD:-2}
-  done
-done
+seeds pushforward $NOISE --pushforward ${PUSHFORWARD:-2}
 run hybrid_p12_pushforward_s0 --model hybrid --passes 12 --latent 128 --seed 0 $NOISE --pushforward ${PUSHFORWARD:-2}
 # the pushforward recipe plus additive velocity noise (NOISE_V_ADD): the relative noise vanishes once the
 # tools stop, and the hybrid trained without it grew an unstable velocity mode there (bench/long_hold.py)
-for s in 0 1 2; do
-  for m in hybrid vanilla; do
-    run ${m}_p5_stable_s$s --model $m --passes 5 --latent 64 --seed $s $NOISE --pushforward ${PUSHFORWARD:-2} \
-      --noise-v-add ${NOISE_V_ADD:-1e-2}
-  done
-done
+seeds stable $NOISE --pushforward ${PUSHFORWARD:-2} --noise-v-add ${NOISE_V_ADD:-1e-2}
 for frac in 0.25 0.5; do
   for m in hybrid vanilla; do
     run scarcity_${m}_${frac#0.} --model $m --passes 5 --latent 64 --seed 0 --train-fraction $frac
