@@ -4,6 +4,8 @@
 # and a later call can wait for them. Each run trains for TIME_BUDGET seconds in all with the
 # exponential learning-rate schedule, resuming (--resume) if RUNS already holds it.
 #   usage: bench/train_paper.sh DATA RUNS TIME_BUDGET [NAME_REGEX]
+#   TIME_BUDGET NNNe (e.g. 30e) trains NNN epochs instead, the schedule decaying over them: runs of
+#   different speeds (5 and 12 passes) compared at equal epochs, side by side on one GPU.
 #   env: BATCH (default 32); EXTRA, flags for every run (e.g. --cuda-graphs: a run that fails with
 #   them continues with FALLBACK instead, e.g. --compile, default none); NOISE, the noise study's flags (default 30x the paper's q noise,
 #   10x its v/sigma noise); PUSHFORWARD, the pushforward arms' lead-in steps (default 2);
@@ -21,12 +23,13 @@ if [ ! -f "$DATA/manifest.json" ] && [ ! -f "$DATA/manifest.0-of-$GPUS.json" ]; 
   wait
 fi
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}  # many processes share the host's cores
+if [[ $BUDGET == *e ]]; then LENGTH="--epochs ${BUDGET%e}"; else LENGTH="--time-budget $BUDGET"; fi
 n=0
 run() {
   local name=$1; shift
   [[ $name =~ $ONLY ]] || return 0
   mkdir -p "$RUNS/$name"
-  local args="--data $DATA --out $RUNS/$name --resume --time-budget $BUDGET --lr-schedule exponential --batch $BATCH $*"
+  local args="--data $DATA --out $RUNS/$name --resume $LENGTH --lr-schedule exponential --batch $BATCH $*"
   CUDA_VISIBLE_DEVICES=$((n % GPUS)) setsid nohup sh -c "warpgnn train $args $EXTRA || warpgnn train $args $FALLBACK" \
     >> "$RUNS/$name/stdout.txt" 2>&1 < /dev/null &
   n=$((n + 1))
@@ -58,6 +61,7 @@ run hybrid_p12_pushforward_s0 --model hybrid --passes 12 --latent 128 --seed 0 $
 # the pushforward recipe plus additive velocity noise (NOISE_V_ADD): the relative noise vanishes once the
 # tools stop, and the hybrid trained without it grew an unstable velocity mode there (bench/long_hold.py)
 seeds stable $PUSHFORWARD_FLAGS --noise-v-add $NOISE_V_ADD
+run hybrid_p12_stable_s0 --model hybrid --passes 12 --latent 128 --seed 0 $PUSHFORWARD_FLAGS --noise-v-add $NOISE_V_ADD
 for frac in 0.25 0.5; do
   for m in hybrid vanilla; do
     run scarcity_${m}_${frac#0.} --model $m --passes 5 --latent 64 --seed 0 --train-fraction $frac

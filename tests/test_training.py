@@ -131,12 +131,13 @@ def test_resume_continues_bit_for_bit(data, tmp_path):
 
 def test_exponential_schedule_values():
     cfg = TrainConfig(lr=1e-3, lr_final=1e-5, lr_schedule="exponential", time_budget=100.0)
-    assert training.scheduled_lr(cfg, 0.0) == pytest.approx(1e-3)
-    assert training.scheduled_lr(cfg, 50.0) == pytest.approx(1e-4)  # geometric midpoint
-    assert training.scheduled_lr(cfg, 100.0) == pytest.approx(1e-5)
-    assert training.scheduled_lr(cfg, 250.0) == pytest.approx(1e-5)  # never below lr_final
-    with pytest.raises(ValueError, match="time-budget"):
-        TrainConfig(lr_schedule="exponential")
+    assert training.scheduled_lr(cfg, 0.0, epoch=7) == pytest.approx(1e-3)  # a budget decides, not the epoch
+    assert training.scheduled_lr(cfg, 50.0, epoch=0) == pytest.approx(1e-4)  # geometric midpoint
+    assert training.scheduled_lr(cfg, 100.0, epoch=0) == pytest.approx(1e-5)
+    assert training.scheduled_lr(cfg, 250.0, epoch=0) == pytest.approx(1e-5)  # never below lr_final
+    by_epochs = TrainConfig(lr=1e-3, lr_final=1e-5, lr_schedule="exponential", epochs=4)  # no budget: the epochs
+    assert [training.scheduled_lr(by_epochs, 1e9, e) for e in range(4)] == \
+        pytest.approx([1e-3, 10 ** -3.5, 1e-4, 10 ** -4.5])
     with pytest.raises(ValueError, match="plateau or exponential"):
         TrainConfig(lr_schedule="cosine")
 
@@ -156,7 +157,10 @@ def test_time_budget_ends_the_run_and_sets_each_epochs_rate(data, tmp_path):
     assert rates[0] == pytest.approx(1e-3) and rates[0] > rates[1] > rates[2] > 1e-5
     for h, lr in zip(result["history"][:-1], rates[1:]):
         assert lr == pytest.approx(training.scheduled_lr(TrainConfig(lr_schedule="exponential", time_budget=1e4),
-                                                         h["seconds"]))
+                                                         h["seconds"], epoch=99))
+    # no budget: the rate is set by the epoch alone (equal-epoch comparisons of runs of any speed)
+    result, _ = quiet_train(config(data, tmp_path / "epochs", epochs=2, lr_schedule="exponential"))
+    assert [h["lr"] for h in result["history"]] == pytest.approx([1e-3, 1e-4])
 
 
 def test_only_the_first_warm_up_counts_as_training_time(data, tmp_path, monkeypatch):

@@ -224,8 +224,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--lr", type=float, default=1e-3)
     t.add_argument("--lr-schedule", default="plateau", choices=["plateau", "exponential"],
                    help="plateau: halve on a training-loss plateau (the paper); exponential: lr -> --lr-final "
-                        "over --time-budget")
-    t.add_argument("--lr-final", type=float, default=1e-5, help="exponential schedule: the rate at the budget's end")
+                        "over --time-budget, or over --epochs without one (runs compared at equal epochs)")
+    t.add_argument("--lr-final", type=float, default=1e-5, help="exponential schedule: the rate at the end of the budget (or of the epochs)")
     t.add_argument("--patience", type=int, default=None,
                    help="epochs without a better validation rollout before stopping (default: 30 under the "
                         "plateau schedule, none under the exponential one: its --time-budget ends the run); "
