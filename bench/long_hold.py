@@ -29,29 +29,29 @@ import provenance  # bench/, beside this script
 from warpgnn.checkpoint import load_model
 from warpgnn.data import load_file
 from warpgnn.graphs import GROUPS, NODE_FREE, apply_boundary_conditions
-from warpgnn.rollout import rollout
 from tool_velocity_oracle import tool_velocity, with_tool_velocity
 
 
 @torch.no_grad()
-def free_node_history(model, sim, hold: int, impose_tool_velocity: bool) -> tuple[np.ndarray, np.ndarray]:
+def free_node_history(model, sim, hold: int, impose_tool_velocity: bool) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:
     """Per step (0 .. steps + hold): RMS |v| of the free nodes [m/s] and their RMS distance from
-    where they were at the last snapshot [m] (zero before it)."""
+    where they were at the last snapshot [m] (zero before it); and the network's state there."""
     top, z = sim.topology, sim.z[0]
     free = top.node_type == NODE_FREE
     u = torch.cat([sim.u, sim.u[-1:].expand(hold, -1, -1)])  # tools held after the last snapshot
-    speeds, qs = [], []
+    speeds, qs, z_end = [], [], None
     for t in range(sim.steps + hold + 1):
         if t:
             z = model.step(top, z, u[t - 1], u[t], sim.dt)
             if impose_tool_velocity:
                 v_tool = tool_velocity(sim, t - 1, "central") if t <= sim.steps else torch.zeros_like(sim.u[0])
                 z = with_tool_velocity(top, z, v_tool)
+        z_end = z if t == sim.steps else z_end
         speeds.append(z[free, 3:6].norm(dim=1).pow(2).mean().sqrt().item())
         qs.append(z[free, :3])
     q_end = qs[sim.steps]
     moved = [0.0 if t <= sim.steps else (q - q_end).norm(dim=1).pow(2).mean().sqrt().item() for t, q in enumerate(qs)]
-    return np.array(speeds), np.array(moved)
+    return np.array(speeds), np.array(moved), z_end
 
 
 # perturbations are measured in 1 mm, 1 mm/s and 1 kPa (the eigenvalues do not depend on this
@@ -59,12 +59,12 @@ def free_node_history(model, sim, hold: int, impose_tool_velocity: bool) -> tupl
 PERTURBATION_UNITS = torch.tensor([1e-3] * 6 + [1e3] * 6)
 
 
-def held_step_growth(model, sim, iterations: int = 40) -> dict:
-    """Power iteration on the Jacobian of z -> Euler step with the tools held, at the network's own
-    state at the last snapshot: the geometric mean of the last 10 growth factors (above 1: a
+def held_step_growth(model, sim, z: torch.Tensor, iterations: int = 40) -> dict:
+    """Power iteration on the Jacobian of z -> Euler step with the tools held, at z (the network's own
+    state at the last snapshot, from free_node_history): the geometric mean of the last 10 growth factors (above 1: a
     perturbation grows every step), the mode's share per group and in its 10 largest nodes, and
     how far those lie from the nearest tool (mm)."""
-    top, z = sim.topology, torch.from_numpy(rollout(model, [sim])[0].z[-1])
+    top = sim.topology
     u, units = sim.u[-1], PERTURBATION_UNITS.to(z.dtype)
 
     def held_step(x):
@@ -116,14 +116,15 @@ def main():
         model, _ = load_model(path)
         model.eval().requires_grad_(False)
         run = f"{Path(path).parent.parent.name}/{Path(path).parent.name}"  # RESULTS_runs/RUN
-        if a.growth:
-            growth = [held_step_growth(model, s) for s in sims[:3]]
-            record.setdefault("growth", {})[run] = growth
-            print(f"{run}: growth per held step " + ", ".join(f"{g['growth_per_step']:.3f}" for g in growth)
-                  + f" (first {len(growth)} simulations); mode shares q/v/sigma "
-                  + "/".join(f"{growth[0]['share'][k]:.2f}" for k in GROUPS))
         for imposed in (False, True) if a.impose_tool_velocity else (False,):
-            speed, moved = (np.mean(x, 0) for x in zip(*(free_node_history(model, s, a.hold, imposed) for s in sims)))
+            speeds, moves, z_ends = zip(*(free_node_history(model, s, a.hold, imposed) for s in sims))
+            speed, moved = np.mean(speeds, 0), np.mean(moves, 0)
+            if a.growth and not imposed:  # at the states the plain rollouts reached
+                growth = [held_step_growth(model, s, z) for s, z in zip(sims[:3], z_ends)]
+                record.setdefault("growth", {})[run] = growth
+                print(f"{run}: growth per held step " + ", ".join(f"{g['growth_per_step']:.3f}" for g in growth)
+                      + f" (first {len(growth)} simulations); mode shares q/v/sigma "
+                      + "/".join(f"{growth[0]['share'][k]:.2f}" for k in GROUPS))
             name = run + (", tool velocity imposed" if imposed else "")
             record["networks"][name] = {"checkpoint": path, "tool_velocity_imposed": imposed,
                                         "free_rms_speed": speed.tolist(), "free_rms_moved": moved.tolist()}
