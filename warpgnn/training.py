@@ -248,7 +248,7 @@ def _device(name: str | None, rank: int, world: int) -> torch.device:
 
 def scheduled_lr(cfg: TrainConfig, seconds_spent: float, epoch: int) -> float:
     """The exponential schedule at the start of ``epoch``: lr at the start, lr_final once time_budget
-    seconds are spent, or without a budget once all cfg.epochs are (the last one starts just above it)."""
+    seconds are spent, or without a budget once all cfg.epochs are (the last epoch starts one step above it)."""
     progress = min(1.0, seconds_spent / cfg.time_budget if cfg.time_budget else epoch / cfg.epochs)
     return cfg.lr * (cfg.lr_final / cfg.lr) ** progress
 
