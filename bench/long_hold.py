@@ -46,7 +46,8 @@ def free_node_history(model, sim, hold: int, impose_tool_velocity: bool) -> tupl
             if impose_tool_velocity:
                 v_tool = tool_velocity(sim, t - 1, "central") if t <= sim.steps else torch.zeros_like(sim.u[0])
                 z = with_tool_velocity(top, z, v_tool)
-        z_end = z if t == sim.steps else z_end
+        if t == sim.steps:
+            z_end = z
         speeds.append(z[free, 3:6].norm(dim=1).pow(2).mean().sqrt().item())
         qs.append(z[free, :3])
     q_end = qs[sim.steps]

@@ -15,6 +15,7 @@ set -euo pipefail
 DATA=${1:-data}; RUNS=${2:-runs}; BUDGET=${3:-1200}; ONLY=${4:-.}; BATCH=${BATCH:-32}; EXTRA=${EXTRA:-}; FALLBACK=${FALLBACK:-}
 NOISE=${NOISE:---noise-q 3e-3 --noise-v 1e-2}; NOISE_V_ADD=${NOISE_V_ADD:-1e-2}
 PUSHFORWARD_FLAGS="$NOISE --pushforward ${PUSHFORWARD:-2}"  # the pushforward recipe, shared by its arms
+STABLE_FLAGS="$PUSHFORWARD_FLAGS --noise-v-add $NOISE_V_ADD"  # the stable recipe, likewise
 GPUS=$(python3 -c 'import torch; print(max(1, torch.cuda.device_count()))')
 if [ ! -f "$DATA/manifest.json" ] && [ ! -f "$DATA/manifest.0-of-$GPUS.json" ]; then  # one shard of the sets per GPU
   for g in $(seq 0 $((GPUS - 1))); do
@@ -60,8 +61,8 @@ seeds pushforward $PUSHFORWARD_FLAGS
 run hybrid_p12_pushforward_s0 --model hybrid --passes 12 --latent 128 --seed 0 $PUSHFORWARD_FLAGS
 # the pushforward recipe plus additive velocity noise (NOISE_V_ADD): the relative noise vanishes once the
 # tools stop, and the hybrid trained without it grew an unstable velocity mode there (bench/long_hold.py)
-seeds stable $PUSHFORWARD_FLAGS --noise-v-add $NOISE_V_ADD
-run hybrid_p12_stable_s0 --model hybrid --passes 12 --latent 128 --seed 0 $PUSHFORWARD_FLAGS --noise-v-add $NOISE_V_ADD
+seeds stable $STABLE_FLAGS
+run hybrid_p12_stable_s0 --model hybrid --passes 12 --latent 128 --seed 0 $STABLE_FLAGS
 for frac in 0.25 0.5; do
   for m in hybrid vanilla; do
     run scarcity_${m}_${frac#0.} --model $m --passes 5 --latent 64 --seed 0 --train-fraction $frac
