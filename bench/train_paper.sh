@@ -62,7 +62,9 @@ run hybrid_p12_pushforward_s0 --model hybrid --passes 12 --latent 128 --seed 0 $
 # the pushforward recipe plus additive velocity noise (NOISE_V_ADD): the relative noise vanishes once the
 # tools stop, and the hybrid trained without it grew an unstable velocity mode there (bench/long_hold.py)
 seeds stable $STABLE_FLAGS
-run hybrid_p12_stable_s0 --model hybrid --passes 12 --latent 128 --seed 0 $STABLE_FLAGS
+for s in 0 1 2; do  # the 12-pass target is a three-seed mean too
+  run hybrid_p12_stable_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS
+done
 for frac in 0.25 0.5; do
   for m in hybrid vanilla; do
     run scarcity_${m}_${frac#0.} --model $m --passes 5 --latent 64 --seed 0 --train-fraction $frac
