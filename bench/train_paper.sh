@@ -46,12 +46,23 @@ seeds() {
 }
 seeds ''
 run hybrid_p12_s0 --model hybrid --passes 12 --latent 128 --seed 0
-# the paper's studies (their remaining arms are the runs above: hybrid_p5_s0 is the 5-pass
-# multi-graph arm and the 100 % arm, hybrid_p12_s0 the 12-pass multi-graph arm)
-run ablation_multi_p1 --model hybrid --passes 1 --latent 64 --seed 0
-for p in 1 5 12; do
-  run ablation_single_p$p --model hybrid --passes $p --latent $([ $p = 12 ] && echo 128 || echo 64) --seed 0 --single-graph
-done
+# the paper's studies with ARM's recipe (FLAGS), named <study>_<arm>[_ARM]; their remaining arms are
+# ARM's main runs: <model>_p5[_ARM]_s0 the 5-pass multi-graph and 100 % arms, hybrid_p12[_ARM]_s0 the
+# 12-pass multi-graph arm (bench/study_report.py --recipe ARM)
+studies() {
+  local arm=$1 p frac m; shift
+  run ablation_multi_p1${arm:+_$arm} --model hybrid --passes 1 --latent 64 --seed 0 "$@"
+  for p in 1 5 12; do
+    run ablation_single_p$p${arm:+_$arm} --model hybrid --passes $p --latent $([ $p = 12 ] && echo 128 || echo 64) \
+      --seed 0 --single-graph "$@"
+  done
+  for frac in 0.25 0.5; do
+    for m in hybrid vanilla; do
+      run scarcity_${m}_${frac#0.}${arm:+_$arm} --model $m --passes 5 --latent 64 --seed 0 --train-fraction $frac "$@"
+    done
+  done
+}
+studies ''
 # noise study: the paper's noise (the runs above) against larger noise, which teaches a rollout
 # to pull a drifted state back (the paper's 1e-4 x mean edge is ~1 um, rollout errors ~1 mm)
 seeds noise $NOISE
@@ -65,9 +76,5 @@ seeds stable $STABLE_FLAGS
 for s in 0 1 2; do  # the 12-pass target is a three-seed mean too
   run hybrid_p12_stable_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS
 done
-for frac in 0.25 0.5; do
-  for m in hybrid vanilla; do
-    run scarcity_${m}_${frac#0.} --model $m --passes 5 --latent 64 --seed 0 --train-fraction $frac
-  done
-done
+studies stable $STABLE_FLAGS
 echo "started $n runs on $GPUS GPU(s)"
