@@ -87,7 +87,7 @@ def main():
         score_name = "L5 test"
         reports = [(p, json.loads(p.read_text())) for p in a.reports]
         studies = {name: {k: test_score(reports, r) for k, r in s.items()} for name, s in arms.items()}
-        missing = sorted(arms[n][k] for n, s in studies.items() for k, v in s.items() if v is None)
+        missing = sorted({arms[n][k] for n, s in studies.items() for k, v in s.items() if v is None})
         if missing:
             raise SystemExit(f"study_report: no record among --reports holds {', '.join(missing)}")
     ablation, scarcity = studies["ablation"], studies["scarcity"]
