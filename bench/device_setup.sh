@@ -17,6 +17,9 @@
 # finishes): a 30-minute run plus setup outlasts that, so time the last wait to start less than
 # 10 minutes before the run ends (e.g. a short wait in between); otherwise resume it from $OUT's
 # last.pt on a fresh machine (its recompilation is not charged to --time-budget).
+# Resuming a 12-pass run (last.pt 30 MB, best.pt 10 MB) costs no extra call: put best.pt, log.csv and
+# stdout.txt under an ignored .devout_a/runs/<run>/ and last.pt under .devout_b/runs/<run>/, carry
+# .devout_a with a1 and .devout_b with a2, and cp -r each one's runs/* into the RUNS folder.
 set -e
 [ -e warpgnn/fem_ref ] || ln -s ../fem_ref warpgnn/fem_ref; [ -e warpgnn/kernels ] || ln -s ../kernels warpgnn/kernels
 if [ ! -d /opt/site/warp ]; then
