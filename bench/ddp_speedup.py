@@ -9,7 +9,6 @@ epoch is left out as warm-up.
 """
 
 import argparse
-import csv
 import datetime
 import json
 import os
@@ -20,6 +19,8 @@ import tempfile
 
 import torch
 
+from warpgnn.run_log import read_log
+
 
 def train(data, out, epochs, batch, gpus):
     args = ["train", "--data", data, "--out", out, "--model", "hybrid", "--passes", "5", "--latent", "64",
@@ -28,8 +29,7 @@ def train(data, out, epochs, batch, gpus):
            if gpus > 1 else [sys.executable, "-m", "warpgnn.cli"]) + args
     env = {**os.environ, "NCCL_NVLS_ENABLE": "0", "TORCH_SYMM_MEM_DISABLE_MULTICAST": "1", "NVSHMEM_DISABLE_NVLS": "1"}
     subprocess.run(cmd, check=True, env=env)
-    with open(f"{out}/log.csv") as fh:
-        rows = list(csv.DictReader(fh))
+    rows = read_log(out)
     seconds = [float(r["seconds"]) for r in rows]
     return [b - a for a, b in zip([0.0] + seconds[:-1], seconds)]
 

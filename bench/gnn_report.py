@@ -6,7 +6,6 @@ writes one JSON record, box plots like the paper's, final-step renders and a nod
 """
 
 import argparse
-import csv
 import json
 import re
 from pathlib import Path
@@ -17,6 +16,7 @@ import provenance  # bench/, beside this script
 from warpgnn.mesh import TetMesh
 from warpgnn.plots import node_history, rrmse_boxplot
 from warpgnn.render import render_comparison
+from warpgnn.run_log import best_epoch, read_log
 
 SETS = {"L1": "Train (L1)", "extra": "Extra", "L5": "Test (L5)", "extra_star": "Extra*"}
 PAPER_L5_5PASS = {"hybrid": {"rrmse": {"q": 1.2713e-3, "v": 5.18567e-2, "sigma": 2.73333e-2},
@@ -38,8 +38,8 @@ def main():
                                      "target_hybrid_5pass_rrmse": TARGET_HYBRID_5PASS, "runs": {}}
     per = {}
     for run in sorted(p.name for p in ev.iterdir() if p.is_dir()):
-        log = list(csv.DictReader(open(runs / run / "log.csv")))
-        best = min(log, key=lambda r: float(r["val_mean"]))
+        log = read_log(runs / run)
+        best = best_epoch(log)
         entry = {"epochs": len(log), "training_seconds": float(log[-1]["seconds"]),
                  "best_epoch": int(best["epoch"]), "seconds_to_best": float(best["seconds"]), "sets": {}}
         for s in SETS:

@@ -12,13 +12,13 @@ bench/train_paper.sh trains with that recipe's flags (default: the paper's).
 """
 
 import argparse
-import csv
 import json
 from pathlib import Path
 
 import matplotlib.pyplot as plt
 
 import provenance  # bench/, beside this script
+from warpgnn.run_log import best_epoch, read_log
 
 GROUPS = ("q", "v", "sigma")
 
@@ -39,8 +39,8 @@ def study_arms(recipe: str) -> dict[str, dict[tuple[str, int], str]]:
 
 def validation_score(runs: Path, run: str) -> dict:
     """The epoch with the best mean validation RRMSE in RUNS/RUN/log.csv."""
-    rows = list(csv.DictReader(open(runs / run / "log.csv")))
-    best = min(rows, key=lambda r: float(r["val_mean"]))
+    rows = read_log(runs / run)
+    best = best_epoch(rows)
     return {"run": run, "epochs": len(rows), "seconds": float(rows[-1]["seconds"]), "best_epoch": int(best["epoch"]),
             "rrmse": {g: float(best[f"val_{g}"]) for g in GROUPS}}
 

@@ -29,7 +29,7 @@ from warpgnn.model import TIGNN, ModelConfig
 from warpgnn.training import TrainConfig
 
 TINY = dict(passes=2, latent=16)
-# the columns of RUN/log.csv (training.LOG_FIELDS, spelled out so a silent change shows up here)
+# the columns of RUN/log.csv (run_log.LOG_FIELDS, spelled out so a silent change shows up here)
 LOG_COLUMNS = ["epoch", "seconds", "lr", "loss", "data", "degeneracy", "val_q", "val_v", "val_sigma", "val_mean", "best"]
 GROUPS = {"q": 3, "v": 3, "sigma": 6}
 PNGS = ("rrmse_boxplot.png", "final_step_median.png", "final_step_worst.png", "node_history.png")

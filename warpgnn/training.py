@@ -15,8 +15,6 @@ Under torchrun every process takes its share of each epoch (DistributedDataParal
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 import os
 import time
@@ -30,11 +28,11 @@ import torch.distributed as dist
 from tqdm.auto import tqdm
 
 from . import checkpoint, metrics
-from .dataset import write_text_atomically
 from .data import Batch, BatchShape, all_samples, load_splits, make_batch, smallest
 from .errors import InputError
 from .model import ModelConfig, TIGNN
 from .rollout import rollout
+from .run_log import write_log
 
 
 @dataclass
@@ -100,9 +98,6 @@ class TrainConfig:
         if budget_spent:
             return f"time budget of {self.time_budget:.0f} s spent"
         return None
-
-
-LOG_FIELDS = ("epoch", "seconds", "lr", "loss", "data", "degeneracy", "val_q", "val_v", "val_sigma", "val_mean", "best")
 
 
 def unwrapped(model) -> TIGNN:
@@ -285,14 +280,6 @@ def _from_rank0(value: float, world: int, device) -> float:
     return float(t.item())
 
 
-def _write_log(path: Path, history: list[dict]) -> None:
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, LOG_FIELDS, extrasaction="ignore")
-    w.writeheader()
-    w.writerows(history)
-    write_text_atomically(path, buf.getvalue())
-
-
 def train(cfg: TrainConfig, log=print) -> dict:
     if cfg.cuda_graphs and int(os.environ.get("WORLD_SIZE", "1")) > 1:
         raise InputError("--cuda-graphs trains on one GPU; under torchrun use --compile")
@@ -424,7 +411,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
             checkpoint.save_atomically(checkpoint.model_payload(
                 model, optimizer=opt.state_dict(), scheduler=sched.state_dict(), epoch=epoch, best=best,
                 best_epoch=best_epoch, history=history, stopped=stopped, train_config=asdict(cfg)), last)
-            _write_log(out / "log.csv", history)
+            write_log(out / "log.csv", history)
             log(f"epoch {epoch} ({epoch_seconds:.1f} s): loss {row['loss']:.4e}, val RRMSE q {val['rrmse']['q']:.3e} v {val['rrmse']['v']:.3e} "
                 f"sigma {val['rrmse']['sigma']:.3e}{'  (best)' if improved else ''}")
         if stopped:
