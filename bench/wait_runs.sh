@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Waits up to SECONDS for the training processes of RUNS (bench/train_paper.sh) to finish,
 # printing each run's latest epoch line every minute. With OUT (the device call's $OUT), it
-# then packs every run's checkpoints and logs into OUT/<run>.tar, so that whatever the call
+# then packs every run's checkpoints and logs into OUT/runs.tar.NN, so that whatever the call
 # ends with comes back even if the machine is released before the next call.
 #   usage: bench/wait_runs.sh RUNS SECONDS [OUT]
 RUNS=$1; LIMIT=$2; OUT=${3:-}; t0=$SECONDS
@@ -12,14 +12,11 @@ while pgrep -f "warpgnn(.cli)? train" > /dev/null && [ $((SECONDS - t0)) -lt "$L
 done
 pgrep -f "warpgnn(.cli)? train" > /dev/null && echo "still running" || echo "all runs finished"
 if [ -n "$OUT" ]; then
-  for d in "$RUNS"/*/; do
-    name=$(basename "$d")
-    (cd "$RUNS" && tar -cf "$OUT/$name.tar" --ignore-failed-read "$name"/{log.csv,stdout.txt,best.pt,last.pt} 2>/dev/null)
-    # a device call returns files of at most 16 MiB (a 12-pass run's checkpoints are ~40 MB):
-    # larger tars travel in parts; cat NAME.tar.* | tar -x joins them
-    if [ "$(stat -c %s "$OUT/$name.tar")" -gt 15000000 ]; then
-      split -b 15000000 -d "$OUT/$name.tar" "$OUT/$name.tar." && rm "$OUT/$name.tar"
-    fi
-  done
+  # one archive of every run, in parts of 15 MB (a device call returns files of at most 16 MiB, and
+  # at most 8 of them: one tar per run lost runs once there were more than 8); cat runs.tar.* | tar -x
+  (cd "$RUNS" && tar -cf - --ignore-failed-read */log.csv */stdout.txt */best.pt */last.pt 2>/dev/null) |
+    split -b 15000000 -d - "$OUT/runs.tar."
+  parts=$(ls "$OUT"/runs.tar.* | wc -l)
+  [ "$parts" -le 8 ] || echo "wait_runs: $parts parts of runs.tar, more than a device call returns (8): pack fewer runs"
   ls -la "$OUT"
 fi
