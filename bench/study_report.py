@@ -5,10 +5,12 @@ a JSON record and markdown tables.
 Each arm is scored either by its best validation rollouts (20 % of L5) from RUNS/<run>/log.csv
 (--runs), or by its test score, all 190 L5 rollouts, from records written by bench/gnn_report.py
 (--reports; a run in several records is taken from the first). --recipe picks the arms that
-bench/train_paper.sh trains with that recipe's flags (default: the paper's).
+bench/train_paper.sh trains with that recipe's flags (default: the paper's). An arm that no record
+holds is an error, unless --partial: then it is listed under "missing", left out of the plots and
+marked "not run" in the tables.
 
     python bench/study_report.py OUT_PREFIX (--runs RUNS | --reports A.json [B.json ...])
-        [--recipe stable] --device "..." --command "..." [--note "..."]
+        [--recipe stable] [--partial] --device "..." --command "..." [--note "..."]
 """
 
 import argparse
@@ -59,7 +61,7 @@ def plot(study: dict, xlabel: str, title: str, score: str, path: str):
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
     for ax, g in zip(axes, GROUPS):
         for arm in sorted({a for a, _ in study}):
-            xs = sorted(x for a, x in study if a == arm)
+            xs = sorted(x for a, x in study if a == arm and study[(a, x)] is not None)
             ax.plot(xs, [study[(arm, x)]["rrmse"][g] for x in xs], "o-", label=arm)
         ax.set(xlabel=xlabel, title=f"{score} RRMSE {g}", yscale="log")
         ax.grid(alpha=0.3)
@@ -77,29 +79,36 @@ def main():
     source.add_argument("--runs", type=Path, help="training runs: score by the best validation epoch")
     source.add_argument("--reports", type=Path, nargs="+", help="bench/gnn_report.py records: score by L5 test")
     ap.add_argument("--recipe", default="", help="the arms of this bench/train_paper.sh recipe (e.g. stable)")
+    ap.add_argument("--partial", action="store_true", help="report a study with arms not run yet")
     provenance.add_arguments(ap)
     a = ap.parse_args()
     arms = study_arms(a.recipe)
     if a.runs:
         score_name = "validation"
-        studies = {name: {k: validation_score(a.runs, r) for k, r in s.items()} for name, s in arms.items()}
+        studies = {name: {k: validation_score(a.runs, r) if (a.runs / r / "log.csv").exists() else None
+                          for k, r in s.items()} for name, s in arms.items()}
     else:
         score_name = "L5 test"
         reports = [(p, json.loads(p.read_text())) for p in a.reports]
         studies = {name: {k: test_score(reports, r) for k, r in s.items()} for name, s in arms.items()}
-        missing = sorted({arms[n][k] for n, s in studies.items() for k, v in s.items() if v is None})
-        if missing:
-            raise SystemExit(f"study_report: no record among --reports holds {', '.join(missing)}")
+    missing = sorted({arms[n][k] for n, s in studies.items() for k, v in s.items() if v is None})
+    if missing and not a.partial:
+        where = "log under --runs" if a.runs else "record among --reports"
+        raise SystemExit(f"study_report: no {where} holds {', '.join(missing)} (--partial reports without them)")
     ablation, scarcity = studies["ablation"], studies["scarcity"]
     record = provenance.record(a) | {"score": score_name, "recipe": a.recipe or "paper",
                                      "ablation": {f"{arm}_p{p}": v for (arm, p), v in ablation.items()},
-                                     "scarcity": {f"{arm}_{pct}pct": v for (arm, pct), v in scarcity.items()}}
+                                     "scarcity": {f"{arm}_{pct}pct": v for (arm, pct), v in scarcity.items()},
+                                     "missing": missing}
     Path(f"{a.out_prefix}.json").write_text(json.dumps(record, indent=1))
     plot(ablation, "message passes", "single-graph ablation (hybrid)", score_name, f"{a.out_prefix}_ablation.png")
     plot(scarcity, "% of training simulations", "data scarcity (5 passes)", score_name, f"{a.out_prefix}_scarcity.png")
     for name, study, col in (("ablation", ablation, "passes"), ("scarcity", scarcity, "% data")):
         print(f"\n| {name} arm | {col} | epochs | {score_name} RRMSE q | v | sigma |\n|---|---|---|---|---|---|")
         for (arm, x), v in sorted(study.items()):
+            if v is None:
+                print(f"| {arm} | {x} | not run | | | |")
+                continue
             r = v["rrmse"]
             print(f"| {arm} | {x} | {v['epochs']} | {r['q']:.2e} | {r['v']:.2e} | {r['sigma']:.2e} |")
 

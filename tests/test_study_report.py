@@ -1,5 +1,6 @@
 """bench/study_report.py: which run scores which study arm, from training logs (validation) or from
-gnn_report records (L5 test), and a missing run ending in one clear line. The arms' run names are
+gnn_report records (L5 test), and a missing run ending in one clear line (or, with --partial, marked
+"not run"). The arms' run names are
 checked against the runs that bench/train_paper.sh starts (its `warpgnn` replaced by a stub)."""
 
 import csv
@@ -110,5 +111,20 @@ def test_a_run_missing_from_every_record_is_one_line(tmp_path):
     proc, out = study_report(tmp_path, "--reports", only, "--recipe", "stable")
     assert proc.returncode != 0
     assert proc.stderr.strip() == ("study_report: no record among --reports holds hybrid_p5_stable_s0, "
-                                   "scarcity_vanilla_25_stable")
+                                   "scarcity_vanilla_25_stable (--partial reports without them)")
     assert not Path(f"{out}.json").exists()
+
+
+def test_partial_marks_the_arms_not_run_and_scores_the_rest(tmp_path):
+    only = tmp_path / "only.json"
+    missing = {"scarcity_vanilla_25_stable", "hybrid_p5_stable_s0"}
+    only.write_text(json.dumps(report({r: score(r) for r in ARMS["stable"].values() if r not in missing})))
+    proc, out = study_report(tmp_path, "--reports", only, "--recipe", "stable", "--partial")
+    assert proc.returncode == 0, proc.stderr
+    rec = json.loads(Path(f"{out}.json").read_text())
+    assert rec["missing"] == sorted(missing)
+    for (study, arm, x), run in ARMS["stable"].items():
+        got = rec[study][record_key(study, arm, x)]
+        assert (got is None) if run in missing else (got["rrmse"]["q"] == score(run))
+    assert "| multi | 5 | not run | | | |" in proc.stdout and "| vanilla | 25 | not run | | | |" in proc.stdout
+    assert Path(f"{out}_ablation.png").stat().st_size > 0 and Path(f"{out}_scarcity.png").stat().st_size > 0
