@@ -1,18 +1,18 @@
 #!/usr/bin/env bash
-# The paper's GNN runs side by side on the GPUs of one machine (round-robin over the GPUs),
-# each in its own process session (setsid), so they outlive the device call that starts them
-# and a later call can wait for them. Each run trains for TIME_BUDGET seconds in all with the
+# The paper's GNN runs on the GPUs of one machine (round-robin over the GPUs), PER_GPU of them at a
+# time on each GPU (default 2: runs sharing a GPU gain no throughput, but one compiles while the other
+# trains; nine at once ran out of memory on an 80 GB H100, a 12-pass run takes ~30 GB). Each GPU's runs
+# are queued to a dispatcher in its own process session (setsid), so they outlive the device call
+# that starts them and a later call can wait for them. Each run trains for TIME_BUDGET seconds in all with the
 # exponential learning-rate schedule, resuming (--resume) if RUNS already holds it.
 #   usage: bench/train_paper.sh DATA RUNS TIME_BUDGET [NAME_REGEX]
 #   TIME_BUDGET NNNe (e.g. 30e) trains NNN epochs instead, the schedule decaying over them: runs of
 #   different speeds (5 and 12 passes) compared at equal epochs, side by side on one GPU.
-#   env: BATCH (default 32); EXTRA, flags for every run (e.g. --cuda-graphs: a run that fails with
+#   env: PER_GPU (default 2); BATCH (default 32); EXTRA, flags for every run (e.g. --cuda-graphs: a run that fails with
 #   them continues with FALLBACK instead, e.g. --compile, default none); NOISE, the noise study's flags (default 30x the paper's q noise,
 #   10x its v/sigma noise); PUSHFORWARD, the pushforward arms' lead-in steps (default 2);
 #   NOISE_V_ADD, the stable arms' additive velocity noise (default 1e-2: bench/results/gnn_stable1800_h100.json)
 # Generates the paper dataset first if DATA lacks it. Then: bench/wait_runs.sh RUNS SECONDS.
-# Memory: one 80 GB GPU holds about five runs side by side (a 12-pass run takes ~30 GB; nine ran out
-# of memory): pick them with NAME_REGEX, and note that runs sharing a GPU gain no throughput.
 set -euo pipefail
 DATA=${1:-data}; RUNS=${2:-runs}; BUDGET=${3:-1200}; ONLY=${4:-.}; BATCH=${BATCH:-32}; EXTRA=${EXTRA:-}; FALLBACK=${FALLBACK:-}
 NOISE=${NOISE:---noise-q 3e-3 --noise-v 1e-2}; NOISE_V_ADD=${NOISE_V_ADD:-1e-2}
@@ -28,14 +28,24 @@ fi
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}  # many processes share the host's cores
 if [[ $BUDGET == *e ]]; then LENGTH="--epochs ${BUDGET%e}"; else LENGTH="--time-budget $BUDGET"; fi
 n=0
+mkdir -p "$RUNS"
+QUEUE="$RUNS/.queue.$$"  # one command line per run, then a file per GPU: QUEUE.<gpu>
 run() {
   local name=$1; shift
   [[ $name =~ $ONLY ]] || return 0
   mkdir -p "$RUNS/$name"
   local args="--data $DATA --out $RUNS/$name --resume $LENGTH --lr-schedule exponential --batch $BATCH $*"
-  CUDA_VISIBLE_DEVICES=$((n % GPUS)) setsid nohup sh -c "warpgnn train $args $EXTRA || warpgnn train $args $FALLBACK" \
-    >> "$RUNS/$name/stdout.txt" 2>&1 < /dev/null &
+  echo "exec >> '$RUNS/$name/stdout.txt' 2>&1 < /dev/null; warpgnn train $args $EXTRA || warpgnn train $args $FALLBACK" \
+    >> "$QUEUE.$((n % GPUS))"
   n=$((n + 1))
+}
+dispatch() {  # each GPU's queue runs PER_GPU at a time, in a session of its own
+  local g
+  for g in $(seq 0 $((GPUS - 1))); do
+    [ -f "$QUEUE.$g" ] || continue
+    CUDA_VISIBLE_DEVICES=$g setsid nohup xargs -d '\n' -P "${PER_GPU:-2}" -I{} sh -c '{}' < "$QUEUE.$g" \
+      > /dev/null 2>&1 &
+  done
 }
 # ARM's 5-pass runs, hybrid and vanilla for seeds 0-2, named <model>_p5[_ARM]_s<seed>, with FLAGS
 seeds() {
@@ -79,4 +89,5 @@ for s in 0 1 2; do  # the 12-pass target is a three-seed mean too
   run hybrid_p12_stable_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS
 done
 studies stable $STABLE_FLAGS
-echo "started $n runs on $GPUS GPU(s)"
+dispatch
+echo "queued $n runs on $GPUS GPU(s), ${PER_GPU:-2} at a time on each"
