@@ -13,6 +13,7 @@
 #   10x its v/sigma noise); PUSHFORWARD, the pushforward arms' lead-in steps (default 2);
 #   NOISE_V_ADD, the stable arms' additive velocity noise (default 1e-2: bench/results/gnn_stable1800_h100.json)
 # Generates the paper dataset first if DATA lacks it. Then: bench/wait_runs.sh RUNS SECONDS.
+# To stop everything: kill $(cat RUNS/.queue.*.pid) (the dispatchers), then pkill -f 'warpgnn train'.
 set -euo pipefail
 DATA=${1:-data}; RUNS=${2:-runs}; BUDGET=${3:-1200}; ONLY=${4:-.}; BATCH=${BATCH:-32}; EXTRA=${EXTRA:-}; FALLBACK=${FALLBACK:-}
 NOISE=${NOISE:---noise-q 3e-3 --noise-v 1e-2}; NOISE_V_ADD=${NOISE_V_ADD:-1e-2}
@@ -45,6 +46,7 @@ dispatch() {  # each GPU's queue runs PER_GPU at a time, in a session of its own
     [ -f "$QUEUE.$g" ] || continue
     CUDA_VISIBLE_DEVICES=$g setsid nohup xargs -d '\n' -P "${PER_GPU:-2}" -I{} sh -c '{}' < "$QUEUE.$g" \
       > /dev/null 2>&1 &
+    echo $! > "$QUEUE.$g.pid"
   done
 }
 # ARM's 5-pass runs, hybrid and vanilla for seeds 0-2, named <model>_p5[_ARM]_s<seed>, with FLAGS
