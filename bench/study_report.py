@@ -39,8 +39,10 @@ def study_arms(recipe: str) -> dict[str, dict[tuple[str, int], str]]:
     return {"ablation": ablation, "scarcity": scarcity}
 
 
-def validation_score(runs: Path, run: str) -> dict:
-    """The epoch with the best mean validation RRMSE in RUNS/RUN/log.csv."""
+def validation_score(runs: Path, run: str) -> dict | None:
+    """The epoch with the best mean validation RRMSE in RUNS/RUN/log.csv, or None without a log."""
+    if not (runs / run / "log.csv").exists():
+        return None
     rows = read_log(runs / run)
     best = best_epoch(rows)
     return {"run": run, "epochs": len(rows), "seconds": float(rows[-1]["seconds"]), "best_epoch": int(best["epoch"]),
@@ -85,8 +87,7 @@ def main():
     arms = study_arms(a.recipe)
     if a.runs:
         score_name = "validation"
-        studies = {name: {k: validation_score(a.runs, r) if (a.runs / r / "log.csv").exists() else None
-                          for k, r in s.items()} for name, s in arms.items()}
+        studies = {name: {k: validation_score(a.runs, r) for k, r in s.items()} for name, s in arms.items()}
     else:
         score_name = "L5 test"
         reports = [(p, json.loads(p.read_text())) for p in a.reports]

@@ -15,7 +15,7 @@
 # Generates the paper dataset first if DATA lacks it. Then: bench/wait_runs.sh RUNS SECONDS.
 # To stop everything: kill $(cat RUNS/.queue.*.pid) (the dispatchers), then pkill -f 'warpgnn train'.
 set -euo pipefail
-DATA=${1:-data}; RUNS=${2:-runs}; BUDGET=${3:-1200}; ONLY=${4:-.}; BATCH=${BATCH:-32}; EXTRA=${EXTRA:-}; FALLBACK=${FALLBACK:-}
+DATA=${1:-data}; RUNS=${2:-runs}; BUDGET=${3:-1200}; ONLY=${4:-.}; PER_GPU=${PER_GPU:-2}; BATCH=${BATCH:-32}; EXTRA=${EXTRA:-}; FALLBACK=${FALLBACK:-}
 NOISE=${NOISE:---noise-q 3e-3 --noise-v 1e-2}; NOISE_V_ADD=${NOISE_V_ADD:-1e-2}
 PUSHFORWARD_FLAGS="$NOISE --pushforward ${PUSHFORWARD:-2}"  # the pushforward recipe, shared by its arms
 STABLE_FLAGS="$PUSHFORWARD_FLAGS --noise-v-add $NOISE_V_ADD"  # the stable recipe, likewise
@@ -44,7 +44,7 @@ dispatch() {  # each GPU's queue runs PER_GPU at a time, in a session of its own
   local g
   for g in $(seq 0 $((GPUS - 1))); do
     [ -f "$QUEUE.$g" ] || continue
-    CUDA_VISIBLE_DEVICES=$g setsid nohup xargs -d '\n' -P "${PER_GPU:-2}" -I{} sh -c '{}' < "$QUEUE.$g" \
+    CUDA_VISIBLE_DEVICES=$g setsid nohup xargs -d '\n' -P "$PER_GPU" -I{} sh -c '{}' < "$QUEUE.$g" \
       > /dev/null 2>&1 &
     echo $! > "$QUEUE.$g.pid"
   done
@@ -92,4 +92,4 @@ for s in 0 1 2; do  # the 12-pass target is a three-seed mean too
 done
 studies stable $STABLE_FLAGS
 dispatch
-echo "queued $n runs on $GPUS GPU(s), ${PER_GPU:-2} at a time on each"
+echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from test_train_paper import start_train_paper
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"
 # (study, arm, x) -> run name, as bench/train_paper.sh names the runs of the paper's recipe ('')
@@ -44,17 +45,8 @@ def score(run: str) -> float:
 
 
 def test_the_arms_are_runs_that_train_paper_starts(tmp_path):
-    stub = tmp_path / "bin" / "warpgnn"
-    stub.parent.mkdir()
-    stub.write_text("#!/bin/sh\necho \"$@\"\n")
-    stub.chmod(0o755)
-    (tmp_path / "data").mkdir()
-    (tmp_path / "data" / "manifest.json").write_text("{}")  # the dataset exists: nothing is generated
-    env = os.environ | {"PATH": f"{stub.parent}:{os.environ['PATH']}"}
-    proc = subprocess.run(["bash", str(BENCH / "train_paper.sh"), str(tmp_path / "data"), str(tmp_path / "runs"), "2e"],
-                          capture_output=True, text=True, env=env, timeout=120)
-    assert proc.returncode == 0, proc.stderr
-    started = {p.name for p in (tmp_path / "runs").iterdir()}
+    _, runs = start_train_paper(tmp_path, "#!/bin/sh\necho \"$@\"\n")
+    started = {p.name for p in runs.iterdir()}
     for recipe, arms in ARMS.items():
         assert set(arms.values()) <= started, (recipe, set(arms.values()) - started)
 

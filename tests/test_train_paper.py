@@ -21,20 +21,27 @@ echo "trained $out with $*"
 """
 
 
+def start_train_paper(tmp_path: Path, stub: str, *args: str, **env: str) -> tuple[subprocess.CompletedProcess, Path]:
+    """bench/train_paper.sh DATA RUNS 2e ARGS with `warpgnn` the shell script STUB and ENV added;
+    DATA holds a manifest, so nothing is generated. Returns the finished call and RUNS."""
+    script = tmp_path / "bin" / "warpgnn"
+    script.parent.mkdir()
+    script.write_text(stub)
+    script.chmod(0o755)
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "manifest.json").write_text("{}")
+    runs = tmp_path / "runs"
+    proc = subprocess.run(["bash", str(BENCH / "train_paper.sh"), str(tmp_path / "data"), str(runs), "2e", *args],
+                          capture_output=True, text=True, timeout=120,
+                          env=os.environ | {"PATH": f"{script.parent}:{os.environ['PATH']}"} | env)
+    assert proc.returncode == 0, proc.stderr
+    return proc, runs
+
+
 def run_queue(tmp_path: Path, per_gpu: int) -> tuple[list[list[str]], Path]:
     log = tmp_path / "events.log"
-    stub = tmp_path / "bin" / "warpgnn"
-    stub.parent.mkdir()
-    stub.write_text(STUB.format(log=log))
-    stub.chmod(0o755)
-    (tmp_path / "data").mkdir()
-    (tmp_path / "data" / "manifest.json").write_text("{}")  # the dataset exists: nothing is generated
-    env = os.environ | {"PATH": f"{stub.parent}:{os.environ['PATH']}", "PER_GPU": str(per_gpu),
-                        "EXTRA": "--cuda-graphs", "FALLBACK": "--compile"}
-    runs = tmp_path / "runs"
-    proc = subprocess.run(["bash", str(BENCH / "train_paper.sh"), str(tmp_path / "data"), str(runs), "2e", SELECTED],
-                          capture_output=True, text=True, env=env, timeout=120)
-    assert proc.returncode == 0, proc.stderr
+    proc, runs = start_train_paper(tmp_path, STUB.format(log=log), SELECTED, PER_GPU=str(per_gpu),
+                                   EXTRA="--cuda-graphs", FALLBACK="--compile")
     assert "queued 5 runs" in proc.stdout
     deadline = time.time() + 60  # the runs go on in the background
     while time.time() < deadline:
