@@ -91,5 +91,10 @@ for s in 0 1 2; do  # the 12-pass target is a three-seed mean too
   run hybrid_p12_stable_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS
 done
 studies stable $STABLE_FLAGS
+# the stable recipe with the tool-tip nodes weighted W times in the loss (--tip-weight): the tips are 1.5 % of
+# the nodes and carry 37-55 % of the rollout stress error (bench/results/error_breakdown_stable_cpu.json)
+for w in 10 30; do
+  run hybrid_p5_stable_tip${w}_s0 --model hybrid --passes 5 --latent 64 --seed 0 $STABLE_FLAGS --tip-weight $w
+done
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"

@@ -306,6 +306,32 @@ def test_loss_hand_values():
             ModelConfig(rate_weights=bad)
 
 
+def test_tip_weight_hand_values():
+    """Each tool-tip node weighs tip_weight in the data term's node mean; padding still weighs 0."""
+    scale = torch.ones(12)
+    s, target = torch.zeros(3, 12), torch.zeros(3, 12)
+    s[0, 0], s[1, 0], s[2, 0] = 1.0, 2.0, 3.0  # per-node squared errors 1, 4, 9 over 12 components
+    node_type = torch.tensor([NODE_PRESCRIBED, NODE_FREE, NODE_PRESCRIBED])
+    model = tiny("hybrid", tip_weight=3.0, lambda_d=2.0)
+    model.normalizer.zdot_scale.copy_(scale)
+    deg = torch.tensor([0.3, 0.6, 0.9])
+    p = Prediction(s, s, deg, torch.zeros(3))
+    loss, info = model.loss(p, target, node_type=node_type)
+    assert info["data"].item() == pytest.approx((3 * 1 + 4 + 3 * 9) / 12 / 7, rel=1e-6)
+    assert info["degeneracy"].item() == pytest.approx(0.6, rel=1e-6)  # the structure's residual is not reweighted
+    _, info = model.loss(p, target, torch.tensor([1.0, 1.0, 0.0]), node_type)  # node 2 is padding
+    assert info["data"].item() == pytest.approx((3 * 1 + 4) / 12 / 4, rel=1e-6)
+    _, info = model.loss(p, target)  # without node types: the plain mean
+    assert info["data"].item() == pytest.approx(14 / 12 / 3, rel=1e-6)
+    plain = tiny("hybrid", lambda_d=2.0)
+    plain.normalizer.zdot_scale.copy_(scale)
+    assert plain.loss(p, target, node_type=node_type)[1]["data"].item() == pytest.approx(14 / 12 / 3, rel=1e-6)
+    assert ModelConfig().tip_weight == 1.0
+    for bad in (0.0, -2.0, float("nan")):
+        with pytest.raises(ValueError, match="tip weight"):
+            ModelConfig(tip_weight=bad)
+
+
 # --------------------------------------------------------------------------- 7. metrics
 def hand_rollouts():
     """(S+1=3, N=2, 12) arrays whose errors are worked out in the comments."""
@@ -576,6 +602,26 @@ def test_batch_led_by_steps_starts_earlier_and_pads_alike(two_sims):
     assert noisy[1].lead_u.shape == (lead + 1, shape.tools, 3) and not noisy[1].lead_u[:, k:].any()
     assert torch.equal(noisy[1].lead_active[:, :n], noisy[0].lead_active) and not noisy[1].lead_active[:, n:].any()
     assert make_batch(two_sims, samples).lead_u is None
+
+
+@pytest.mark.parametrize("padded", [False, True], ids=["plain", "padded"])
+def test_training_step_weighs_the_tool_tips(two_sims, padded):
+    """train_step hands the node types to the loss: with tip_weight its loss is the weighted node mean
+    of the plain per-node errors (tip nodes from the simulations' footprints, padding at weight 0)."""
+    sims = [double_sim(s) for s in two_sims]
+    b = make_batch(sims, [(0, 1), (1, 2)], shape=BatchShape.fitting(sims, 2) if padded else None)
+    model = tiny("vanilla", tip_weight=5.0).double()
+    model.normalizer.fit([(raw_features(b.topology, b.z, b.u_now, b.u_next), b.zdot)])
+    loss, _ = train_step(model, b)
+    with torch.no_grad():
+        p = model(b.topology, b.z, b.u_now, b.u_next)
+        per_node = (p.zdot_standardized - b.zdot / model.normalizer.zdot_scale).square().mean(-1)
+    real = torch.ones(len(per_node), dtype=per_node.dtype) if b.node_mask is None else b.node_mask
+    tip = (b.topology.node_type == NODE_PRESCRIBED).double() * real
+    assert 0 < tip.sum() < real.sum()
+    weight = real + 4.0 * tip
+    assert float(loss) == pytest.approx(float((per_node * weight).sum() / weight.sum()), rel=1e-12)
+    assert float(loss) != pytest.approx(float((per_node * real).sum() / real.sum()), rel=1e-3)
 
 
 @pytest.mark.parametrize("padded", [False, True], ids=["plain", "padded"])

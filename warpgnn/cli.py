@@ -144,7 +144,8 @@ def cmd_train(args):
 
     try:
         model = ModelConfig(kind=args.model, passes=args.passes, latent=args.latent,
-                            actuator_graphs=not args.single_graph, rate_weights=tuple(args.rate_weights))
+                            actuator_graphs=not args.single_graph, rate_weights=tuple(args.rate_weights),
+                            tip_weight=args.tip_weight)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     if not 0 < args.train_fraction <= 1:
@@ -247,6 +248,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="torch.compile the network for training (GPU: fused kernels; compiles once, ~1 min)")
     t.add_argument("--rate-weights", type=float, nargs=3, default=(1.0, 1.0, 1.0), metavar=("Q", "V", "SIGMA"),
                    help="weights of the position, velocity and stress rates in the data loss (default 1 1 1: the paper)")
+    t.add_argument("--tip-weight", type=float, default=1.0, metavar="W",
+                   help="weight of each tool-tip node in the data loss against 1 for the others (default 1: the paper)")
     t.add_argument("--pushforward", type=int, default=0, metavar="K",
                    help="train each step from the state the network reaches in K steps of its own (no gradient) "
                         "instead of the true state; the target leads back to the ground truth (default 0: the paper)")

@@ -177,7 +177,7 @@ def train_step(model, batch: Batch, lead_rate=None) -> tuple[torch.Tensor, dict]
     if batch.lead_u is not None:
         batch = pushed_forward(model, batch, lead_rate)
     p = model(batch.topology, batch.z, batch.u_now, batch.u_next)
-    loss, parts = core.loss(p, batch.zdot, batch.node_mask)
+    loss, parts = core.loss(p, batch.zdot, batch.node_mask, batch.topology.node_type)
     loss.backward()
     return loss.detach(), parts
 
