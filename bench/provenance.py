@@ -14,3 +14,11 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
 def record(args: argparse.Namespace) -> dict:
     return {"device": args.device, "date": datetime.date.today().isoformat(), "command": args.command,
             "note": args.note}
+
+
+def add_probe_arguments(ap: argparse.ArgumentParser) -> None:
+    """A probe of trained networks on one data file: DATA CHECKPOINT [...] --json OUT, and the above."""
+    ap.add_argument("data")
+    ap.add_argument("checkpoints", nargs="+")
+    ap.add_argument("--json", required=True)
+    add_arguments(ap)

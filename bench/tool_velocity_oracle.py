@@ -54,10 +54,7 @@ def rollout_rrmse(model, sims, mode: str) -> dict:
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("data")
-    ap.add_argument("checkpoints", nargs="+")
-    ap.add_argument("--json", required=True)
-    provenance.add_arguments(ap)
+    provenance.add_probe_arguments(ap)
     a = ap.parse_args()
     sims = load_file(a.data)
     record = provenance.record(a) | {"data": a.data, "simulations": len(sims), "rollout_rrmse": {}}

@@ -5,6 +5,7 @@ conditions, batching, noise augmentation and standardisation statistics.
 Everything runs on tiny models and small box meshes on the CPU; symmetry and assembly checks
 run in float64 so their tolerances can stay tight."""
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -13,7 +14,7 @@ import torch
 from synthetic import box, simulation
 
 from warpgnn import metrics
-from warpgnn.data import BatchShape, Simulation, make_batch
+from warpgnn.data import BatchShape, Simulation, make_batch, rotate_states, vertical_rotations
 from warpgnn.graphs import (NODE_FIXED, NODE_FREE, NODE_PRESCRIBED, apply_boundary_conditions, batch,
                             make_topology, raw_features)
 from warpgnn.core_model import EdgeMLP
@@ -602,6 +603,57 @@ def test_batch_led_by_steps_starts_earlier_and_pads_alike(two_sims):
     assert noisy[1].lead_u.shape == (lead + 1, shape.tools, 3) and not noisy[1].lead_u[:, k:].any()
     assert torch.equal(noisy[1].lead_active[:, :n], noisy[0].lead_active) and not noisy[1].lead_active[:, n:].any()
     assert make_batch(two_sims, samples).lead_u is None
+
+
+@pytest.mark.parametrize("padded", [False, True], ids=["plain", "padded"])
+def test_rotated_batch_turns_each_sample_as_a_whole(two_sims, padded):
+    """--rotate: each sample's rest shape, states, next state and tools' path (pushforward lead-in
+    included) are the plain batch's turned by one rotation about z of its own; padding is untouched."""
+    sims = [double_sim(s) for s in two_sims]
+    samples = [(0, 1), (1, 2), (0, 2)]
+    shape = BatchShape.fitting(sims, 3) if padded else None
+    plain = make_batch(sims, samples, shape=shape, lead=1)
+    turned = make_batch(sims, samples, generator=torch.Generator().manual_seed(1), shape=shape, lead=1, rotate=True)
+    node0 = tool0 = 0
+    angles = []
+    for i, _ in samples:
+        n, k = sims[i].topology.n_nodes, len(sims[i].topology.loaded)
+        nodes, tools = slice(node0, node0 + n), slice(tool0, tool0 + k)
+        R = torch.linalg.lstsq(plain.topology.rest[nodes].double(), turned.topology.rest[nodes].double()).solution.T
+        torch.testing.assert_close(R[2], torch.tensor([0.0, 0.0, 1.0], dtype=R.dtype), atol=1e-6, rtol=0)
+        torch.testing.assert_close(R @ R.T, torch.eye(3, dtype=R.dtype), atol=1e-6, rtol=0)
+        angles.append(float(torch.atan2(R[1, 0], R[0, 0])))
+        Rn = R.expand(n, 3, 3)
+        torch.testing.assert_close(turned.z[nodes], rotate_states(plain.z[nodes], Rn), atol=1e-6, rtol=1e-5)
+        torch.testing.assert_close(turned.z_next[nodes], rotate_states(plain.z_next[nodes], Rn), atol=1e-6, rtol=1e-5)
+        for a, b in ((turned.u_now, plain.u_now), (turned.u_next, plain.u_next), (turned.lead_u[0], plain.lead_u[0])):
+            torch.testing.assert_close(a[tools], b[tools] @ R.T, atol=1e-9, rtol=1e-6)
+        node0, tool0 = node0 + n, tool0 + k
+    assert len({round(a, 6) for a in angles}) == len(samples) and all(abs(a) > 1e-3 for a in angles)
+    assert torch.equal(turned.topology.rest[node0:], plain.topology.rest[node0:])
+    assert torch.equal(turned.z[node0:], plain.z[node0:]) and torch.equal(turned.u_next[tool0:], plain.u_next[tool0:])
+    # lengths, and so the mesh edges' norms, the network's rotation-invariant inputs, are unchanged
+    torch.testing.assert_close(turned.topology.rest.norm(dim=1), plain.topology.rest.norm(dim=1))
+
+
+def test_rotate_states_turns_vectors_and_the_stress_tensor():
+    """q, v as vectors and sigma (Voigt xx yy zz xy yz xz) as R sigma R^T, against a dense numpy reference."""
+    rng = np.random.default_rng(0)
+    z = torch.from_numpy(rng.normal(size=(5, 12)))
+    R = torch.from_numpy(np.linalg.qr(rng.normal(size=(5, 3, 3)))[0])
+    R = R * torch.linalg.det(R)[:, None, None]  # proper rotations
+    out = rotate_states(z, R).numpy()
+    pairs = [(0, 0), (1, 1), (2, 2), (0, 1), (1, 2), (0, 2)]
+    for n in range(5):
+        S = np.zeros((3, 3))
+        for c, (i, j) in enumerate(pairs):
+            S[i, j] = S[j, i] = z[n, 6 + c]
+        S = R[n].numpy() @ S @ R[n].numpy().T
+        np.testing.assert_allclose(out[n, :3], R[n].numpy() @ z[n, :3].numpy())
+        np.testing.assert_allclose(out[n, 3:6], R[n].numpy() @ z[n, 3:6].numpy())
+        np.testing.assert_allclose(out[n, 6:], [S[i, j] for i, j in pairs])
+    torch.testing.assert_close(vertical_rotations(torch.tensor([0.5]))[0] @ torch.tensor([1.0, 0.0, 2.0]),
+                               torch.tensor([math.cos(0.5), math.sin(0.5), 2.0]))
 
 
 @pytest.mark.parametrize("padded", [False, True], ids=["plain", "padded"])

@@ -12,6 +12,7 @@ import shutil
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -675,3 +676,20 @@ def test_hybrid_entropy_production_is_never_negative(evaluated):
     _, m = evaluated
     assert m["per_rollout"] and all(p["entropy_production_min"] >= 0 for p in m["per_rollout"])
     assert m["entropy_production_min"] >= 0 and m["negative_entropy_rollouts"] == 0
+
+
+def test_rotation_probe_scores_the_unturned_problem_as_eval_does(hybrid_run, data, evaluated, tmp_path):
+    """bench/rotation_probe.py: its unturned case is `warpgnn eval`'s metrics; a turn changes the
+    problem (the network is not equivariant), and a full turn about z changes nothing."""
+    out = tmp_path / "probe.json"
+    proc = subprocess.run([sys.executable, str(Path(__file__).resolve().parents[1] / "bench" / "rotation_probe.py"),
+                           str(data / "L5.h5"), str(hybrid_run[0] / "best.pt"), "--turns", "z0", "z90", "z360",
+                           "--json", str(out), "--device", "cpu", "--command", "test"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    runs = json.loads(out.read_text())["runs"]
+    scores = runs[str(hybrid_run[0] / "best.pt")]
+    for kind in ("rmse", "rrmse"):
+        assert scores["z0"][kind] == pytest.approx(evaluated[1][kind], rel=1e-5)
+        assert scores["z360"][kind] == pytest.approx(scores["z0"][kind], rel=1e-4)
+    assert scores["z90"]["rmse"]["sigma"] != pytest.approx(scores["z0"]["rmse"]["sigma"], rel=1e-3)

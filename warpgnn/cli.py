@@ -156,7 +156,7 @@ def cmd_train(args):
                           train_fraction=args.train_fraction, seed=args.seed, resume=args.resume,
                           time_limit=args.time_limit, time_budget=args.time_budget, tf32=args.tf32,
                           compile=args.compile, cuda_graphs=args.cuda_graphs, pushforward=args.pushforward,
-                          device=args.device,
+                          rotate=args.rotate, device=args.device,
                           **{k: getattr(args, k) for k in ("noise_q", "noise_v", "noise_v_add") if getattr(args, k) is not None})
     except ValueError as exc:
         raise InputError(str(exc)) from None
@@ -250,6 +250,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="weights of the position, velocity and stress rates in the data loss (default 1 1 1: the paper)")
     t.add_argument("--tip-weight", type=float, default=1.0, metavar="W",
                    help="weight of each tool-tip node in the data loss against 1 for the others (default 1: the paper)")
+    t.add_argument("--rotate", action="store_true",
+                   help="turn each training sample by a random angle about the vertical z axis (an exact new simulation: "
+                        "no gravity, isotropic material; default off: the paper)")
     t.add_argument("--pushforward", type=int, default=0, metavar="K",
                    help="train each step from the state the network reaches in K steps of its own (no gradient) "
                         "instead of the true state; the target leads back to the ground truth (default 0: the paper)")

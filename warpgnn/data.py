@@ -1,4 +1,4 @@
-"""Simulations as tensors, the paper's splits, and training batches with noise augmentation.
+"""Simulations as tensors, the paper's splits, and training batches with noise (and rotation) augmentation.
 
 Splits (paper section 2.3): L1-L4 train (760 simulations in the paper preset); every fifth
 simulation of L5 (20%) validates for early stopping; Test is all of L5 (the paper evaluates
@@ -7,8 +7,9 @@ on all 190, validation ones included); Extra and Extra* are their own files.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import h5py
@@ -210,9 +211,28 @@ def pad_topology(top: Topology, shape: BatchShape) -> Topology:
         graph_sizes=torch.cat([top.graph_sizes, torch.tensor([shape.nodes - n])]))
 
 
+# Voigt order xx yy zz xy yz xz (DESIGN.md): the symmetric tensor's entry (i, j) is component VOIGT[i][j]
+VOIGT = ((0, 3, 5), (3, 1, 4), (5, 4, 2))
+VOIGT_ROWS, VOIGT_COLS = (0, 1, 2, 0, 1, 0), (0, 1, 2, 1, 2, 2)
+
+
+def rotate_states(z: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
+    """States (N, 12) rotated by each node's (N, 3, 3) rotation: q and v as vectors (about the
+    origin), sigma (Voigt) as a tensor, R sigma R^T."""
+    q, v = (torch.einsum("nij,nj->ni", R, z[:, c:c + 3]) for c in (0, 3))
+    sigma = R @ z[:, 6:][:, VOIGT] @ R.transpose(1, 2)
+    return torch.cat([q, v, sigma[:, VOIGT_ROWS, VOIGT_COLS]], -1)
+
+
+def vertical_rotations(angles: torch.Tensor) -> torch.Tensor:
+    """(S, 3, 3) rotations by ``angles`` about the z axis."""
+    c, s, zero, one = angles.cos(), angles.sin(), torch.zeros_like(angles), torch.ones_like(angles)
+    return torch.stack([c, -s, zero, s, c, zero, zero, zero, one], -1).reshape(-1, 3, 3)
+
+
 def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: float = 0.0,
                generator: torch.Generator | None = None, shape: BatchShape | Sequence[BatchShape] | None = None,
-               lead: int = 0, noise_v_add: float = 0.0) -> Batch:
+               lead: int = 0, noise_v_add: float = 0.0, rotate: bool = False) -> Batch:
     """Stack the steps t -> t+1 of ``samples`` = [(simulation index, t), ...] into one graph,
     padded to ``shape`` if given, or to the first of several shapes that it fits (the real nodes,
     their noise and targets are the same either way).
@@ -221,6 +241,9 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     noise_v), sigma' = sigma (1 + eps noise_v), eps ~ U(-1, 1); the target is built from z'.
     ``noise_v_add`` > 0 adds v' += mean_edge / dt * eps' * noise_v_add on free nodes (own draws):
     relative noise vanishes where v does (once the tools stop), additive noise does not.
+    ``rotate`` turns each sample as a whole (rest shape, states, target, tools' path) by its own random
+    angle about the vertical z axis, before the noise: without gravity and with an isotropic material
+    a rotated simulation is another exact one (the fixed visceral face stays a z plane).
     With ``lead`` > 0 (pushforward training) ``z`` is the (noisy) state min(lead, t) snapshots
     before t, ``lead_u`` the tools' path from there to t (its first entries repeat the start when
     t < lead) and ``lead_active`` which nodes each lead step moves (none of the padding).
@@ -247,14 +270,22 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     host = torch.cat(host, 1).float()
     host = (host.pin_memory() if device.type == "cuda" else host).to(device, non_blocking=True)
     dt = host[:, :1]
+    # the tools' path t - lead .. t + 1 of each sample, held at its start before t = 0
+    u = torch.stack([torch.cat([sims[i].u[max(t - lead + j, 0)] for i, t in samples]) for j in range(lead + 2)])
+    if rotate:  # drawn after the noise: the noise keeps its random stream
+        R = vertical_rotations(torch.rand(len(samples), generator=generator, dtype=torch.float64) * 2 * math.pi)
+        R_node = R.repeat_interleave(sizes, 0).to(device, z.dtype)
+        z, z_next = rotate_states(z, R_node), rotate_states(z_next, R_node)
+        rest = torch.einsum("nij,nj->ni", R_node.to(top.rest.dtype), top.rest[:real_nodes])
+        top = replace(top, rest=torch.cat([rest, top.rest[real_nodes:]]))
+        R_tool = R.repeat_interleave(torch.tensor([len(s.topology.loaded) for s, _ in picked]), 0).to(device, u.dtype)
+        u = torch.einsum("kij,lkj->lki", R_tool, u)
     if noisy:
         amp, eps = host[:, 1:2], host[:, 2:14]
         free = (top.node_type[:real_nodes] == NODE_FREE)[:, None].to(z.dtype)
         z = torch.cat([z[:, :3] + free * amp * eps[:, :3], z[:, 3:] * (1 + eps[:, 3:] * noise_v)], -1)
         if noise_v_add > 0:
             z[:, 3:6] += free * host[:, 14:15] * host[:, 15:18]
-    # the tools' path t - lead .. t + 1 of each sample, held at its start before t = 0
-    u = torch.stack([torch.cat([sims[i].u[max(t - lead + j, 0)] for i, t in samples]) for j in range(lead + 2)])
     active = None
     if lead:  # lead step j moves a sample's nodes once its path has begun (j >= lead - t)
         first = torch.tensor([max(lead - t, 0) for _, t in samples]).repeat_interleave(sizes)
