@@ -11,8 +11,8 @@
 #   (bench/results, ~37 MB, travels with the tree and is not needed there: once the tree plus
 #   .devwheels/b pass 64 MiB, move bench/results aside for the device calls and back after)
 # A machine is given back 30 s after a call ends: make every call copy what must survive
-# (checkpoints, logs) into $OUT (bench/wait_runs.sh RUNS SECONDS $OUT does), and chain long
-# runs with setsid + bench/wait_runs.sh.
+# (checkpoints, logs) into $OUT (bench/wait_runs.sh RUNS SECONDS $OUT does; given DATA too, it also
+# evaluates each run as it finishes, into RUNS/.eval), and chain long runs with setsid + bench/wait_runs.sh.
 # A machine also goes back once held 30 minutes, unless a call is then in flight (that call
 # finishes): a 30-minute run plus setup outlasts that, so time the last wait to start less than
 # 10 minutes before the run ends (e.g. a short wait in between); otherwise resume it from $OUT's

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Evaluates every run of RUNS (its best.pt) on Test (L5), Train (L1), Extra and Extra*, four
-# runs at a time, and extracts the median L5 rollout of each for renders elsewhere.
+# Evaluates every run of RUNS (its best.pt; or RUNS itself if it is one run) on Test (L5), Train
+# (L1), Extra and Extra*, four runs at a time, and extracts the median L5 rollout of each for
+# renders elsewhere.
 #   usage: bench/eval_paper.sh DATA RUNS EVAL
 set -uo pipefail
 DATA=$1; RUNS=$2; EVAL=$3
@@ -14,7 +15,9 @@ one() {
   rm -f "$EVAL/$name"/*/rollouts.h5  # large; the metrics and the extracted rollout travel
 }
 mkdir -p "$EVAL"
-for run in "$RUNS"/*/; do
+runs=("$RUNS"/*/)
+[ -f "$RUNS/best.pt" ] && runs=("$RUNS/")
+for run in "${runs[@]}"; do
   [ -f "$run/best.pt" ] || continue
   one "${run%/}" &
   while [ "$(jobs -rp | wc -l)" -ge 4 ]; do sleep 1; done

@@ -1,20 +1,37 @@
 #!/usr/bin/env bash
 # Waits up to SECONDS for the training processes of RUNS (bench/train_paper.sh) to finish,
-# printing each run's latest epoch line every minute. With OUT (the device call's $OUT), it
-# then packs every run's checkpoints and logs into OUT/runs.tar.NN, so that whatever the call
-# ends with comes back even if the machine is released before the next call.
-#   usage: bench/wait_runs.sh RUNS SECONDS [OUT]
-RUNS=$1; LIMIT=$2; OUT=${3:-}; t0=$SECONDS
+# printing each run's latest epoch line every minute. With DATA, each run that has finished
+# (its stdout.txt ends with warpgnn train's summary line) is evaluated as soon as it is
+# (bench/eval_paper.sh, into RUNS/.eval) while at least EVAL_SECONDS (default 240) are left. With
+# OUT (the device call's $OUT), it then packs every run's checkpoints and logs, and the
+# evaluations, into OUT/runs.tar.NN, so that whatever the call ends with comes back even if the
+# machine is released before the next call.
+#   usage: bench/wait_runs.sh RUNS SECONDS [OUT [DATA]]
+RUNS=$1; LIMIT=$2; OUT=${3:-}; DATA=${4:-}; EVAL_SECONDS=${EVAL_SECONDS:-240}; t0=$SECONDS
+BENCH=$(dirname "$0")
+evaluate_finished() {  # each finished run once, while there is time for it
+  [ -n "$DATA" ] || return 0
+  local d
+  for d in "$RUNS"/*/; do
+    [ -f "$d/best.pt" ] && [ ! -d "$RUNS/.eval/$(basename "$d")" ] || continue
+    grep -aq "best validation mean RRMSE" "$d/stdout.txt" 2> /dev/null || continue
+    [ $((LIMIT - (SECONDS - t0))) -ge "$EVAL_SECONDS" ] || continue
+    echo "--- evaluating $(basename "$d")"
+    "$BENCH/eval_paper.sh" "$DATA" "${d%/}" "$RUNS/.eval"
+  done
+}
 while pgrep -f "warpgnn(.cli)? train" > /dev/null && [ $((SECONDS - t0)) -lt "$LIMIT" ]; do
   sleep $(( LIMIT - (SECONDS - t0) < 60 ? LIMIT - (SECONDS - t0) : 60 ))
   echo "--- $((SECONDS - t0)) s"
   for d in "$RUNS"/*/; do printf '%-22s %s\n' "$(basename "$d")" "$(grep -a '^epoch' "$d/stdout.txt" | tail -n 1 | cut -c1-150)"; done
+  evaluate_finished
 done
 pgrep -f "warpgnn(.cli)? train" > /dev/null && echo "still running" || echo "all runs finished"
+evaluate_finished
 if [ -n "$OUT" ]; then
   # one archive of every run, in parts of 15 MB (a device call returns files of at most 16 MiB, and
   # at most 8 of them: one tar per run lost runs once there were more than 8); cat runs.tar.* | tar -x
-  (cd "$RUNS" && tar -cf - --ignore-failed-read */log.csv */stdout.txt */best.pt */last.pt 2>/dev/null) |
+  (cd "$RUNS" && tar -cf - --ignore-failed-read */log.csv */stdout.txt */best.pt */last.pt .eval 2>/dev/null) |
     split -b 15000000 -d - "$OUT/runs.tar."
   parts=$(ls "$OUT"/runs.tar.* | wc -l)
   [ "$parts" -le 8 ] || echo "wait_runs: $parts parts of runs.tar, more than a device call returns (8): pack fewer runs"

@@ -1,6 +1,7 @@
 """bench/train_paper.sh's queue: every selected run trains once, at most PER_GPU at a time on a GPU,
-its output in its own stdout.txt, and a run that fails with EXTRA's flags goes on with FALLBACK's.
-`warpgnn` is replaced by a stub that logs when each run starts and ends."""
+its output in its own stdout.txt, and a run that fails with EXTRA's flags goes on with FALLBACK's;
+bench/wait_runs.sh evaluates each finished run once and packs it. `warpgnn` is replaced by a stub
+that logs when each run starts and ends (or what it evaluates)."""
 
 import os
 import subprocess
@@ -67,3 +68,49 @@ def test_queue_runs_each_selected_run_once_at_most_per_gpu_at_a_time(tmp_path, p
     for name in names:  # both attempts' output lands in the run's own stdout.txt
         text = (runs / name / "stdout.txt").read_text()
         assert "graphs failed" in text and f"trained {runs / name} with" in text and "--compile" in text
+
+
+EVAL_STUB = """#!/bin/sh
+echo "$@" >> {log}
+out=$(echo "$@" | sed 's/.*--out \\([^ ]*\\).*/\\1/')
+mkdir -p "$out" && echo '{{"rrmse": {{}}}}' > "$out/metrics.json"
+"""
+
+
+def test_wait_runs_evaluates_each_finished_run_once_and_packs_it(tmp_path):
+    """bench/wait_runs.sh RUNS SECONDS OUT DATA: a run whose stdout ends with warpgnn train's summary is
+    evaluated (bench/eval_paper.sh: four sets from its best.pt) once, an unfinished one not, none
+    when less than EVAL_SECONDS are left; the evaluations travel in OUT's archive with the runs."""
+    stub = tmp_path / "bin" / "warpgnn"
+    stub.parent.mkdir()
+    log = tmp_path / "evals.log"
+    stub.write_text(EVAL_STUB.format(log=log))
+    stub.chmod(0o755)
+    runs = tmp_path / "runs"
+    for name, summary in (("done_run", True), ("busy_run", False)):
+        (runs / name).mkdir(parents=True)
+        (runs / name / "best.pt").write_text("weights")
+        (runs / name / "stdout.txt").write_text("epoch 0 (1.0 s): loss 1\n" + (
+            f"{runs / name}: best validation mean RRMSE 1.0e-02 at epoch 0 (1 epochs logged)\n" if summary else ""))
+
+    def wait(out_name, **env):
+        out = tmp_path / out_name
+        out.mkdir()
+        proc = subprocess.run(["bash", str(BENCH / "wait_runs.sh"), str(runs), "600", str(out), str(tmp_path / "data")],
+                              capture_output=True, text=True, timeout=120, cwd=BENCH.parent,
+                              env=os.environ | {"PATH": f"{stub.parent}:{os.environ['PATH']}"} | env)
+        assert proc.returncode == 0, proc.stderr
+        return out
+
+    wait("out0", EVAL_SECONDS="601")  # not enough time left: nothing evaluated
+    assert not log.exists()
+    out = wait("out1")
+    calls = log.read_text().splitlines()
+    assert len(calls) == 4 and all(f"--checkpoint {runs / 'done_run' / 'best.pt'}" in c for c in calls)
+    assert sorted(c.split("--out ")[1].split()[0] for c in calls) == sorted(
+        str(runs / ".eval" / "done_run" / s) for s in ("L5", "L1", "extra", "extra_star"))
+    wait("out2")
+    assert len(log.read_text().splitlines()) == 4  # evaluated once
+    archive = subprocess.run(f"cat {out}/runs.tar.* | tar -t", shell=True, capture_output=True, text=True).stdout
+    assert ".eval/done_run/L5/metrics.json" in archive.split()
+    assert "busy_run/best.pt" in archive.split() and "done_run/stdout.txt" in archive.split()
