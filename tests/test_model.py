@@ -710,7 +710,7 @@ def test_pushforward_step_starts_from_the_networks_own_rollout(two_sims, padded)
     model.zero_grad()
     loss, _ = train_step(model, b)
     p = model(pushed.topology, pushed.z, pushed.u_now, pushed.u_next)
-    assert float(loss) == pytest.approx(float(model.loss(p, pushed.zdot, pushed.node_mask)[0]), rel=1e-6)
+    assert float(loss) == pytest.approx(model.loss(p, pushed.zdot, pushed.node_mask)[0].item(), rel=1e-6)
 
 
 # --------------------------------------------------------------------- 10. normaliser
