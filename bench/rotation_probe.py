@@ -26,7 +26,10 @@ TURNS = ("z0", "z90", "z180", "z270", "x90", "x180")
 
 def rotation(turn: str) -> torch.Tensor:
     """'z90': 90 degrees about z; 'x180': 180 degrees about x."""
-    a = math.radians(float(turn[1:]))
+    try:
+        a = math.radians(float(turn[1:]))
+    except ValueError:
+        raise SystemExit(f"rotation_probe: a turn is z<degrees> or x<degrees>, not {turn!r}") from None
     c, s = math.cos(a), math.sin(a)
     if turn[0] == "z":
         return torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
@@ -53,13 +56,14 @@ def main():
     provenance.add_probe_arguments(ap)
     ap.add_argument("--turns", nargs="+", default=list(TURNS))
     a = ap.parse_args()
+    rotations = {turn: rotation(turn) for turn in a.turns}  # a bad turn fails before any work
     sims = load_file(a.data)
     record = provenance.record(a) | {"data": a.data, "simulations": len(sims), "runs": {}}
     for path in a.checkpoints:
         model, _ = load_model(path)
         out = record["runs"][path] = {}
         for turn in a.turns:
-            cases = [turned(s, rotation(turn)) for s in sims]
+            cases = [turned(s, rotations[turn]) for s in sims]
             per = [rollout_metrics(r.z, s.z.numpy()) for r, s in zip(rollout(model, cases), cases)]
             out[turn] = set_metrics(per)
             print(f"{path} {turn:5s} RMSE " + " ".join(f"{g} {v:.3e}" for g, v in out[turn]["rmse"].items()))

@@ -2,7 +2,8 @@
 # Waits up to SECONDS for the training processes of RUNS (bench/train_paper.sh) to finish,
 # printing each run's latest epoch line every minute. With DATA, each run that has finished
 # (its stdout.txt ends with warpgnn train's summary line) is evaluated as soon as it is
-# (bench/eval_paper.sh, into RUNS/.eval) while at least EVAL_SECONDS (default 240) are left. With
+# (bench/eval_paper.sh, into RUNS/.eval; retried if it did not complete) while at least
+# EVAL_SECONDS (default 240) are left. With
 # OUT (the device call's $OUT), it then packs every run's checkpoints and logs, and the
 # evaluations, into OUT/runs.tar.NN, so that whatever the call ends with comes back even if the
 # machine is released before the next call.
@@ -11,13 +12,18 @@ RUNS=$1; LIMIT=$2; OUT=${3:-}; DATA=${4:-}; EVAL_SECONDS=${EVAL_SECONDS:-240}; t
 BENCH=$(dirname "$0")
 evaluate_finished() {  # each finished run once, while there is time for it
   [ -n "$DATA" ] || return 0
-  local d
+  local d name left
   for d in "$RUNS"/*/; do
-    [ -f "$d/best.pt" ] && [ ! -d "$RUNS/.eval/$(basename "$d")" ] || continue
-    grep -aq "best validation mean RRMSE" "$d/stdout.txt" 2> /dev/null || continue
-    [ $((LIMIT - (SECONDS - t0))) -ge "$EVAL_SECONDS" ] || continue
-    echo "--- evaluating $(basename "$d")"
-    "$BENCH/eval_paper.sh" "$DATA" "${d%/}" "$RUNS/.eval"
+    name=$(basename "$d")
+    [ -f "$d/best.pt" ] && [ ! -f "$RUNS/.eval/$name/.done" ] || continue
+    # finished: the summary is the last line (a finished run resumed with a larger budget appends more)
+    tail -n 1 "$d/stdout.txt" 2> /dev/null | grep -aq "best validation mean RRMSE" || continue
+    left=$((LIMIT - (SECONDS - t0)))
+    [ "$left" -ge "$EVAL_SECONDS" ] || continue
+    echo "--- evaluating $name"
+    # bounded, so that the packing below still happens within the call (timeout stops eval_paper's children too)
+    timeout $((left - 30)) "$BENCH/eval_paper.sh" "$DATA" "${d%/}" "$RUNS/.eval"
+    ls "$RUNS/.eval/$name"/{L5,L1,extra,extra_star}/metrics.json > /dev/null 2>&1 && touch "$RUNS/.eval/$name/.done"
   done
 }
 while pgrep -f "warpgnn(.cli)? train" > /dev/null && [ $((SECONDS - t0)) -lt "$LIMIT" ]; do

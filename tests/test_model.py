@@ -328,7 +328,7 @@ def test_tip_weight_hand_values():
     plain.normalizer.zdot_scale.copy_(scale)
     assert plain.loss(p, target, node_type=node_type)[1]["data"].item() == pytest.approx(14 / 12 / 3, rel=1e-6)
     assert ModelConfig().tip_weight == 1.0
-    for bad in (0.0, -2.0, float("nan")):
+    for bad in (0.0, -2.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="tip weight"):
             ModelConfig(tip_weight=bad)
 
@@ -612,8 +612,8 @@ def test_rotated_batch_turns_each_sample_as_a_whole(two_sims, padded):
     sims = [double_sim(s) for s in two_sims]
     samples = [(0, 1), (1, 2), (0, 2)]
     shape = BatchShape.fitting(sims, 3) if padded else None
-    plain = make_batch(sims, samples, shape=shape, lead=1)
-    turned = make_batch(sims, samples, generator=torch.Generator().manual_seed(1), shape=shape, lead=1, rotate=True)
+    plain = make_batch(sims, samples, shape=shape, lead=2)
+    turned = make_batch(sims, samples, generator=torch.Generator().manual_seed(1), shape=shape, lead=2, rotate=True)
     node0 = tool0 = 0
     angles = []
     for i, _ in samples:
@@ -626,7 +626,7 @@ def test_rotated_batch_turns_each_sample_as_a_whole(two_sims, padded):
         Rn = R.expand(n, 3, 3)
         torch.testing.assert_close(turned.z[nodes], rotate_states(plain.z[nodes], Rn), atol=1e-6, rtol=1e-5)
         torch.testing.assert_close(turned.z_next[nodes], rotate_states(plain.z_next[nodes], Rn), atol=1e-6, rtol=1e-5)
-        for a, b in ((turned.u_now, plain.u_now), (turned.u_next, plain.u_next), (turned.lead_u[0], plain.lead_u[0])):
+        for a, b in ((turned.u_now, plain.u_now), (turned.u_next, plain.u_next), *zip(turned.lead_u, plain.lead_u)):
             torch.testing.assert_close(a[tools], b[tools] @ R.T, atol=1e-9, rtol=1e-6)
         node0, tool0 = node0 + n, tool0 + k
     assert len({round(a, 6) for a in angles}) == len(samples) and all(abs(a) > 1e-3 for a in angles)

@@ -79,19 +79,21 @@ mkdir -p "$out" && echo '{{"rrmse": {{}}}}' > "$out/metrics.json"
 
 def test_wait_runs_evaluates_each_finished_run_once_and_packs_it(tmp_path):
     """bench/wait_runs.sh RUNS SECONDS OUT DATA: a run whose stdout ends with warpgnn train's summary is
-    evaluated (bench/eval_paper.sh: four sets from its best.pt) once, an unfinished one not, none
-    when less than EVAL_SECONDS are left; the evaluations travel in OUT's archive with the runs."""
+    evaluated (bench/eval_paper.sh: four sets from its best.pt) once, and again only if that did not
+    complete; an unfinished one not (nor one resumed past its summary), none when less than
+    EVAL_SECONDS are left; the evaluations travel in OUT's archive with the runs."""
     stub = tmp_path / "bin" / "warpgnn"
     stub.parent.mkdir()
     log = tmp_path / "evals.log"
     stub.write_text(EVAL_STUB.format(log=log))
     stub.chmod(0o755)
     runs = tmp_path / "runs"
-    for name, summary in (("done_run", True), ("busy_run", False)):
+    for name, lines in (("done_run", ["summary"]), ("busy_run", []), ("resumed_run", ["summary", "epoch 1 (1.0 s): loss 1"])):
         (runs / name).mkdir(parents=True)
         (runs / name / "best.pt").write_text("weights")
-        (runs / name / "stdout.txt").write_text("epoch 0 (1.0 s): loss 1\n" + (
-            f"{runs / name}: best validation mean RRMSE 1.0e-02 at epoch 0 (1 epochs logged)\n" if summary else ""))
+        (runs / name / "stdout.txt").write_text("epoch 0 (1.0 s): loss 1\n" + "".join(
+            (f"{runs / name}: best validation mean RRMSE 1.0e-02 at epoch 0 (1 epochs logged)" if line == "summary" else line)
+            + "\n" for line in lines))
 
     def wait(out_name, **env):
         out = tmp_path / out_name
@@ -111,6 +113,9 @@ def test_wait_runs_evaluates_each_finished_run_once_and_packs_it(tmp_path):
         str(runs / ".eval" / "done_run" / s) for s in ("L5", "L1", "extra", "extra_star"))
     wait("out2")
     assert len(log.read_text().splitlines()) == 4  # evaluated once
+    (runs / ".eval" / "done_run" / ".done").unlink()  # as if that evaluation had been cut short
+    wait("out3")
+    assert len(log.read_text().splitlines()) == 8 and (runs / ".eval" / "done_run" / ".done").exists()
     archive = subprocess.run(f"cat {out}/runs.tar.* | tar -t", shell=True, capture_output=True, text=True).stdout
     assert ".eval/done_run/L5/metrics.json" in archive.split()
     assert "busy_run/best.pt" in archive.split() and "done_run/stdout.txt" in archive.split()

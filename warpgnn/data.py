@@ -242,8 +242,9 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     ``noise_v_add`` > 0 adds v' += mean_edge / dt * eps' * noise_v_add on free nodes (own draws):
     relative noise vanishes where v does (once the tools stop), additive noise does not.
     ``rotate`` turns each sample as a whole (rest shape, states, target, tools' path) by its own random
-    angle about the vertical z axis, before the noise: without gravity and with an isotropic material
-    a rotated simulation is another exact one (the fixed visceral face stays a z plane).
+    angle about the vertical z axis, before the noise is added (the angles are drawn after the noise's
+    draws, which keeps the noise's random stream): without gravity and with an isotropic material a
+    rotated simulation is another exact one (the fixed visceral face stays a z plane).
     With ``lead`` > 0 (pushforward training) ``z`` is the (noisy) state min(lead, t) snapshots
     before t, ``lead_u`` the tools' path from there to t (its first entries repeat the start when
     t < lead) and ``lead_active`` which nodes each lead step moves (none of the padding).
@@ -272,7 +273,7 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     dt = host[:, :1]
     # the tools' path t - lead .. t + 1 of each sample, held at its start before t = 0
     u = torch.stack([torch.cat([sims[i].u[max(t - lead + j, 0)] for i, t in samples]) for j in range(lead + 2)])
-    if rotate:  # drawn after the noise: the noise keeps its random stream
+    if rotate:
         R = vertical_rotations(torch.rand(len(samples), generator=generator, dtype=torch.float64) * 2 * math.pi)
         R_node = R.repeat_interleave(sizes, 0).to(device, z.dtype)
         z, z_next = rotate_states(z, R_node), rotate_states(z_next, R_node)

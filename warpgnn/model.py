@@ -8,6 +8,7 @@ Interface, kept narrow so other backends (Warp kernels) can stand in for it:
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import torch
@@ -44,8 +45,8 @@ class ModelConfig:
         self.rate_weights = tuple(float(w) for w in self.rate_weights)
         if len(self.rate_weights) != 3 or min(self.rate_weights) < 0 or sum(self.rate_weights) <= 0:
             raise ValueError(f"rate weights are three non-negative numbers (q, v, sigma), not all 0: {self.rate_weights}")
-        if not self.tip_weight > 0:
-            raise ValueError(f"the tip weight must be > 0, got {self.tip_weight}")
+        if not (math.isfinite(self.tip_weight) and self.tip_weight > 0):
+            raise ValueError(f"the tip weight must be a finite number > 0, got {self.tip_weight}")
 
 
 @dataclass
