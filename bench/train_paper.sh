@@ -96,7 +96,8 @@ studies stable $STABLE_FLAGS
 for w in 10 30; do
   run hybrid_p5_stable_tip${w}_s0 --model hybrid --passes 5 --latent 64 --seed 0 $STABLE_FLAGS --tip-weight $w
 done
-# the stable recipe with each training sample turned about the vertical axis (--rotate: an exact new simulation)
-run hybrid_p5_stable_rot_s0 --model hybrid --passes 5 --latent 64 --seed 0 $STABLE_FLAGS --rotate
+# the stable recipe with each training sample turned about the vertical axis (--rotate: an exact new simulation),
+# 3 seeds of each 5-pass model (bench/results/gnn_rotate_h100.json: hybrid_p5_stable_rot_s0 at 24 epochs)
+seeds stable_rot $STABLE_FLAGS --rotate
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"
