@@ -1,18 +1,19 @@
 #!/usr/bin/env bash
 # Evaluates every run of RUNS (its best.pt; or RUNS itself if it is one run) on Test (L5), Train
 # (L1), Extra and Extra*, four runs at a time, and extracts the median L5 rollout of each for
-# renders elsewhere.
+# renders elsewhere. A run whose four evaluations all succeeded gets EVAL/<run>/.done.
 #   usage: bench/eval_paper.sh DATA RUNS EVAL
 set -uo pipefail
 DATA=$1; RUNS=$2; EVAL=$3
 one() {
-  local run=$1 name; name=$(basename "$1")
+  local run=$1 name failed=0; name=$(basename "$1")
   for set in L5 L1 extra extra_star; do
     warpgnn eval --checkpoint "$run/best.pt" --data "$DATA/$set.h5" --out "$EVAL/$name/$set" --no-plots \
-      > "$EVAL/$name.$set.log" 2>&1 || echo "eval failed: $name $set"
+      > "$EVAL/$name.$set.log" 2>&1 || { echo "eval failed: $name $set"; failed=1; }
   done
   python3 bench/extract_rollout.py "$EVAL/$name/L5" "$DATA/L5.h5" "$EVAL/$name/L5_median.npz"
   rm -f "$EVAL/$name"/*/rollouts.h5  # large; the metrics and the extracted rollout travel
+  [ "$failed" = 1 ] || touch "$EVAL/$name/.done"
 }
 mkdir -p "$EVAL"
 runs=("$RUNS"/*/)

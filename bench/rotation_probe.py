@@ -17,7 +17,7 @@ import torch
 
 import provenance  # bench/, beside this script
 from warpgnn.checkpoint import load_model
-from warpgnn.data import load_file, rotate_states
+from warpgnn.data import load_file, rotate_states, vertical_rotations
 from warpgnn.metrics import rollout_metrics, set_metrics
 from warpgnn.rollout import rollout
 
@@ -30,10 +30,10 @@ def rotation(turn: str) -> torch.Tensor:
         a = math.radians(float(turn[1:]))
     except ValueError:
         raise SystemExit(f"rotation_probe: a turn is z<degrees> or x<degrees>, not {turn!r}") from None
-    c, s = math.cos(a), math.sin(a)
     if turn[0] == "z":
-        return torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+        return vertical_rotations(torch.tensor([a], dtype=torch.float64))[0]
     if turn[0] == "x":
+        c, s = math.cos(a), math.sin(a)
         return torch.tensor([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]], dtype=torch.float64)
     raise SystemExit(f"rotation_probe: a turn is z<degrees> or x<degrees>, not {turn!r}")
 
@@ -42,10 +42,10 @@ def turned(sim, R: torch.Tensor):
     """The simulation turned by R about its rest centroid."""
     top = sim.topology
     centre = top.rest.double().mean(0)
-    z = sim.z.double()
-    z = torch.cat([z[..., :3] - centre, z[..., 3:]], -1)
-    z = torch.stack([rotate_states(zt, R.expand(len(zt), 3, 3)) for zt in z])
-    z = torch.cat([z[..., :3] + centre, z[..., 3:]], -1)
+    z = sim.z.double().reshape(-1, 12)  # every snapshot's nodes at once
+    z = torch.cat([z[:, :3] - centre, z[:, 3:]], -1)
+    z = rotate_states(z, R.expand(len(z), 3, 3))
+    z = torch.cat([z[:, :3] + centre, z[:, 3:]], -1).reshape(sim.z.shape)
     rest = (top.rest.double() - centre) @ R.T + centre
     return replace(sim, topology=replace(top, rest=rest.to(top.rest.dtype)), z=z.to(sim.z.dtype),
                    u=(sim.u.double() @ R.T).to(sim.u.dtype))
