@@ -164,6 +164,20 @@ def test_time_budget_ends_the_run_and_sets_each_epochs_rate(data, tmp_path):
     assert [h["lr"] for h in result["history"]] == pytest.approx([1e-3, 1e-4])
 
 
+def test_time_budget_begins_no_epoch_that_would_end_past_it():
+    """Measured on an H100 (gnn_rotate1800_h100): epoch 112 ended at 1799.5 s, under the 1800 s budget,
+    and the next one, as long (14.9 s), would end past it; the old rule ran it, to 1814.4 s."""
+    cfg = TrainConfig(lr_schedule="exponential", time_budget=1800.0)
+    history = [{"seconds": s} for s in (1769.8, 1784.6, 1799.5)]
+    assert training.budget_spent(cfg, history)
+    assert not training.budget_spent(cfg, history[:2])  # 1784.6 + 14.8 = 1799.4 still fits
+    # the first epoch, which carries the compilation, predicts the second as long as itself
+    assert training.budget_spent(TrainConfig(time_budget=200.0), [{"seconds": 129.8}])
+    assert not training.budget_spent(TrainConfig(time_budget=260.0), [{"seconds": 129.8}])
+    assert not training.budget_spent(TrainConfig(), history)  # no budget
+    assert not training.budget_spent(cfg, [])
+
+
 def test_only_the_first_warm_up_counts_as_training_time(data, tmp_path, monkeypatch):
     """The compilation before the first epoch counts in --time-budget's seconds; after --resume
     (a device machine taken back) compiling again does not: an uninterrupted run pays it once."""

@@ -238,7 +238,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--time-budget", type=float, default=None,
                    help="seconds of training in all, across resumes, the first compilation included (a resumed "
                         "run's warm-up before its first epoch, which compiles and records the --cuda-graphs shapes, "
-                        "is not; --compile's lazy compilation in the first epoch is); the run ends once they are spent")
+                        "is not; --compile's lazy compilation in the first epoch is); no epoch is begun that, as long as "
+                        "the last one, would end past them")
     t.add_argument("--noise-q", type=float, help="position noise, times the mean edge length (default: the paper's 1e-4)")
     t.add_argument("--noise-v", type=float, help="relative noise on velocity and stress (default: the paper's 1e-3)")
     t.add_argument("--noise-v-add", type=float, help="additive velocity noise on free nodes, times mean edge / dt "

@@ -104,6 +104,15 @@ class TrainConfig:
         return None
 
 
+def budget_spent(cfg: TrainConfig, history: list[dict]) -> bool:
+    """Whether --time-budget leaves no room for another epoch as long as the last one: a run ends
+    within its budget rather than one epoch past it (a best epoch there would miss a 30-minute target)."""
+    if cfg.time_budget is None or not history:
+        return False
+    last = history[-1]["seconds"] - (history[-2]["seconds"] if len(history) > 1 else 0.0)
+    return history[-1]["seconds"] + last > cfg.time_budget
+
+
 def unwrapped(model) -> TIGNN:
     """The TIGNN inside torch.compile and DistributedDataParallel wrappers."""
     while isinstance(model, torch.nn.Module) and not isinstance(model, TIGNN):
@@ -298,8 +307,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
         raise InputError(f"{out} already holds a run: pass --resume to continue it, or choose another --out")
     if state is not None and state.get("stopped"):
         # a run stopped early or by its budget goes on if this invocation's patience or budget allows it
-        spent = cfg.time_budget is not None and state["history"][-1]["seconds"] >= cfg.time_budget
-        if cfg.stop_reason(state["epoch"], state["best_epoch"], spent):
+        if cfg.stop_reason(state["epoch"], state["best_epoch"], budget_spent(cfg, state["history"])):
             log(f"{out}: already finished ({state['stopped']}); best validation {state['best']:.4e} at epoch {state['best_epoch']}")
             return {"best": state["best"], "best_epoch": state["best_epoch"], "epochs": len(state["history"]),
                     "history": state["history"]}
@@ -408,8 +416,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
                    val_sigma=val["rrmse"]["sigma"], val_mean=score, best=improved)
         history.append(row)
         t0 = time.perf_counter()
-        stopped = cfg.stop_reason(epoch, best_epoch, cfg.time_budget is not None
-                                  and _agree(row["seconds"] >= cfg.time_budget, world, device))
+        stopped = cfg.stop_reason(epoch, best_epoch, _agree(budget_spent(cfg, history), world, device))
         if rank == 0:
             if improved:
                 checkpoint.save_atomically(checkpoint.model_payload(model, epoch=epoch, validation=val,
