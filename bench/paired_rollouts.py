@@ -16,8 +16,9 @@ from pathlib import Path
 import numpy as np
 
 import provenance  # bench/, beside this script
+from warpgnn.graphs import GROUPS
+from warpgnn.metrics import set_metrics
 
-GROUPS = ("q", "v", "sigma")
 WORST_SHARE = 0.1
 
 
@@ -27,7 +28,7 @@ def per_rollout_rrmse(path: Path) -> dict[str, dict[str, float]]:
     try:
         m = json.loads(path.read_text())
         rollouts = {r["name"]: r["rrmse"] for r in m["per_rollout"]}
-        pooled = {g: float(np.sqrt(np.mean([r[g] ** 2 for r in rollouts.values()]))) for g in GROUPS}
+        pooled = set_metrics(m["per_rollout"])["rrmse"]  # unweighted
         if not np.allclose([pooled[g] for g in GROUPS], [m["rrmse"][g] for g in GROUPS], rtol=1e-9):
             raise SystemExit(f"paired_rollouts: {path}: its rollouts weigh differently in the set value "
                              "(meshes of different sizes); compare a set of one mesh, such as L5")

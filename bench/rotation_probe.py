@@ -58,13 +58,13 @@ def main():
     a = ap.parse_args()
     rotations = {turn: rotation(turn) for turn in a.turns}  # a bad turn fails before any work
     sims = load_file(a.data)
+    cases = {turn: [turned(s, R) for s in sims] for turn, R in rotations.items()}  # the same for every network
     record = provenance.record(a) | {"data": a.data, "simulations": len(sims), "runs": {}}
     for path in a.checkpoints:
         model, _ = load_model(path)
         out = record["runs"][path] = {}
         for turn in a.turns:
-            cases = [turned(s, rotations[turn]) for s in sims]
-            per = [rollout_metrics(r.z, s.z.numpy()) for r, s in zip(rollout(model, cases), cases)]
+            per = [rollout_metrics(r.z, s.z.numpy()) for r, s in zip(rollout(model, cases[turn]), cases[turn])]
             out[turn] = set_metrics(per)
             print(f"{path} {turn:5s} RMSE " + " ".join(f"{g} {v:.3e}" for g, v in out[turn]["rmse"].items()))
     with open(a.json, "w") as f:

@@ -14,11 +14,12 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
 
 
 def write_eval(root: Path, run: str, rrmse_by_rollout: list[float], set_value: float | None = None):
-    """EVAL/<run>/L5/metrics.json with the same RRMSE in q, v and sigma for each rollout."""
+    """EVAL/<run>/L5/metrics.json with the same RRMSE in q, v and sigma for each rollout (and an
+    RMSE, which `warpgnn eval` writes beside it and the comparison does not read)."""
     d = root / run / "L5"
     d.mkdir(parents=True)
-    per = [{"name": f"L5/sim_{i:04d}", "rrmse": dict.fromkeys(("q", "v", "sigma"), r)}
-           for i, r in enumerate(rrmse_by_rollout)]
+    per = [{"name": f"L5/sim_{i:04d}", "rmse": dict.fromkeys(("q", "v", "sigma"), 1.0),
+            "rrmse": dict.fromkeys(("q", "v", "sigma"), r)} for i, r in enumerate(rrmse_by_rollout)]
     pooled = math.sqrt(sum(r * r for r in rrmse_by_rollout) / len(rrmse_by_rollout))
     value = pooled if set_value is None else set_value
     (d / "metrics.json").write_text(json.dumps({"rrmse": dict.fromkeys(("q", "v", "sigma"), value),
