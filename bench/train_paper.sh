@@ -97,7 +97,8 @@ for w in 10 30; do
   run hybrid_p5_stable_tip${w}_s0 --model hybrid --passes 5 --latent 64 --seed 0 $STABLE_FLAGS --tip-weight $w
 done
 # the stable recipe with each training sample turned about the vertical axis (--rotate: an exact new simulation),
-# 3 seeds of each 5-pass model (bench/results/gnn_rotate_h100.json: hybrid_p5_stable_rot_s0 at 24 epochs)
+# 3 seeds of each 5-pass model (bench/results/gnn_rotate_h100.json: hybrid seed 0 at 24 epochs;
+# gnn_rotate1800_h100.json: the hybrid's 3 seeds at 1800 s)
 seeds stable_rot $STABLE_FLAGS --rotate
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"
