@@ -13,9 +13,10 @@ its step time is for the padded batch, so it pays for the padding.
 
 Modes ending in -bf16 run the step under torch.autocast(bfloat16) (a timing probe: training
 stays fp32 until its accuracy under bf16 is measured). --profile adds, per record, the ten CUDA
-kernels that take most of the step's time (torch.profiler over five steps). A -bcast suffix
-runs the hybrid decoder's operator products (A - A^T) x and B B^T x as broadcast multiply-sums
-instead of the model's einsums (batched gemv): a probe of what inductor fuses better.
+kernels that take most of the step's time (torch.profiler over five steps). The hybrid decoder's
+operator products (A - A^T) x and B B^T x run as `warpgnn train` runs them: broadcast
+multiply-sums in the graphs modes, einsums (batched gemv) otherwise
+(port_metriplectic.set_operator_products); a -bcast or -einsum suffix picks one instead.
 
 --pushforward K[,K...] times each mode with K lead-in steps (`warpgnn train --pushforward K`:
 K network steps without gradient before the trained one); 0, the default, is one-step training.
@@ -36,21 +37,10 @@ import time
 import numpy as np
 import torch
 
-from warpgnn import port_metriplectic
+from warpgnn.port_metriplectic import set_operator_products
 from warpgnn.data import BatchShape, load_file, make_batch
 from warpgnn.model import ModelConfig, TIGNN
 from warpgnn.training import compiled, fit_normalizer, lead_in_rate, train_step, warm_up, warm_up_batches
-
-EINSUM_PRODUCTS = (port_metriplectic.apply_L, port_metriplectic.apply_M)
-
-
-def apply_L_broadcast(A, x):
-    return (A * x[:, None, :]).sum(-1) - (A * x[:, :, None]).sum(-2)
-
-
-def apply_M_broadcast(B, x):
-    return (B * (B * x[:, :, None]).sum(-2)[:, None, :]).sum(-1)
-
 
 CONFIGS = [("hybrid", 5, 64), ("vanilla", 5, 64), ("hybrid", 12, 128), ("vanilla", 12, 128), ("hybrid", 1, 64)]
 
@@ -110,7 +100,7 @@ def main():
                     "training set's mix of meshes, which sets how much padding the graphs mode carries)")
     ap.add_argument("--configs", default="all", help="comma-separated kind:passes:latent, or all")
     ap.add_argument("--modes", default="eager,compiled,graphs",
-                    help="eager, compiled or graphs, each optionally with -bf16 and/or -bcast")
+                    help="eager, compiled or graphs, each optionally with -bf16 and/or -bcast or -einsum")
     ap.add_argument("--profile", action="store_true", help="add each mode's ten most expensive CUDA kernels")
     ap.add_argument("--pushforward", default="0", help="comma-separated lead-in steps to time each mode with")
     ap.add_argument("--lead-in", default="compiled", help="comma-separated: compiled and/or eager lead-in steps")
@@ -132,13 +122,14 @@ def main():
              for how in (a.lead_in.split(",") if int(k) and m.startswith(("compiled", "graphs")) else ["eager"])]
     for kind, passes, latent in configs:
         for mode, lead, lead_in in modes:
-            port_metriplectic.apply_L, port_metriplectic.apply_M = (
-                (apply_L_broadcast, apply_M_broadcast) if mode.endswith("-bcast") else EINSUM_PRODUCTS)
             # a fresh compile per record: a graph compiled for an earlier model would replay CUDA
             # graphs recorded on that model's parameters (inductor asserts the static inputs' addresses)
             torch._dynamo.reset()
             torch.manual_seed(0)
             model = TIGNN(ModelConfig(kind=kind, passes=passes, latent=latent)).to(dev)
+            products = ("broadcast" if "-bcast" in mode else "einsum" if "-einsum" in mode
+                        else "broadcast" if mode.startswith("graphs") else "einsum")
+            set_operator_products(model, products)
             fit_normalizer(model, sims[:8])
             graphs = mode.startswith("graphs")
             net = compiled(model, cuda_graphs=graphs) if mode.startswith(("compiled", "graphs")) else model
@@ -156,7 +147,7 @@ def main():
             recording = time.perf_counter() - t0
             gpu, host, first, b, opt = time_steps(net, model, chunks, sims, gen, precision, shape, lead, lead_rate)
             r = {"model": kind, "passes": passes, "latent": latent, "parameters": model.n_parameters(),
-                 "mode": mode, "pushforward": lead, "lead_in": (lead_in if lead_rate or lead_in == "eager" else "eager (compiled refused)") if lead else None,
+                 "mode": mode, "operator_products": products if kind == "hybrid" else None, "pushforward": lead, "lead_in": (lead_in if lead_rate or lead_in == "eager" else "eager (compiled refused)") if lead else None,
                  "tf32": a.tf32, "batch": a.batch, "shapes": [dataclasses.astuple(s) for s in shape or ()],
                  "nodes_per_batch": int(b.topology.n_nodes),
                  "mesh_edges_per_batch": int(b.topology.senders.numel()),

@@ -21,7 +21,8 @@ from warpgnn.core_model import EdgeMLP
 from warpgnn.mesh import TetMesh, box_tet_mesh
 from warpgnn.model import ModelConfig, Prediction, TIGNN
 from warpgnn.normalization import FEATURES, Normalizer
-from warpgnn.port_metriplectic import N_L, N_M, PortMetriplecticDecoder, apply_L, apply_M, lower_triangular
+from warpgnn.port_metriplectic import (N_L, N_M, OPERATOR_PRODUCTS, PortMetriplecticDecoder, apply_L, apply_M,
+                                       lower_triangular, set_operator_products)
 from warpgnn.training import pushed_forward, train_step
 
 VARIANTS = [("hybrid", True), ("hybrid", False), ("vanilla", True), ("vanilla", False)]
@@ -223,10 +224,12 @@ def test_edge_mlp_is_the_mlp_of_the_concatenation(layer_norm):
         torch.testing.assert_close(f.self_loop(loop, x_r), reference, rtol=1e-12, atol=1e-12)
 
 
-def test_generic_decoder_matches_dense_assembly():
+@pytest.mark.parametrize("products", list(OPERATOR_PRODUCTS))
+def test_generic_decoder_matches_dense_assembly(products):
     torch.manual_seed(5)
     F, N = 8, 5
     dec = PortMetriplecticDecoder(F).double()
+    set_operator_products(dec, products)
     # bidirected pairs, a one-way edge 0 -> 3 (catches a sender/receiver swap), node 4 isolated
     senders = torch.tensor([0, 1, 1, 2, 3, 2, 0])
     receivers = torch.tensor([1, 0, 2, 1, 2, 3, 3])
@@ -269,6 +272,28 @@ def test_generic_decoder_matches_dense_assembly():
     production = np.einsum("na,nab,nb->n", dS, M_ii, dS)
     assert (production >= 0).all()
     np.testing.assert_allclose(out.entropy_production.numpy(), production, rtol=1e-10, atol=1e-14)
+
+
+def test_operator_products_agree_in_value_and_gradient():
+    """The broadcast form (`warpgnn train --cuda-graphs`) is the einsum form differently fused:
+    the same predictions and the same parameter gradients, in float64 to round-off."""
+    _, _, top, model, z, u_now, u_next = setup_case("hybrid", True, seed=7)
+    results = {}
+    for products in OPERATOR_PRODUCTS:
+        set_operator_products(model, products)
+        model.zero_grad()
+        pred = model(top, z, u_now, u_next)
+        (pred.zdot.square().sum() + pred.degeneracy.sum() + pred.entropy_production.sum()).backward()
+        results[products] = (pred, [p.grad.clone() for p in model.parameters()])
+    (a, grads_a), (b, grads_b) = results.values()
+    for field in ("zdot", "degeneracy", "entropy_production"):
+        torch.testing.assert_close(getattr(a, field), getattr(b, field), rtol=1e-12, atol=1e-14)
+    for ga, gb in zip(grads_a, grads_b):
+        torch.testing.assert_close(ga, gb, rtol=1e-10, atol=1e-13)
+    assert "products" not in "".join(model.state_dict())  # checkpoints do not carry the choice
+    with pytest.raises(ValueError, match="expected one of einsum, broadcast"):
+        set_operator_products(model, "dense")
+    set_operator_products(tiny("vanilla"), "broadcast")  # no such decoder: nothing to set
 
 
 # ------------------------------------------------------------------------------ 6. loss

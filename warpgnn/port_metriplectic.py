@@ -49,6 +49,32 @@ def apply_M(B: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return torch.einsum("eab,eb->ea", B, torch.einsum("eba,eb->ea", B, x))
 
 
+# The same products as broadcast multiply-sums. Compiled with static shapes (`warpgnn train
+# --cuda-graphs`) inductor fuses these into the neighbouring kernels, and the training step takes
+# 17.6-18.0 ms against the einsums' 24.5-24.6 (bench/results/train_step_graphs_products_h100.json);
+# eager or with dynamic shapes they are slower than the einsums' batched gemv
+# (train_step_operator_products_h200.json), so the einsums stay the default.
+def apply_L_broadcast(A: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    return (A * x[:, None, :]).sum(-1) - (A * x[:, :, None]).sum(-2)
+
+
+def apply_M_broadcast(B: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    return (B * (B * x[:, :, None]).sum(-2)[:, None, :]).sum(-1)
+
+
+OPERATOR_PRODUCTS = {"einsum": (apply_L, apply_M), "broadcast": (apply_L_broadcast, apply_M_broadcast)}
+
+
+def set_operator_products(model: nn.Module, kind: str) -> None:
+    """Every port-metriplectic decoder in ``model`` computes its operator products as ``kind``
+    (a key of OPERATOR_PRODUCTS): the same values, differently fused. Not saved with the weights."""
+    if kind not in OPERATOR_PRODUCTS:
+        raise ValueError(f"operator products {kind!r}: expected one of {', '.join(OPERATOR_PRODUCTS)}")
+    for m in model.modules():
+        if isinstance(m, PortMetriplecticDecoder):
+            m.products = kind
+
+
 @dataclass
 class GenericOutput:
     zdot: torch.Tensor  # (N, 12) in standardised units
@@ -62,6 +88,7 @@ class PortMetriplecticDecoder(nn.Module):
         self.delta_v = mlp(latent, latent, 2 * STATE, hidden_layers, layer_norm=False)
         self.delta_e = EdgeMLP(latent, latent, N_L + N_M, hidden_layers, layer_norm=False)
         self.self_loop = nn.Parameter(torch.randn(latent) / latent**0.5)  # the learned edge latent x_ii
+        self.products = "einsum"  # how (A - A^T) x and B B^T x are computed: set_operator_products
         with torch.no_grad():
             last = self.delta_e.rest[-1]
             last.weight.mul_(OPERATOR_INIT_SCALE)
@@ -74,6 +101,7 @@ class PortMetriplecticDecoder(nn.Module):
 
     def forward(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor) -> GenericOutput:
         n = x.shape[0]
+        apply_L, apply_M = OPERATOR_PRODUCTS[self.products]
         grads = self.delta_v(x)
         dE, dS = grads[:, :STATE], grads[:, STATE:]
         A_ii, B_ii = self.operators(self.delta_e.self_loop(self.self_loop, x))

@@ -31,6 +31,7 @@ from . import checkpoint, metrics
 from .data import Batch, BatchShape, all_samples, load_splits, make_batch, smallest
 from .errors import InputError
 from .model import ModelConfig, TIGNN
+from .port_metriplectic import set_operator_products
 from .rollout import rollout
 from .run_log import write_log
 
@@ -343,6 +344,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
         sched.load_state_dict(state["scheduler"])
         history, best, best_epoch, start = state["history"], state["best"], state["best_epoch"], state["epoch"] + 1
     net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
+    if cfg.cuda_graphs:  # static shapes: inductor fuses the broadcast form (port_metriplectic)
+        set_operator_products(model, "broadcast")
     if cfg.compile or cfg.cuda_graphs:
         net = compiled(net, cuda_graphs=cfg.cuda_graphs)
     shapes = BatchShape.ladder(train_sims, cfg.batch_size) if cfg.cuda_graphs else None
