@@ -37,9 +37,9 @@ import time
 import numpy as np
 import torch
 
-from warpgnn.port_metriplectic import set_operator_products
 from warpgnn.data import BatchShape, load_file, make_batch
 from warpgnn.model import ModelConfig, TIGNN
+from warpgnn.port_metriplectic import set_operator_products
 from warpgnn.training import compiled, fit_normalizer, lead_in_rate, train_step, warm_up, warm_up_batches
 
 CONFIGS = [("hybrid", 5, 64), ("vanilla", 5, 64), ("hybrid", 12, 128), ("vanilla", 12, 128), ("hybrid", 1, 64)]
