@@ -27,12 +27,12 @@ TURNS = ("z0", "z90", "z180", "z270", "x90", "x180")
 def rotation(turn: str) -> torch.Tensor:
     """'z90': 90 degrees about z; 'x180': 180 degrees about x."""
     try:
-        a = math.radians(float(turn[1:]))
-    except ValueError:
-        raise SystemExit(f"rotation_probe: a turn is z<degrees> or x<degrees>, not {turn!r}") from None
-    if turn[0] == "z":
+        axis, a = turn[0], math.radians(float(turn[1:]))
+    except (IndexError, ValueError):
+        axis = None
+    if axis == "z":
         return vertical_rotations(torch.tensor([a], dtype=torch.float64))[0]
-    if turn[0] == "x":
+    if axis == "x":
         c, s = math.cos(a), math.sin(a)
         return torch.tensor([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]], dtype=torch.float64)
     raise SystemExit(f"rotation_probe: a turn is z<degrees> or x<degrees>, not {turn!r}")

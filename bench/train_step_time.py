@@ -40,7 +40,8 @@ import torch
 from warpgnn.data import BatchShape, load_file, make_batch
 from warpgnn.model import ModelConfig, TIGNN
 from warpgnn.port_metriplectic import set_operator_products
-from warpgnn.training import compiled, fit_normalizer, lead_in_rate, train_step, warm_up, warm_up_batches
+from warpgnn.training import (compiled, fit_normalizer, lead_in_rate, operator_products, train_step, warm_up,
+                              warm_up_batches)
 
 CONFIGS = [("hybrid", 5, 64), ("vanilla", 5, 64), ("hybrid", 12, 128), ("vanilla", 12, 128), ("hybrid", 1, 64)]
 
@@ -127,11 +128,10 @@ def main():
             torch._dynamo.reset()
             torch.manual_seed(0)
             model = TIGNN(ModelConfig(kind=kind, passes=passes, latent=latent)).to(dev)
-            products = ("broadcast" if "-bcast" in mode else "einsum" if "-einsum" in mode
-                        else "broadcast" if mode.startswith("graphs") else "einsum")
+            graphs = mode.startswith("graphs")
+            products = "broadcast" if "-bcast" in mode else "einsum" if "-einsum" in mode else operator_products(graphs)
             set_operator_products(model, products)
             fit_normalizer(model, sims[:8])
-            graphs = mode.startswith("graphs")
             net = compiled(model, cuda_graphs=graphs) if mode.startswith(("compiled", "graphs")) else model
             shape = ((BatchShape.fitting(sims, a.batch),) if "-single" in mode else BatchShape.ladder(sims, a.batch)) if graphs else None
             precision = ((lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if "-bf16" in mode

@@ -114,6 +114,12 @@ def budget_spent(cfg: TrainConfig, history: list[dict]) -> bool:
     return history[-1]["seconds"] + last > cfg.time_budget
 
 
+def operator_products(cuda_graphs: bool) -> str:
+    """How training computes the hybrid decoder's (A - A^T) x and B B^T x: the broadcast form that
+    inductor fuses under --cuda-graphs' static shapes, the einsums otherwise (port_metriplectic)."""
+    return "broadcast" if cuda_graphs else "einsum"
+
+
 def unwrapped(model) -> TIGNN:
     """The TIGNN inside torch.compile and DistributedDataParallel wrappers."""
     while isinstance(model, torch.nn.Module) and not isinstance(model, TIGNN):
@@ -344,8 +350,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
         sched.load_state_dict(state["scheduler"])
         history, best, best_epoch, start = state["history"], state["best"], state["best_epoch"], state["epoch"] + 1
     net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
-    if cfg.cuda_graphs:  # static shapes: inductor fuses the broadcast form (port_metriplectic)
-        set_operator_products(model, "broadcast")
+    set_operator_products(model, operator_products(cfg.cuda_graphs))
     if cfg.compile or cfg.cuda_graphs:
         net = compiled(net, cuda_graphs=cfg.cuda_graphs)
     shapes = BatchShape.ladder(train_sims, cfg.batch_size) if cfg.cuda_graphs else None
