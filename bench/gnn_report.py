@@ -1,6 +1,9 @@
 """Tables and figures of the GNN runs: reads eval directories (EVAL/<run>/<set>/metrics.json,
 EVAL/<run>/L5_median.npz from bench/extract_rollout.py) and training logs (RUNS/<run>/log.csv),
 writes one JSON record, box plots like the paper's, final-step renders and a node history.
+Runs of earlier records (--peers RECORD.json REGEX, e.g. a committed bench/results/gnn_*.json whose
+eval directories are gone) join the table and the seed means with their recorded figures, marked
+with the record they came from; the plots show only the runs evaluated here.
 
     python bench/gnn_report.py EVAL RUNS OUT_PREFIX --device "NVIDIA H200" --command "..."
 """
@@ -31,6 +34,8 @@ def main():
     ap.add_argument("eval")
     ap.add_argument("runs")
     ap.add_argument("out_prefix")
+    ap.add_argument("--peers", nargs=2, action="append", default=[], metavar=("RECORD", "REGEX"),
+                    help="add the runs of an earlier record whose names match REGEX (repeatable)")
     provenance.add_arguments(ap)
     a = ap.parse_args()
     ev, runs, prefix = Path(a.eval), Path(a.runs), Path(a.out_prefix)
@@ -49,16 +54,22 @@ def main():
                 k: m[k] for k in ("entropy_production_min", "negative_entropy_rollouts", "rollout_seconds") if k in m}
             per[(run, s)] = m["per_rollout"]
         record["runs"][run] = entry
+    evaluated = list(record["runs"])
+    for path, pattern in a.peers:
+        earlier = json.load(open(path))["runs"]
+        record["runs"] |= {run: e | {"from_record": Path(path).name}
+                           for run, e in earlier.items() if re.search(pattern, run) and run not in evaluated}
     record["seed_means_L5"] = seed_means(record["runs"])
     out_json = prefix.with_suffix(".json")
+    out_json.parent.mkdir(parents=True, exist_ok=True)
     out_json.write_text(json.dumps(record, indent=1))
-    test = {run: per[(run, "L5")] for run in record["runs"]}
+    test = {run: per[(run, "L5")] for run in evaluated}
     rrmse_boxplot(test, f"{prefix}_boxplot_test.png", "per-rollout RRMSE on the unseen anatomy L5 (190 rollouts)")
-    for run in record["runs"]:
+    for run in evaluated:
         if run.startswith("hybrid_p5"):
             rrmse_boxplot({SETS[s]: per[(run, s)] for s in SETS}, f"{prefix}_boxplot_sets_{run}.png",
                           f"{run}: per-rollout RRMSE by set")
-    for run in record["runs"]:
+    for run in evaluated:
         d = np.load(ev / run / "L5_median.npz")
         mesh = TetMesh(d["nodes"], d["tets"], d["fixed"])
         render_comparison(mesh, d["ref"], d["pred"], d["loaded"], f"{prefix}_final_{run}.png",
