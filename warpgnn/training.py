@@ -444,5 +444,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
                 log(f"time limit reached after epoch {epoch}; --resume continues")
             break
     if world > 1:
+        # tear down together: a rank that destroyed its gloo group while rank 0 was still writing
+        # checkpoints once aborted ("terminate called without an active exception") in CI
+        dist.barrier()
         dist.destroy_process_group()
     return {"best": best, "best_epoch": best_epoch, "epochs": len(history), "history": history}
