@@ -11,9 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from warpgnn.graphs import GROUPS
+
 BENCH = Path(__file__).resolve().parents[1] / "bench"
 SETS = ("L1", "extra", "L5", "extra_star")
-GROUPS = ("q", "v", "sigma")
 
 
 def write_evaluated_run(root: Path, run: str, l5: float):

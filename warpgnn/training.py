@@ -444,8 +444,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
                 log(f"time limit reached after epoch {epoch}; --resume continues")
             break
     if world > 1:
-        # tear down together: a rank that destroyed its gloo group while rank 0 was still writing
-        # checkpoints once aborted ("terminate called without an active exception") in CI
+        # tear down together: in CI a rank once aborted in teardown ("terminate called without an
+        # active exception"), likely from leaving while rank 0 was still writing checkpoints
         dist.barrier()
         dist.destroy_process_group()
     return {"best": best, "best_epoch": best_epoch, "epochs": len(history), "history": history}
