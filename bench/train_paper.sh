@@ -98,7 +98,7 @@ for w in 10 30; do
 done
 # the stable recipe with each training sample turned about the vertical axis (--rotate: an exact new simulation),
 # 3 seeds of each 5-pass model (bench/results/gnn_rotate_h100.json: hybrid seed 0 at 24 epochs;
-# gnn_rotate1800_h100.json: the hybrid's 3 seeds at 1800 s; gnn_rotate_vanilla_h100.json: vanilla's at 114e, as many epochs)
+# gnn_rotate1800_h100.json: the hybrid's 3 seeds at 1800 s; gnn_rotate_vanilla{,3}_h100.json: vanilla's at 114e, as many epochs)
 seeds stable_rot $STABLE_FLAGS --rotate
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"

@@ -27,6 +27,7 @@ from warpgnn import checkpoint, training
 from warpgnn.data import BatchShape, all_samples, load_file, make_batch, smallest
 from warpgnn.errors import InputError
 from warpgnn.model import TIGNN, ModelConfig
+from warpgnn.port_metriplectic import set_operator_products
 from warpgnn.training import TrainConfig
 
 TINY = dict(passes=2, latent=16)
@@ -325,6 +326,22 @@ def test_cuda_graph_run_follows_the_plain_run(hybrid_run, data, tmp_path, monkey
     torch._dynamo.reset()
     with pytest.raises(ValueError, match="drop --compile"):
         config(data, tmp_path / "both", epochs=1, cuda_graphs=True, compile=True)
+
+
+def test_operator_products_choice_reaches_the_decoder_and_trains_alike(hybrid_run, data, tmp_path, monkeypatch):
+    """--operator-products picks the decoder's products over the --cuda-graphs rule; the broadcast
+    form trains like the default einsums (same values, differently fused)."""
+    assert training.operator_products(True) == "broadcast" and training.operator_products(False) == "einsum"
+    chosen = []
+    spy = lambda model, kind: (chosen.append(kind), set_operator_products(model, kind))  # noqa: E731
+    monkeypatch.setattr(training, "set_operator_products", spy)
+    result, _ = quiet_train(config(data, tmp_path / "bcast", epochs=2, operator_products="broadcast"))
+    assert chosen == ["broadcast"]
+    for got, want in zip(result["history"], hybrid_run[1]["history"][:2]):
+        for key in ("loss", "val_q", "val_v", "val_sigma"):
+            assert got[key] == pytest.approx(want[key], rel=1e-5), (got["epoch"], key)
+    with pytest.raises(ValueError, match="operator-products dense"):
+        config(data, tmp_path / "bad", epochs=1, operator_products="dense")
 
 
 def test_pushforward_run_with_cuda_graph_batches(data, tmp_path, monkeypatch):

@@ -155,7 +155,8 @@ def cmd_train(args):
                           lr=args.lr, lr_schedule=args.lr_schedule, lr_final=args.lr_final, patience=args.patience,
                           train_fraction=args.train_fraction, seed=args.seed, resume=args.resume,
                           time_limit=args.time_limit, time_budget=args.time_budget, tf32=args.tf32,
-                          compile=args.compile, cuda_graphs=args.cuda_graphs, pushforward=args.pushforward,
+                          compile=args.compile, cuda_graphs=args.cuda_graphs, operator_products=args.operator_products,
+                          pushforward=args.pushforward,
                           rotate=args.rotate, device=args.device,
                           **{k: getattr(args, k) for k in ("noise_q", "noise_v", "noise_v_add") if getattr(args, k) is not None})
     except ValueError as exc:
@@ -260,6 +261,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--cuda-graphs", action="store_true",
                    help="pad batches to a few fixed shapes, compile the network and replay each step as CUDA graphs "
                         "(one GPU; removes the launch overhead that bounds --compile)")
+    t.add_argument("--operator-products", choices=["einsum", "broadcast"], default=None,
+                   help="how the hybrid decoder computes (A - A^T) x and B B^T x: the same values, differently fused "
+                        "(default: broadcast with --cuda-graphs, which inductor fuses there; einsum otherwise)")
     t.add_argument("--resume", action="store_true", help="continue RUN/last.pt")
     t.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     t.set_defaults(func=cmd_train)

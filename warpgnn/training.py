@@ -31,7 +31,7 @@ from . import checkpoint, metrics
 from .data import Batch, BatchShape, all_samples, load_splits, make_batch, smallest
 from .errors import InputError
 from .model import ModelConfig, TIGNN
-from .port_metriplectic import set_operator_products
+from .port_metriplectic import OPERATOR_PRODUCTS, set_operator_products
 from .rollout import rollout
 from .run_log import write_log
 
@@ -77,6 +77,8 @@ class TrainConfig:
     tf32: bool = False  # CUDA matmuls in TF32 (measured no faster at these widths: train_step_time_h200.json)
     compile: bool = False  # torch.compile the training forward (and backward), dynamic shapes
     cuda_graphs: bool = False  # batches padded to a few fixed shapes, compiled and replayed as CUDA graphs
+    # the hybrid decoder's (A - A^T) x and B B^T x: einsum | broadcast; None: operator_products' rule
+    operator_products: str | None = None
     device: str | None = None
 
     def __post_init__(self):
@@ -88,6 +90,8 @@ class TrainConfig:
             raise ValueError("--patience must be >= 1")
         if self.cuda_graphs and self.compile:
             raise ValueError("--cuda-graphs compiles the network itself (static shapes): drop --compile")
+        if self.operator_products not in (None, *OPERATOR_PRODUCTS):
+            raise ValueError(f"--operator-products {self.operator_products}: expected one of {', '.join(OPERATOR_PRODUCTS)}")
 
     @property
     def stop_patience(self) -> float:
@@ -114,10 +118,11 @@ def budget_spent(cfg: TrainConfig, history: list[dict]) -> bool:
     return history[-1]["seconds"] + last > cfg.time_budget
 
 
-def operator_products(cuda_graphs: bool) -> str:
-    """How training computes the hybrid decoder's (A - A^T) x and B B^T x: the broadcast form that
-    inductor fuses under --cuda-graphs' static shapes, the einsums otherwise (port_metriplectic)."""
-    return "broadcast" if cuda_graphs else "einsum"
+def operator_products(cuda_graphs: bool, choice: str | None = None) -> str:
+    """How training computes the hybrid decoder's (A - A^T) x and B B^T x: ``choice`` if given, else
+    the broadcast form that inductor fuses under --cuda-graphs' static shapes, the einsums otherwise
+    (port_metriplectic)."""
+    return choice or ("broadcast" if cuda_graphs else "einsum")
 
 
 def unwrapped(model) -> TIGNN:
@@ -350,7 +355,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
         sched.load_state_dict(state["scheduler"])
         history, best, best_epoch, start = state["history"], state["best"], state["best_epoch"], state["epoch"] + 1
     net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
-    set_operator_products(model, operator_products(cfg.cuda_graphs))
+    set_operator_products(model, operator_products(cfg.cuda_graphs, cfg.operator_products))
     if cfg.compile or cfg.cuda_graphs:
         net = compiled(net, cuda_graphs=cfg.cuda_graphs)
     shapes = BatchShape.ladder(train_sims, cfg.batch_size) if cfg.cuda_graphs else None
