@@ -19,7 +19,7 @@ import tempfile
 
 import torch
 
-from warpgnn.run_log import read_log
+from warpgnn.run_log import epoch_seconds, read_log
 
 
 def train(data, out, epochs, batch, gpus):
@@ -29,9 +29,7 @@ def train(data, out, epochs, batch, gpus):
            if gpus > 1 else [sys.executable, "-m", "warpgnn.cli"]) + args
     env = {**os.environ, "NCCL_NVLS_ENABLE": "0", "TORCH_SYMM_MEM_DISABLE_MULTICAST": "1", "NVSHMEM_DISABLE_NVLS": "1"}
     subprocess.run(cmd, check=True, env=env)
-    rows = read_log(out)
-    seconds = [float(r["seconds"]) for r in rows]
-    return [b - a for a, b in zip([0.0] + seconds[:-1], seconds)]
+    return epoch_seconds(read_log(out))
 
 
 def main():

@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 import provenance  # bench/, beside this script
-from warpgnn.run_log import read_log
+from warpgnn.run_log import epoch_seconds, read_log
 
 
 def main():
@@ -41,8 +41,7 @@ def main():
         t0 = time.time()
         with open(f"{run}.stdout.txt", "w") as fh:
             subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, check=True)
-        seconds = [float(r["seconds"]) for r in read_log(run)]
-        epochs = [round(b - a_, 2) for a_, b in zip([0.0] + seconds, seconds)]
+        epochs = [round(e, 2) for e in epoch_seconds(read_log(run))]
         record["arms"].append({"operator_products": kind, "epoch_seconds": epochs,
                                "median_epoch_seconds": statistics.median(epochs[1:]),
                                "wall_seconds_with_warm_up": time.time() - t0})

@@ -129,7 +129,7 @@ def main():
             torch.manual_seed(0)
             model = TIGNN(ModelConfig(kind=kind, passes=passes, latent=latent)).to(dev)
             graphs = mode.startswith("graphs")
-            products = "broadcast" if "-bcast" in mode else "einsum" if "-einsum" in mode else operator_products(graphs)
+            products = operator_products(graphs, "broadcast" if "-bcast" in mode else "einsum" if "-einsum" in mode else None)
             set_operator_products(model, products)
             fit_normalizer(model, sims[:8])
             net = compiled(model, cuda_graphs=graphs) if mode.startswith(("compiled", "graphs")) else model

@@ -23,7 +23,7 @@ import torch.multiprocessing as mp
 
 import synthetic
 from test_cli import assert_one_line_error, run_cli
-from warpgnn import checkpoint, training
+from warpgnn import checkpoint, run_log, training
 from warpgnn.data import BatchShape, all_samples, load_file, make_batch, smallest
 from warpgnn.errors import InputError
 from warpgnn.model import TIGNN, ModelConfig
@@ -108,6 +108,10 @@ def test_tiny_run_lowers_its_loss_and_writes_its_files(hybrid_run):
     assert header == LOG_COLUMNS
     assert [int(r["epoch"]) for r in rows] == list(range(6))
     assert [float(r["loss"]) for r in rows] == pytest.approx([h["loss"] for h in hist])
+    # the seconds column is cumulative: the per-epoch durations the benches read are positive and add up to it
+    durations = run_log.epoch_seconds(rows)
+    assert len(durations) == 6 and min(durations) > 0
+    assert sum(durations) == pytest.approx(float(rows[-1]["seconds"]))
 
     last, last_payload = checkpoint.load_model(out / "last.pt")
     best, best_payload = checkpoint.load_model(out / "best.pt")

@@ -26,6 +26,12 @@ def read_log(run_dir: Path) -> list[dict]:
         return list(csv.DictReader(fh))
 
 
+def epoch_seconds(rows: list[dict]) -> list[float]:
+    """Each epoch's own duration: the log's seconds are cumulative training time."""
+    seconds = [float(r["seconds"]) for r in rows]
+    return [b - a for a, b in zip([0.0] + seconds[:-1], seconds)]
+
+
 def best_epoch(rows: list[dict]) -> dict:
     """The row with the lowest mean validation RRMSE (the epoch best.pt holds)."""
     return min(rows, key=lambda r: float(r["val_mean"]))
