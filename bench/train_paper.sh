@@ -100,5 +100,9 @@ done
 # 3 seeds of each 5-pass model (bench/results/gnn_rotate_h100.json: hybrid seed 0 at 24 epochs;
 # gnn_rotate1800_h100.json: the hybrid's 3 seeds at 1800 s; gnn_rotate_vanilla{,3}_h100.json: vanilla's at 114e, as many epochs)
 seeds stable_rot $STABLE_FLAGS --rotate
+# the same with the rates the boundary conditions overwrite left out of the loss (--skip-imposed-rates): the hybrid must
+# otherwise build the fixed face's zero rates and the tips' imposed velocity from its GENERIC sums
+# (bench/results/error_breakdown_rotate_vanilla_cpu.json: its one-step deficit against vanilla is at the tool tips)
+seeds stable_rot_skip $STABLE_FLAGS --rotate --skip-imposed-rates
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"

@@ -16,7 +16,7 @@ from synthetic import box, simulation
 from warpgnn import metrics
 from warpgnn.data import BatchShape, Simulation, make_batch, rotate_states, vertical_rotations
 from warpgnn.graphs import (NODE_FIXED, NODE_FREE, NODE_PRESCRIBED, apply_boundary_conditions, batch,
-                            make_topology, raw_features)
+                            imposed_components, make_topology, raw_features)
 from warpgnn.core_model import EdgeMLP
 from warpgnn.mesh import TetMesh, box_tet_mesh
 from warpgnn.model import ModelConfig, Prediction, TIGNN
@@ -431,6 +431,46 @@ def test_apply_boundary_conditions():
             expected[:3] = rest[i] + w * u[tool].numpy()
         np.testing.assert_allclose(out[i], expected, rtol=1e-6, atol=1e-9, err_msg=f"node {i} type {types[i]}")
     assert sorted(w for _, w in driven.values()) == [0.5, 0.5, 1.0, 1.0]
+
+
+def test_imposed_components_are_what_the_boundary_conditions_overwrite():
+    """imposed_components marks exactly the entries of the state that an Euler step's rate cannot
+    change: two steps with different rates agree there and differ everywhere else."""
+    mesh = box((2, 2, 2))
+    top = tool_topology(mesh, top_nodes(mesh)[[0, -1]])
+    gen = torch.Generator().manual_seed(3)
+    z = random_state(top, gen)
+    u = 1e-3 * torch.randn(2, 3, generator=gen, dtype=torch.float64)
+    rate_a, rate_b = torch.randn(2, *z.shape, generator=gen, dtype=torch.float64)
+    same = apply_boundary_conditions(top, z + rate_a, u) == apply_boundary_conditions(top, z + rate_b, u)
+    imposed = imposed_components(top.node_type)
+    assert torch.equal(same, imposed)
+    assert imposed[top.node_type == NODE_FREE].sum() == 0 and imposed.any()
+
+
+def test_loss_without_imposed_rates_hand_values():
+    """With imposed_in_loss off the data term is the mean over the components no boundary condition
+    overwrites (here 12 + 9 + 6 of a free, a tool-tip and a fixed node), group and tip weights
+    still applied; their rates get no gradient. Without node types every component counts."""
+    node_type = torch.tensor([NODE_FREE, NODE_PRESCRIBED, NODE_FIXED])
+    s, target = torch.zeros(3, 12, requires_grad=True), torch.zeros(3, 12)
+    err = torch.arange(1.0, 37.0).reshape(3, 12)  # distinct squared errors
+    target[:] = -err.sqrt()
+    model = tiny("vanilla", imposed_in_loss=False)
+    model.normalizer.zdot_scale.fill_(1.0)
+    loss, _ = model.loss(Prediction(s, s), target, node_type=node_type)
+    kept = torch.ones(3, 12, dtype=torch.bool)
+    kept[1, :3], kept[2, :6] = False, False
+    assert loss.item() == pytest.approx(float(err[kept].sum() / 27), rel=1e-6)
+    loss.backward()
+    assert torch.equal(s.grad != 0, kept)
+    assert model.loss(Prediction(s, s), target)[0].item() == pytest.approx(float(err.mean()), rel=1e-6)
+    weighted = tiny("vanilla", imposed_in_loss=False, tip_weight=2.0, rate_weights=(1.0, 0.0, 1.0))
+    weighted.normalizer.zdot_scale.fill_(1.0)
+    w = torch.tensor([1.0] * 3 + [0.0] * 3 + [1.0] * 6) * kept * torch.tensor([1.0, 2.0, 1.0])[:, None]
+    assert weighted.loss(Prediction(s, s), target, node_type=node_type)[0].item() == pytest.approx(
+        float((err * w).sum() / w.sum()), rel=1e-6)
+    assert ModelConfig().imposed_in_loss
 
 
 def test_model_step_is_euler_then_boundary_conditions():

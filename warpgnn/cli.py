@@ -145,7 +145,7 @@ def cmd_train(args):
     try:
         model = ModelConfig(kind=args.model, passes=args.passes, latent=args.latent,
                             actuator_graphs=not args.single_graph, rate_weights=tuple(args.rate_weights),
-                            tip_weight=args.tip_weight)
+                            tip_weight=args.tip_weight, imposed_in_loss=not args.skip_imposed_rates)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     if not 0 < args.train_fraction <= 1:
@@ -252,6 +252,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="weights of the position, velocity and stress rates in the data loss (default 1 1 1: the paper)")
     t.add_argument("--tip-weight", type=float, default=1.0, metavar="W",
                    help="weight of each tool-tip node in the data loss against 1 for the others (default 1: the paper)")
+    t.add_argument("--skip-imposed-rates", action="store_true",
+                   help="leave out of the data loss the rates the boundary conditions overwrite (fixed nodes' q and v, "
+                        "tool tips' q); default: every rate is scored (the paper)")
     t.add_argument("--rotate", action="store_true",
                    help="turn each training sample by a random angle about the vertical z axis (an exact new simulation: "
                         "no gravity, isotropic material; default off: the paper)")

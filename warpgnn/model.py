@@ -15,7 +15,8 @@ import torch
 from torch import nn
 
 from .core_model import EdgeSet, EncodeProcess, MultiGraph, mlp
-from .graphs import GROUPS, NODE_PRESCRIBED, NODE_TYPES, STATE, Topology, apply_boundary_conditions, raw_features
+from .graphs import (GROUPS, NODE_PRESCRIBED, NODE_TYPES, STATE, Topology, apply_boundary_conditions, imposed_components,
+                     raw_features)
 from .normalization import FEATURES, Normalizer
 from .port_metriplectic import PortMetriplecticDecoder
 
@@ -36,6 +37,9 @@ class ModelConfig:
     # weight of each tool-tip (prescribed) node in the data loss against 1 for the others (the paper: 1).
     # The tips are ~1.5 % of the nodes but carry 37-55 % of the rollout stress error (bench/error_breakdown.py)
     tip_weight: float = 1.0
+    # score the rates the Euler step overwrites (fixed nodes' q and v, tool tips' q) in the data loss
+    # (the paper: yes). The hybrid must build those rates from its GENERIC sums too, vanilla only from a one-hot
+    imposed_in_loss: bool = True
 
     def __post_init__(self):
         if self.kind not in ("hybrid", "vanilla"):
@@ -117,7 +121,8 @@ class TIGNN(nn.Module):
         """MSE over standardised components, weighted by group (``rate_weights``; equal: the plain
         MSE), + lambda_d times the degeneracy residual, averaged over the nodes ``node_mask``
         keeps (padded batches) or over all of them. With ``node_type``, the data term weighs each
-        tool-tip node ``tip_weight`` times (a weighted mean over the nodes)."""
+        tool-tip node ``tip_weight`` times (a weighted mean over the nodes) and, unless
+        ``imposed_in_loss``, leaves out the components the boundary conditions overwrite."""
         def node_mean(per_node, weight=node_mask):
             return per_node.mean() if weight is None else (per_node * weight).sum() / weight.sum()
 
@@ -125,9 +130,12 @@ class TIGNN(nn.Module):
         if node_type is not None and self.config.tip_weight != 1.0:
             node_weight = torch.where(node_type == NODE_PRESCRIBED, self.config.tip_weight, 1.0).to(zdot_target.dtype)
             node_weight = node_weight if node_mask is None else node_weight * node_mask
-        w = self.component_weights
-        data = node_mean(((p.zdot_standardized - zdot_target / self.normalizer.zdot_scale).square() * w).sum(-1) / w.sum(),
-                         node_weight)
+        w = self.component_weights.expand_as(zdot_target)  # (N, 12): group weight x kept or not
+        if node_type is not None and not self.config.imposed_in_loss:
+            w = w * ~imposed_components(node_type)
+        node_weight = torch.ones_like(zdot_target[:, 0]) if node_weight is None else node_weight
+        w = w * node_weight[:, None]
+        data = ((p.zdot_standardized - zdot_target / self.normalizer.zdot_scale).square() * w).sum() / w.sum()
         if p.degeneracy is None:
             return data, {"data": data.detach()}
         deg = node_mean(p.degeneracy)
