@@ -1,7 +1,8 @@
 """Where a trained network's error comes from, by node class (tool tip, fixed face, free nodes
 within 2 cm of a loaded node, the free far field): the one-step error per class and component,
 the rollout error's share per class and its RMS per class after 5, 10, 15 and 20 steps (the tools
-ramp until step 10, then hold); beside it, how much of the ground truth's snapshot velocity is
+ramp until step 10, then hold), and whether the loaded nodes' stress error at the ramp's end is a
+per-step bias or compounded drift; beside it, how much of the ground truth's snapshot velocity is
 aliased vibration in each phase (a floor no network reaches from snapshots alone).
 
     python bench/error_breakdown.py CHECKPOINT.pt [...] DATA_FILE.h5 [...] --json OUT.json --device "..."
@@ -58,10 +59,10 @@ def one_step(model, sims) -> dict:
                         for k, name in enumerate(CLASSES)}}
 
 
-def rollout_errors(model, sims) -> dict:
+def rollout_errors(sims, rolls) -> dict:
     """Each group's squared rollout error: share by class, and its RMS (per component) after 5,
     10, 15 and 20 steps, over all nodes and per class."""
-    rolls, out = rollout(model, sims), {}
+    out = {}
     steps = sims[0].steps
     marks = [s for s in (5, 10, 15, 20) if s <= steps]
     for g, sl in GROUPS.items():
@@ -81,6 +82,32 @@ def rollout_errors(model, sims) -> dict:
                   "rms_after_steps": rms(sq.sum(0), count.sum()),
                   "rms_after_steps_by_class": {name: rms(sq[k], count[k]) for k, name in enumerate(CLASSES)}}
     return out
+
+
+def loaded_node_stress(model, sims, rolls) -> dict:
+    """The stress of the loaded nodes when the tools' ramp ends: its RMS, the rollout's error, and
+    the error of the one-step rates taken from the true states, summed over the ramp (dt x the sum
+    of rate errors). The last near the rollout's and correlated with it: the error is a bias the
+    network makes at every step even from true states; well below it: drifted states compound it."""
+    ramp = round(SolverConfig().ramp_fraction * sims[0].steps)
+    ref, summed, rolled = [], [], []
+    for i, (sim, r) in enumerate(zip(sims, rolls)):
+        b = make_batch(sims, [(i, t) for t in range(ramp)])  # snapshots 0 .. ramp - 1, stacked in order
+        with torch.no_grad():
+            err = (model(b.topology, b.z, b.u_now, b.u_next).zdot - b.zdot)[:, 6:].numpy()
+        loaded = sim.topology.loaded.numpy()
+        summed.append(sim.dt * err.reshape(ramp, sim.topology.n_nodes, 6)[:, loaded].sum(0))
+        truth = sim.z[ramp, loaded, 6:].numpy()
+        rolled.append(r.z[ramp, loaded, 6:] - truth)
+        ref.append(truth)
+    ref, summed, rolled = (np.concatenate(x).astype(np.float64) for x in (ref, summed, rolled))
+
+    def rms(x):
+        return float(np.sqrt((x ** 2).mean()))
+
+    return {"after_steps": ramp, "sigma_rms": rms(ref), "rollout_error_rms": rms(rolled),
+            "summed_one_step_error_rms": rms(summed),
+            "correlation": float((summed * rolled).sum() / np.sqrt((summed ** 2).sum() * (rolled ** 2).sum()))}
 
 
 def velocity_floor(sims) -> dict:
@@ -131,9 +158,12 @@ def main():
         run = run if run not in record["runs"] else f"{run}_{len(record['runs'])}"
         record["runs"][run] = {"checkpoint": checkpoint, "files": {}}
         for path, s in sims.items():
-            entry = {"one_step": one_step(model, s), "rollout": rollout_errors(model, s)}
+            rolls = rollout(model, s)
+            entry = {"one_step": one_step(model, s), "rollout": rollout_errors(s, rolls),
+                     "loaded_node_stress": loaded_node_stress(model, s, rolls)}
             record["runs"][run]["files"][path] = entry
             print(run, path, json.dumps({"one_step_mse": entry["one_step"]["mse"],
+                                         "loaded_node_stress": entry["loaded_node_stress"],
                                          "rollout_share": {g: r["share_by_class"] for g, r in entry["rollout"].items()}},
                                         indent=1), flush=True)
     print(json.dumps({path: f["velocity_floor"] for path, f in record["files"].items()}, indent=1))
