@@ -40,19 +40,33 @@ def node_classes(sim) -> np.ndarray:
     return np.select([kind == NODE_PRESCRIBED, kind == NODE_FIXED, (kind == NODE_FREE) & (dist < NEAR)], [0, 1, 2], 3)
 
 
-def one_step(model, sims) -> dict:
-    """Standardised squared error of zdot from the true state (no noise), per class and component."""
-    sq, count = np.zeros((len(CLASSES), 12)), np.zeros(len(CLASSES))
+def ramp_steps(sim) -> int:
+    """Snapshots until the tools stop: the generator's ramp (paper preset)."""
+    return round(SolverConfig().ramp_fraction * sim.steps)
+
+
+def one_step_errors(model, sims) -> list[np.ndarray]:
+    """Per simulation, (steps, nodes, 12): the network's zdot from each true state (no noise)
+    minus the true one, physical units (the snapshots of one simulation stacked in one batch)."""
+    out = []
     for i, sim in enumerate(sims):
+        b = make_batch(sims, [(i, t) for t in range(sim.steps)])  # stacked in snapshot order
+        with torch.no_grad():
+            err = model(b.topology, b.z, b.u_now, b.u_next).zdot - b.zdot
+        out.append(err.numpy().reshape(sim.steps, sim.topology.n_nodes, 12))
+    return out
+
+
+def one_step(model, sims, errors) -> dict:
+    """Standardised squared error of zdot from the true state (``one_step_errors``), per class and component."""
+    sq, count = np.zeros((len(CLASSES), 12)), np.zeros(len(CLASSES))
+    scale = model.normalizer.zdot_scale.numpy()
+    for sim, e in zip(sims, errors):
         cls = node_classes(sim)
-        for t in range(sim.steps):
-            b = make_batch(sims, [(i, t)])
-            with torch.no_grad():
-                p = model(b.topology, b.z, b.u_now, b.u_next)
-            err = ((p.zdot_standardized - b.zdot / model.normalizer.zdot_scale) ** 2).numpy()
-            for k in range(len(CLASSES)):
-                sq[k] += err[cls == k].sum(0)
-                count[k] += (cls == k).sum()
+        err = (e / scale) ** 2
+        for k in range(len(CLASSES)):
+            sq[k] += err[:, cls == k].sum((0, 1))
+            count[k] += (cls == k).sum() * sim.steps
     return {"mse_per_component": (sq.sum(0) / count.sum()).tolist(), "mse": float(sq.sum() / count.sum() / 12),
             "classes": {name: {"nodes_per_snapshot": count[k] / sum(s.steps for s in sims),
                                "mse_per_component": (sq[k] / count[k]).tolist(), "share_of_loss": sq[k].sum() / sq.sum()}
@@ -84,19 +98,17 @@ def rollout_errors(sims, rolls) -> dict:
     return out
 
 
-def loaded_node_stress(model, sims, rolls) -> dict:
+def loaded_node_stress(sims, rolls, errors) -> dict:
     """The stress of the loaded nodes when the tools' ramp ends: its RMS, the rollout's error, and
-    the error of the one-step rates taken from the true states, summed over the ramp (dt x the sum
-    of rate errors). The last near the rollout's and correlated with it: the error is a bias the
-    network makes at every step even from true states; well below it: drifted states compound it."""
-    ramp = round(SolverConfig().ramp_fraction * sims[0].steps)
+    the error of the one-step rates taken from the true states (``one_step_errors``), summed over
+    the ramp (dt x the sum of rate errors). The last near the rollout's and correlated with it: the
+    error is a bias the network makes at every step even from true states; well below it: drifted
+    states compound it."""
+    ramp = ramp_steps(sims[0])
     ref, summed, rolled = [], [], []
-    for i, (sim, r) in enumerate(zip(sims, rolls)):
-        b = make_batch(sims, [(i, t) for t in range(ramp)])  # snapshots 0 .. ramp - 1, stacked in order
-        with torch.no_grad():
-            err = (model(b.topology, b.z, b.u_now, b.u_next).zdot - b.zdot)[:, 6:].numpy()
+    for sim, r, e in zip(sims, rolls, errors):
         loaded = sim.topology.loaded.numpy()
-        summed.append(sim.dt * err.reshape(ramp, sim.topology.n_nodes, 6)[:, loaded].sum(0))
+        summed.append(sim.dt * e[:ramp, loaded, 6:].sum(0))
         truth = sim.z[ramp, loaded, 6:].numpy()
         rolled.append(r.z[ramp, loaded, 6:] - truth)
         ref.append(truth)
@@ -118,7 +130,7 @@ def velocity_floor(sims) -> dict:
     out: its differences straddle both phases)."""
     sums = {}
     for sim in sims:
-        ramp_snapshots = round(SolverConfig().ramp_fraction * sim.steps)  # the generator's ramp (paper preset)
+        ramp_snapshots = ramp_steps(sim)
         cls = node_classes(sim)
         z = sim.z.numpy()
         q, v = z[..., :3], z[..., 3:6]
@@ -158,9 +170,9 @@ def main():
         run = run if run not in record["runs"] else f"{run}_{len(record['runs'])}"
         record["runs"][run] = {"checkpoint": checkpoint, "files": {}}
         for path, s in sims.items():
-            rolls = rollout(model, s)
-            entry = {"one_step": one_step(model, s), "rollout": rollout_errors(s, rolls),
-                     "loaded_node_stress": loaded_node_stress(model, s, rolls)}
+            rolls, errors = rollout(model, s), one_step_errors(model, s)
+            entry = {"one_step": one_step(model, s, errors), "rollout": rollout_errors(s, rolls),
+                     "loaded_node_stress": loaded_node_stress(s, rolls, errors)}
             record["runs"][run]["files"][path] = entry
             print(run, path, json.dumps({"one_step_mse": entry["one_step"]["mse"],
                                          "loaded_node_stress": entry["loaded_node_stress"],
