@@ -151,14 +151,7 @@ def main():
                                  "GPU's paper preset; set index 0 = L1, 4 = L5): python -c \"from warpgnn.cli import "
                                  "init_warp; init_warp(); from warpgnn.fem_ref.generate import generate_set, PRESETS, "
                                  "SimulationSet as S; generate_set('d', S('L5', 'L5', 10), 4, PRESETS['paper'](), 0, 'cpu')\"")
-    ap.add_argument("paths", nargs="+", metavar="FILE", help="checkpoints (*.pt), then data files (*.h5)")
-    ap.add_argument("--json", required=True)
-    provenance.add_arguments(ap)
-    a = ap.parse_args()
-    checkpoints = [p for p in a.paths if p.endswith(".pt")]
-    data = [p for p in a.paths if not p.endswith(".pt")]
-    if not checkpoints or not data:
-        ap.error("give at least one checkpoint (*.pt) and one data file")
+    a, checkpoints, data = provenance.parse_checkpoints_then_data(ap)
     torch.set_num_threads(2)
     sims = {path: load_file(path) for path in data}
     record = provenance.record(a) | {"near_m": NEAR, "files": {

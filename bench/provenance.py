@@ -22,3 +22,17 @@ def add_probe_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("checkpoints", nargs="+")
     ap.add_argument("--json", required=True)
     add_arguments(ap)
+
+
+def parse_checkpoints_then_data(ap: argparse.ArgumentParser, need_checkpoint: bool = True):
+    """FILE [...] --json OUT and the above: checkpoints (*.pt), then data files (*.h5). Returns
+    the arguments, the checkpoints and the data files."""
+    ap.add_argument("paths", nargs="+", metavar="FILE", help="checkpoints (*.pt), then data files (*.h5)")
+    ap.add_argument("--json", required=True)
+    add_arguments(ap)
+    a = ap.parse_args()
+    checkpoints = [p for p in a.paths if p.endswith(".pt")]
+    data = [p for p in a.paths if not p.endswith(".pt")]
+    if (need_checkpoint and not checkpoints) or not data:
+        ap.error("give " + ("at least one checkpoint (*.pt) and " if need_checkpoint else "") + "at least one data file")
+    return a, checkpoints, data

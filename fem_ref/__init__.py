@@ -2,7 +2,7 @@
 
 from .loads import LoadCase, LoadSampler, make_load_case
 from .material import OgdenProny
-from .solver import BatchedExplicitSolver, SimulationResult, SolverConfig, stable_time_step
+from .solver import BatchedExplicitSolver, SimulationResult, SolverConfig, elastic_nodal_stress, stable_time_step
 
 __all__ = ["BatchedExplicitSolver", "LoadCase", "LoadSampler", "OgdenProny", "SimulationResult",
-           "SolverConfig", "make_load_case", "stable_time_step"]
+           "SolverConfig", "elastic_nodal_stress", "make_load_case", "stable_time_step"]

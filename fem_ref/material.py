@@ -69,6 +69,12 @@ class OgdenProny:
         p.gamma1, p.gamma2 = (gk * (1.0 - ek) * tk / dt for gk, ek, tk in zip(self.g, e, self.tau))
         return p
 
+    @classmethod
+    def from_attrs(cls, attrs: dict) -> "OgdenProny":
+        """The material ``as_attrs`` wrote (a dataset's ``material`` attribute, parsed)."""
+        return cls(attrs["mu"], attrs["alpha"], attrs["d"], tuple(attrs["prony_g"]), tuple(attrs["prony_tau"]),
+                   attrs["density"])
+
     def as_attrs(self) -> dict:
         return {"mu": self.mu, "alpha": self.alpha, "d": self.d, "prony_g": list(self.g),
                 "prony_tau": list(self.tau), "g_inf": self.g_inf, "density": self.density}

@@ -211,6 +211,30 @@ def element_stress(
     wp.atomic_max(max_stretch, b, snap[0], stretch)
 
 
+def elastic_nodal_stress(mesh: TetMesh, positions: np.ndarray, material: OgdenProny = OgdenProny(),
+                         device=None) -> np.ndarray:
+    """(B, N, 6) nodal Cauchy stress of ``material``'s instantaneous elastic law (every Prony branch
+    responding with the full modulus, as it does to a sudden strain) at ``positions`` (B, N, 3),
+    recovered into the nodes exactly as the snapshots' stress is: what the FEM's stress would be
+    for these positions with no viscous history. bench/tip_stress_conditioning.py asks how
+    precisely positions must be known to give the tool tips' stress."""
+    d = wp.get_device(device)
+    positions = np.asarray(positions, np.float32)
+    B, N, T = positions.shape[0], len(mesh.nodes), len(mesh.tets)
+    X = mesh.nodes
+    Dm = np.stack([X[mesh.tets[:, k]] - X[mesh.tets[:, 0]] for k in (1, 2, 3)], axis=2)
+    params = material.elastic().to_warp(1.0)  # no viscous branch: dt does not enter
+    zeros6 = wp.zeros((B, T), dtype=vec6, device=d)  # no internal variables
+    acc, weight = wp.zeros((B, N), dtype=vec6, device=d), wp.zeros((B, N), dtype=float, device=d)
+    wp.launch(element_stress, (B, T),
+              [wp.array(positions, dtype=wp.vec3, device=d), wp.array(mesh.tets, dtype=wp.vec4i, device=d),
+               wp.array(np.linalg.inv(Dm).astype(np.float32), dtype=wp.mat33, device=d),
+               wp.array(mesh.volumes.astype(np.float32), dtype=float, device=d), params, zeros6, zeros6,
+               wp.zeros(1, dtype=int, device=d), acc, weight, wp.zeros((B, 1), dtype=float, device=d),
+               wp.zeros((B, 1), dtype=float, device=d)], device=d)
+    return acc.numpy() / weight.numpy()[..., None]
+
+
 @wp.kernel
 def record_snapshot(
     x: wp.array2d(dtype=wp.vec3),
