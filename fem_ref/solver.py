@@ -211,6 +211,14 @@ def element_stress(
     wp.atomic_max(max_stretch, b, snap[0], stretch)
 
 
+def rest_shape_inverse(mesh: TetMesh) -> np.ndarray:
+    """(T, 3, 3) float32 inverse of each tet's rest edge matrix [X1-X0, X2-X0, X3-X0] (inverted in
+    float64): F = [x1-x0, x2-x0, x3-x0] times it."""
+    X = mesh.nodes
+    Dm = np.stack([X[mesh.tets[:, k]] - X[mesh.tets[:, 0]] for k in (1, 2, 3)], axis=2)
+    return np.linalg.inv(Dm).astype(np.float32)
+
+
 def elastic_nodal_stress(mesh: TetMesh, positions: np.ndarray, material: OgdenProny = OgdenProny(),
                          device=None) -> np.ndarray:
     """(B, N, 6) nodal Cauchy stress of ``material``'s instantaneous elastic law (every Prony branch
@@ -221,14 +229,12 @@ def elastic_nodal_stress(mesh: TetMesh, positions: np.ndarray, material: OgdenPr
     d = wp.get_device(device)
     positions = np.asarray(positions, np.float32)
     B, N, T = positions.shape[0], len(mesh.nodes), len(mesh.tets)
-    X = mesh.nodes
-    Dm = np.stack([X[mesh.tets[:, k]] - X[mesh.tets[:, 0]] for k in (1, 2, 3)], axis=2)
     params = material.elastic().to_warp(1.0)  # no viscous branch: dt does not enter
     zeros6 = wp.zeros((B, T), dtype=vec6, device=d)  # no internal variables
     acc, weight = wp.zeros((B, N), dtype=vec6, device=d), wp.zeros((B, N), dtype=float, device=d)
     wp.launch(element_stress, (B, T),
               [wp.array(positions, dtype=wp.vec3, device=d), wp.array(mesh.tets, dtype=wp.vec4i, device=d),
-               wp.array(np.linalg.inv(Dm).astype(np.float32), dtype=wp.mat33, device=d),
+               wp.array(rest_shape_inverse(mesh), dtype=wp.mat33, device=d),
                wp.array(mesh.volumes.astype(np.float32), dtype=float, device=d), params, zeros6, zeros6,
                wp.zeros(1, dtype=int, device=d), acc, weight, wp.zeros((B, 1), dtype=float, device=d),
                wp.zeros((B, 1), dtype=float, device=d)], device=d)
@@ -334,7 +340,6 @@ class BatchedExplicitSolver:
 
         # Reference geometry and lumped mass (float64 on the host, float32 on the device).
         X = mesh.nodes
-        Dm = np.stack([X[mesh.tets[:, k]] - X[mesh.tets[:, 0]] for k in (1, 2, 3)], axis=2)
         vol = mesh.volumes
         mass = np.zeros(N)
         np.add.at(mass, mesh.tets.ravel(), np.repeat(material.density * vol / 4.0, 4))
@@ -355,7 +360,7 @@ class BatchedExplicitSolver:
         arr = lambda a, dtype: wp.array(np.ascontiguousarray(a), dtype=dtype, device=d)  # noqa: E731
         self.X = arr(X.astype(np.float32), wp.vec3)
         self.tets = arr(mesh.tets, wp.vec4i)
-        self.Dm_inv = arr(np.linalg.inv(Dm).astype(np.float32), wp.mat33)
+        self.Dm_inv = arr(rest_shape_inverse(mesh), wp.mat33)
         self.vol0 = arr(vol.astype(np.float32), float)
         self.altitude = arr(mesh.min_altitude().astype(np.float32), float)
         self.inv_mass = arr((1.0 / mass).astype(np.float32), float)
