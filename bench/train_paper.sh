@@ -98,7 +98,8 @@ for w in 10 30; do
 done
 # the stable recipe with each training sample turned about the vertical axis (--rotate: an exact new simulation),
 # 3 seeds of each 5-pass model (bench/results/gnn_rotate_h100.json: hybrid seed 0 at 24 epochs;
-# gnn_rotate1800_h100.json: the hybrid's 3 seeds at 1800 s; gnn_rotate_vanilla{,3}_h100.json: vanilla's at 114e, as many epochs)
+# gnn_rotate1800_h100.json: the hybrid's 3 seeds at 1800 s; gnn_rotate_vanilla{,3}_h100.json: vanilla's at 114e, as many epochs;
+# gnn_rotate1800_bcast{,_s1,_s2}_h100.json: the hybrid at 1800 s with the broadcast products; gnn_rotate_vanilla_e140_h100.json: vanilla seed 0 at 140e)
 seeds stable_rot $STABLE_FLAGS --rotate
 # the same with the rates the boundary conditions overwrite left out of the loss (--skip-imposed-rates): the hybrid must
 # otherwise build the fixed face's zero rates and the tips' imposed velocity from its GENERIC sums
