@@ -105,5 +105,9 @@ seeds stable_rot $STABLE_FLAGS --rotate
 # otherwise build the fixed face's zero rates and the tips' imposed velocity from its GENERIC sums
 # (bench/results/error_breakdown_rotate_vanilla_cpu.json: its one-step deficit against vanilla is at the tool tips)
 seeds stable_rot_skip $STABLE_FLAGS --rotate --skip-imposed-rates
+# the same with a 4-step pushforward lead-in (the last --pushforward wins): the far field's position error is built
+# during the ramp and then kept through the hold (bench/results/error_breakdown_rotate_vanilla_cpu.json); a longer
+# lead-in lets training see more of that accumulated error
+seeds stable_rot_pf4 $STABLE_FLAGS --rotate --pushforward 4
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"
