@@ -729,3 +729,22 @@ def test_rotation_probe_scores_the_unturned_problem_as_eval_does(hybrid_run, dat
         assert scores["z0"][kind] == pytest.approx(evaluated[1][kind], rel=1e-5)
         assert scores["z360"][kind] == pytest.approx(scores["z0"][kind], rel=1e-4)
     assert scores["z90"]["rmse"]["sigma"] != pytest.approx(scores["z0"]["rmse"]["sigma"], rel=1e-3)
+
+
+def test_shipped_network_is_the_recorded_run_and_evaluates(data, tmp_path):
+    """The package's pretrained hybrid (what `warpgnn demo` rolls out) is byte for byte the checkpoint
+    of the record it names, has that record's size, and runs through `warpgnn eval` from its
+    installed path, producing no negative entropy (M = B B^T makes dS . M dS >= 0)."""
+    root = Path(__file__).resolve().parents[1] / "bench" / "results"
+    recorded = root / "gnn_rotate1800_bcast_s2_h100_runs" / "hybrid_p5_stable_rot_bcast_s2" / "best.pt"
+    assert checkpoint.PRETRAINED_HYBRID.read_bytes() == recorded.read_bytes()
+    model, _ = checkpoint.load_model(checkpoint.PRETRAINED_HYBRID)
+    run = json.loads((root / "gnn_rotate1800_bcast_s2_h100.json").read_text())["runs"]["hybrid_p5_stable_rot_bcast_s2"]
+    assert (model.config.kind, model.config.passes, model.config.latent) == ("hybrid", 5, 64)
+    assert sum(p.numel() for p in model.parameters()) == run["parameters"]
+    proc = run_cli("eval", "--checkpoint", checkpoint.PRETRAINED_HYBRID, "--data", data / "L5.h5",
+                   "--out", tmp_path / "ev", "--device", "cpu", "--no-plots")
+    assert proc.returncode == 0, proc.stderr
+    metrics = json.loads((tmp_path / "ev" / "metrics.json").read_text())
+    assert all(np.isfinite(metrics["rrmse"][g]) for g in GROUPS)
+    assert metrics["negative_entropy_rollouts"] == 0

@@ -12,6 +12,10 @@ import torch
 from .errors import InputError
 from .model import TIGNN, ModelConfig
 
+# The network shipped with the package: the 5-pass hybrid of our best recipe (pushforward, additive
+# velocity noise, --rotate), 30 minutes on one H100; seed 2 of bench/results/gnn_rotate1800_bcast_s2_h100.json
+PRETRAINED_HYBRID = Path(__file__).with_name("weights") / "hybrid_p5_rotate.pt"
+
 
 def save_atomically(payload: dict, path) -> None:
     path = Path(path)

@@ -120,9 +120,15 @@ def cmd_generate(args):
 
 def cmd_demo(args):
     """The main job on the built-in default: the five anatomies (render + table), the smoke
-    dataset, and a render of one of its simulations."""
+    dataset and a render of one of its simulations, then the shipped network against the FEM on
+    the first test simulation of the paper preset (the unseen anatomy L5, full length)."""
+    from dataclasses import replace
+
     from .anatomy import LIVERS, procedural_liver
     from . import dataset
+    from .checkpoint import PRETRAINED_HYBRID
+    from .evaluation import evaluate
+    from .fem_ref.generate import PRESETS, generate_set
     from .render import anatomy_table, render_anatomies, render_simulation
 
     out = Path(args.out)
@@ -136,6 +142,12 @@ def cmd_demo(args):
     render_simulation(dataset.read_mesh(data), dataset.read_simulation(data, "sim_0000"),
                       out / "simulation.png", "L5 sim_0000")
     print(f"renders: {out / 'anatomies.png'}, {out / 'simulation.png'}")
+    # the same random stream as the paper preset's L5 set, so this is its sim_0000, a test case
+    paper = PRESETS["paper"]()
+    k, test_set = next((k, s) for k, s in enumerate(paper.sets) if s.name == "L5")
+    generate_set(out / "unseen", replace(test_set, count=1), k, paper, 0, _device(args.device))
+    evaluate(PRETRAINED_HYBRID, out / "unseen" / "L5.h5", out / "network", args.device)
+    print(f"network against the FEM: {out / 'network'} (metrics.json, final_step_median.png, node_history.png)")
 
 
 def cmd_train(args):
