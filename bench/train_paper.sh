@@ -109,5 +109,14 @@ seeds stable_rot_skip $STABLE_FLAGS --rotate --skip-imposed-rates
 # during the ramp and then kept through the hold (bench/results/error_breakdown_rotate_vanilla_cpu.json); a longer
 # lead-in lets training see more of that accumulated error
 seeds stable_rot_pf4 $STABLE_FLAGS --rotate --pushforward 4
+# (bench/results/gnn_rotate1800_pf4_h100.json: seed 0 at 1800 s, 99 epochs; no gain, the far field's error unchanged)
+# the same with 10x the position noise (--noise-q 3e-2, ~160 um RMS; the last --noise-q wins): trained with 3e-3 (~16 um)
+# no network pulls a displaced position back, at any size (bench/results/perturbation_recovery_cpu.json); with 3e-2 it
+# pulls per-node displacements back but not the smooth error its rollouts carry, and gains nothing established
+# (bench/results/gnn_noise_q3e2_e24_h100.json: seed 0 at 24e beside the recipe's)
+seeds stable_rot_nq3e2 $STABLE_FLAGS --rotate --noise-q 3e-2
+# the same with a random smooth (quadratic) displacement of the free nodes, RMS up to 5 % of the mean edge (~450 um,
+# the far field's rollout error is ~400 um and 60-63 % quadratic): the shape per-node noise cannot teach. Not run yet
+seeds stable_rot_smooth $STABLE_FLAGS --rotate --noise-smooth 5e-2
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"

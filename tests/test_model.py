@@ -597,6 +597,37 @@ def test_make_batch_additive_velocity_noise(two_sims):
     assert torch.equal(b.zdot, (z1 - b.z) / dt)  # the target leads back from the noisy velocity
 
 
+def test_make_batch_smooth_position_noise(two_sims):
+    """--noise-smooth: on top of the paper's noise (its draws and the rotations' left as they were), each
+    sample's free nodes move by a quadratic field of its rest coordinates (checked by an independent
+    least-squares fit per sample) of RMS up to mean_edge * noise_smooth over them; nothing else moves,
+    the target leads back from the displaced state, and each sample gets its own field and size."""
+    samples, a = [(0, 0), (1, 2), (0, 1)], 0.3
+    for rotate in (False, True):
+        paper = make_batch(two_sims, samples, 0.05, 0.1, torch.Generator().manual_seed(0), rotate=rotate)
+        b = make_batch(two_sims, samples, 0.05, 0.1, torch.Generator().manual_seed(0), rotate=rotate, noise_smooth=a)
+        assert torch.equal(b.z[:, 3:], paper.z[:, 3:]) and torch.equal(b.topology.rest, paper.topology.rest)
+        free = (b.topology.node_type == NODE_FREE).numpy()
+        d = (b.z[:, :3] - paper.z[:, :3]).double().numpy()
+        assert np.abs(d[~free]).max() == 0
+        offsets = np.cumsum([0] + [two_sims[i].topology.n_nodes for i, _ in samples])
+        fields, sizes = [], []
+        for (i, _), lo, hi in zip(samples, offsets[:-1], offsets[1:]):
+            x, f = b.topology.rest[lo:hi].double().numpy(), free[lo:hi]
+            x = x - x.mean(0)
+            phi = np.hstack([np.ones((len(x), 1)), x, np.stack([x[:, j] * x[:, k] for j in range(3) for k in range(j, 3)], 1)])
+            coef, *_ = np.linalg.lstsq(phi[f], d[lo:hi][f], rcond=None)
+            rms = np.sqrt((d[lo:hi][f] ** 2).mean())
+            assert 0 < rms <= two_sims[i].mean_edge * a * (1 + 1e-5)
+            sizes.append(rms / (two_sims[i].mean_edge * a))
+            assert np.abs(phi[f] @ coef - d[lo:hi][f]).max() < 1e-5 * rms  # a quadratic field, to float precision
+            fields.append(coef / rms)
+        assert not np.allclose(fields[0], fields[2], atol=1e-2)  # two samples of one simulation: two fields
+        assert max(sizes) - min(sizes) > 1e-3  # and their own sizes
+        dt = torch.cat([torch.full((two_sims[i].topology.n_nodes, 1), two_sims[i].dt) for i, _ in samples])
+        torch.testing.assert_close(b.zdot, (paper.zdot * dt + paper.z - b.z) / dt, rtol=1e-5, atol=1e-5)
+
+
 def double_sim(sim: Simulation) -> Simulation:
     return replace(sim, topology=to_double(sim.topology), z=sim.z.double(), u=sim.u.double())
 
@@ -776,6 +807,28 @@ def test_pushforward_step_starts_from_the_networks_own_rollout(two_sims, padded)
     loss, _ = train_step(model, b)
     p = model(pushed.topology, pushed.z, pushed.u_now, pushed.u_next)
     assert float(loss) == pytest.approx(model.loss(p, pushed.zdot, pushed.node_mask)[0].item(), rel=1e-6)
+
+
+def test_rollout_from_a_later_snapshot_continues_the_full_rollout(two_sims):
+    """rollout(first=k, z0=...) (the perturbation probes' entry): from the full rollout's own state at
+    k it reproduces that rollout's tail and diagnostics; without z0 it starts from the truth at k."""
+    from warpgnn.rollout import rollout
+    model = tiny("hybrid").double()
+    sims = [double_sim(s) for s in two_sims]
+    b = make_batch(sims, [(0, 1), (1, 2)])
+    model.normalizer.fit([(raw_features(b.topology, b.z, b.u_now, b.u_next), b.zdot)])
+    k = 2
+    for s in sims:  # one at a time: a chunk shares its first simulation's dt
+        full, = rollout(model, [s])
+        tail, = rollout(model, [s], first=k, z0=[torch.from_numpy(full.z[k])])
+        assert tail.z.shape[0] == s.steps + 1 - k
+        np.testing.assert_allclose(tail.z, full.z[k:], rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(tail.entropy_production_min, full.entropy_production_min[k:], rtol=1e-12)
+        truth, = rollout(model, [s], first=k)
+        np.testing.assert_array_equal(truth.z[0], s.z[k].numpy())
+        np.testing.assert_allclose(truth.z[1], model.step(s.topology, s.z[k], s.u[k], s.u[k + 1], s.dt).numpy(),
+                                   rtol=1e-12, atol=1e-15)
+        assert not np.allclose(truth.z[1], full.z[k + 1])  # the truth's start, not the network's
 
 
 # --------------------------------------------------------------------- 10. normaliser

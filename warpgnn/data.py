@@ -230,9 +230,28 @@ def vertical_rotations(angles: torch.Tensor) -> torch.Tensor:
     return torch.stack([c, -s, zero, s, c, zero, zero, zero, one], -1).reshape(-1, 3, 3)
 
 
+def smooth_displacements(rest: torch.Tensor, sizes: torch.Tensor, weight: torch.Tensor, amplitude: torch.Tensor,
+                         coefficients: torch.Tensor) -> torch.Tensor:
+    """(N, 3) quadratic displacement fields of the rest coordinates, one per stacked graph (``sizes``
+    nodes each): sum_k coefficients[g, k] phi_k(x) over phi = 1, x, y, z, x^2, y^2, z^2, xy, yz, zx
+    of the graph's coordinates centred and scaled to unit RMS radius, then scaled to RMS
+    ``amplitude[g]`` over the nodes of ``weight`` (1: counted and displaced, 0: left in place)."""
+    graph_of = torch.repeat_interleave(torch.arange(len(sizes), device=rest.device), sizes.to(rest.device))
+    n = sizes.to(rest.device, rest.dtype)[:, None]
+    x = rest - (torch.zeros(len(sizes), 3, device=rest.device, dtype=rest.dtype).index_add(0, graph_of, rest) / n)[graph_of]
+    radius = (torch.zeros(len(sizes), device=rest.device, dtype=rest.dtype).index_add(0, graph_of, x.square().sum(1))
+              / n[:, 0]).sqrt()
+    x = x / radius[graph_of, None]
+    phi = torch.cat([torch.ones_like(x[:, :1]), x, x.square(), x * x.roll(-1, 1)], 1)  # (N, 10)
+    d = torch.einsum("nk,nkc->nc", phi, coefficients.to(rest)[graph_of]) * weight[:, None]
+    rms = (torch.zeros_like(radius).index_add(0, graph_of, d.square().sum(1))
+           / torch.zeros_like(radius).index_add(0, graph_of, 3 * weight).clamp_min(1)).sqrt()
+    return d * (amplitude.to(rest) / rms.clamp_min(1e-30))[graph_of, None]
+
+
 def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: float = 0.0,
                generator: torch.Generator | None = None, shape: BatchShape | Sequence[BatchShape] | None = None,
-               lead: int = 0, noise_v_add: float = 0.0, rotate: bool = False) -> Batch:
+               lead: int = 0, noise_v_add: float = 0.0, rotate: bool = False, noise_smooth: float = 0.0) -> Batch:
     """Stack the steps t -> t+1 of ``samples`` = [(simulation index, t), ...] into one graph,
     padded to ``shape`` if given, or to the first of several shapes that it fits (the real nodes,
     their noise and targets are the same either way).
@@ -245,6 +264,9 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     angle about the vertical z axis, before the noise is added (the angles are drawn after the noise's
     draws, which keeps the noise's random stream): without gravity and with an isotropic material a
     rotated simulation is another exact one (the fixed visceral face stays a z plane).
+    ``noise_smooth`` > 0 adds to the free nodes' positions a random quadratic field of the rest
+    coordinates (``smooth_displacements``, N(0, 1) coefficients drawn after everything else), of RMS
+    mean_edge * noise_smooth * U(0, 1) over them: per-node noise leaves alone the smooth error a rollout carries.
     With ``lead`` > 0 (pushforward training) ``z`` is the (noisy) state min(lead, t) snapshots
     before t, ``lead_u`` the tools' path from there to t (its first entries repeat the start when
     t < lead) and ``lead_active`` which nodes each lead step moves (none of the padding).
@@ -281,12 +303,18 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
         top = replace(top, rest=torch.cat([rest, top.rest[real_nodes:]]))
         R_tool = R.repeat_interleave(torch.tensor([len(s.topology.loaded) for s, _ in picked]), 0).to(device, u.dtype)
         u = torch.einsum("kij,lkj->lki", R_tool, u)
+    free = (top.node_type[:real_nodes] == NODE_FREE)[:, None].to(z.dtype)
     if noisy:
         amp, eps = host[:, 1:2], host[:, 2:14]
-        free = (top.node_type[:real_nodes] == NODE_FREE)[:, None].to(z.dtype)
         z = torch.cat([z[:, :3] + free * amp * eps[:, :3], z[:, 3:] * (1 + eps[:, 3:] * noise_v)], -1)
         if noise_v_add > 0:
             z[:, 3:6] += free * host[:, 14:15] * host[:, 15:18]
+    if noise_smooth > 0:  # drawn last: the other noises' and the angles' streams stay as they were
+        coefficients = torch.randn((len(samples), 10, 3), generator=generator, dtype=torch.float64)
+        amplitude = torch.tensor([s.mean_edge * noise_smooth for s, _ in picked], dtype=torch.float64)
+        amplitude = amplitude * torch.rand(len(samples), generator=generator, dtype=torch.float64)
+        z = torch.cat([z[:, :3] + smooth_displacements(top.rest[:real_nodes], sizes, free[:, 0], amplitude,
+                                                       coefficients).to(z.dtype), z[:, 3:]], -1)
     active = None
     if lead:  # lead step j moves a sample's nodes once its path has begun (j >= lead - t)
         first = torch.tensor([max(lead - t, 0) for _, t in samples]).repeat_interleave(sizes)

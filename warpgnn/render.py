@@ -58,11 +58,18 @@ def _screenshot(plotter, out_png: Path) -> None:
     os.replace(tmp, out_png)
 
 
-def _view(plotter, centre, zoom: float) -> None:
+def _view(plotter, centre, zoom: float, towards=None) -> None:
     """Anterior-superior view (patient's right lobe on the left, like an anatomy atlas),
-    high enough to see the dome, low enough to see the flat base."""
+    high enough to see the dome, low enough to see the flat base. With ``towards`` (a point,
+    e.g. the tools' mean), turned about the vertical axis to face it: a tool on the far side
+    would otherwise hide the stress it makes."""
+    view = np.array(VIEW, dtype=np.float64)
+    if towards is not None:
+        side = (np.asarray(towards, dtype=np.float64) - centre)[:2]
+        if np.linalg.norm(side) > 0:
+            view[:2] = np.linalg.norm(view[:2]) * side / np.linalg.norm(side)
     plotter.camera.focal_point = centre
-    plotter.camera.position = centre + 0.5 * np.array(VIEW)
+    plotter.camera.position = centre + 0.5 * view
     plotter.camera.up = (0.0, 0.0, 1.0)
     plotter.reset_camera()
     plotter.camera.zoom(zoom)
@@ -115,7 +122,7 @@ def render_simulation(mesh: TetMesh, sim: dict, out_png, title: str = "") -> Non
             plotter.add_points(q[s][sim["loaded"]].astype(np.float64), color="red", point_size=14,
                                render_points_as_spheres=True)
             plotter.add_text(f"{title}  snapshot {s}", font_size=10, color="black")
-            _view(plotter, centre, zoom=1.2)
+            _view(plotter, centre, zoom=1.2, towards=q[-1][sim["loaded"]].mean(axis=0))
     _screenshot(plotter, out_png)
 
 
@@ -147,5 +154,5 @@ def render_comparison(mesh: TetMesh, ref: np.ndarray, pred: np.ndarray, loaded, 
                              scalar_bar_args=dict(color="black", title=label, vertical=False))
             plotter.add_points(z[loaded, :3], color="red", point_size=14, render_points_as_spheres=True)
             plotter.add_text(f"{name}  {title}  final step", font_size=10, color="black")
-            _view(plotter, mesh.nodes.mean(axis=0), zoom=1.2)
+            _view(plotter, mesh.nodes.mean(axis=0), zoom=1.2, towards=last["FEM"][loaded, :3].mean(axis=0))
     _screenshot(plotter, out_png)

@@ -61,6 +61,10 @@ class TrainConfig:
     # vanishes once the tools stop and v does; a hybrid trained without it grew an unstable velocity
     # mode near the tool in the hold phase (bench/long_hold.py)
     noise_v_add: float = 0.0
+    # a random smooth (quadratic) displacement of the free nodes, RMS up to this times the mean edge (0: the paper). The
+    # far field's rollout error is smooth and no per-node noise teaches a network to pull it back
+    # (bench/results/perturbation_recovery_cpu.json)
+    noise_smooth: float = 0.0
     # steps the network takes (without gradient) from the true state before the trained step, whose
     # target then leads from its own rollout back to the ground truth (0: the paper's one-step training)
     pushforward: int = 0
@@ -400,7 +404,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
         sums, n = {}, 0
         chunks = [mine[i:i + cfg.batch_size] for i in range(0, len(mine), cfg.batch_size)]
         batches = prefetched(lambda c: make_batch(train_sims, c, cfg.noise_q, cfg.noise_v, gen, shapes, cfg.pushforward,
-                                                  cfg.noise_v_add, cfg.rotate), chunks)
+                                                  cfg.noise_v_add, cfg.rotate, cfg.noise_smooth), chunks)
         bar = tqdm(batches, total=len(chunks), desc=f"epoch {epoch}", leave=False, disable=True if rank else None)
         for b in bar:
             opt.zero_grad(set_to_none=True)
