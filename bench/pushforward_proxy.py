@@ -1,6 +1,9 @@
 """A CPU-sized probe of training options: the same small hybrid (2 passes, F = 32) trained for
-the same number of steps with --pushforward 0 and K (and optionally --rate-weights), from the same seed, on a few paper-preset
-simulations made on the CPU, then rolled out on its training anatomy and an unseen one.
+the same number of steps with --pushforward 0 and K (and optionally --rate-weights, or each of
+several --noise-smooth values), from the same seed, on a few paper-preset simulations made on the
+CPU, then rolled out on its training anatomy and an unseen one; on the unseen one also restarted
+from displaced states at the ramp's end (bench/perturbation_recovery.py: how much of a displacement
+it keeps after the hold, per node and shaped like its own error).
 
     python bench/pushforward_proxy.py TRAIN.h5 TEST.h5 --pushforward 0 2 --seeds 0 1 --steps 800 \\
         --json OUT.json --device "..."
@@ -18,12 +21,14 @@ import numpy as np
 import torch
 
 import provenance  # bench/, beside this script
+from error_breakdown import ramp_steps  # likewise
+from perturbation_recovery import probe  # likewise
 from warpgnn import training
 from warpgnn.data import all_samples, load_file, make_batch
 from warpgnn.model import ModelConfig, TIGNN
 
 
-def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1.0)) -> dict:
+def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1.0), noise_smooth: float = 0.0) -> dict:
     torch.manual_seed(seed)
     model = TIGNN(ModelConfig(kind="hybrid", passes=2, latent=32, rate_weights=rate_weights))
     training.fit_normalizer(model, train)
@@ -35,12 +40,14 @@ def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1
             group["lr"] = 1e-3 * 1e-2 ** (k / steps)
         chunk = [samples[i] for i in rng.choice(len(samples), 8, replace=False)]
         opt.zero_grad()
-        training.train_step(model, make_batch(train, chunk, 3e-3, 1e-2, gen, lead=lead))
+        training.train_step(model, make_batch(train, chunk, 3e-3, 1e-2, gen, lead=lead, noise_smooth=noise_smooth))
         opt.step()
-    out = {"pushforward": lead, "rate_weights": list(rate_weights), "seed": seed, "steps": steps,
-           "seconds": time.time() - t0}
+    out = {"pushforward": lead, "rate_weights": list(rate_weights), "noise_smooth": noise_smooth, "seed": seed,
+           "steps": steps, "seconds": time.time() - t0}
     for name, sims in (("train", train), ("test", test)):
         out[name] = training.validate(model, sims)["rrmse"]
+    rec = probe(model, test, ramp_steps(test[0]), [100.0, 400.0])
+    out["test_retained_after_hold"] = {k: v["retained"][-1] for k, v in rec.items() if isinstance(v, dict) and "retained" in v}
     return out
 
 
@@ -52,6 +59,7 @@ def main():
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--steps", type=int, default=800)
     ap.add_argument("--rate-weights", type=float, nargs=3, default=(1.0, 1.0, 1.0), metavar=("Q", "V", "SIGMA"))
+    ap.add_argument("--noise-smooth", type=float, nargs="+", default=[0.0], help="each value one run (see warpgnn train)")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
@@ -60,8 +68,9 @@ def main():
     runs = []
     for seed in a.seeds:
         for lead in a.pushforward:
-            runs.append(run(train, test, lead, seed, a.steps, tuple(a.rate_weights)))
-            print(json.dumps(runs[-1]), flush=True)
+            for smooth in a.noise_smooth:
+                runs.append(run(train, test, lead, seed, a.steps, tuple(a.rate_weights), smooth))
+                print(json.dumps(runs[-1]), flush=True)
     json.dump(provenance.record(a) | {"train": a.train, "test": a.test, "runs": runs}, open(a.json, "w"), indent=1)
 
 
