@@ -25,8 +25,7 @@ import torch
 import provenance  # bench/, beside this script
 from error_breakdown import node_classes, ramp_steps  # likewise
 from warpgnn.checkpoint import load_model
-from warpgnn.data import load_file
-from warpgnn.graphs import NODE_FREE
+from warpgnn.data import load_file, quadratic_basis
 from warpgnn.rollout import rollout
 
 SHAPES = ("own", "iid")
@@ -37,7 +36,7 @@ def displacements(sims, rolls, first: int, size_m: float, rng) -> dict[str, list
     over them."""
     out = {shape: [] for shape in SHAPES}
     for sim, r in zip(sims, rolls):
-        free = sim.topology.node_type.numpy() == NODE_FREE
+        free = node_classes(sim) >= 2
         shapes = {"own": r.z[first, free, :3] - sim.z[first, free, :3].numpy(),
                   "iid": rng.normal(size=(free.sum(), 3))}
         for shape, d in shapes.items():
@@ -55,12 +54,11 @@ def smoothness(sims, rolls, first: int) -> dict[str, dict[str, float]]:
     for sim, r in zip(sims, rolls):
         cls = node_classes(sim)
         for where, m in (("free", cls >= 2), ("far", cls == 3)):
-            x = sim.topology.rest.numpy()[m].astype(np.float64)
-            x = x - x.mean(0)
+            x = sim.topology.rest[m].double()
+            phi = quadratic_basis(x - x.mean(0)).numpy()  # the fields --noise-smooth draws from
             e = (r.z[first, m, :3] - sim.z[first, m, :3].numpy()).astype(np.float64)
-            one = np.ones((len(x), 1))
-            quad = np.stack([x[:, j] * x[:, k] for j in range(3) for k in range(j, 3)], 1)
-            for name, basis in (("translation", one), ("affine", np.hstack([one, x])), ("quadratic", np.hstack([one, x, quad]))):
+            for name, columns in (("translation", 1), ("affine", 4), ("quadratic", 10)):
+                basis = phi[:, :columns]
                 fit = basis @ np.linalg.lstsq(basis, e, rcond=None)[0]
                 out.setdefault(where, {}).setdefault(name, []).append(1 - ((e - fit) ** 2).sum() / (e ** 2).sum())
     return {where: {name: float(np.mean(v)) for name, v in d.items()} for where, d in out.items()}
@@ -82,12 +80,13 @@ def probe(model, sims, first: int, sizes_um: list[float], seed: int = 0) -> dict
     rolls = rollout(model, sims)
     truth = position_errors(sims, rollout(model, sims, first=first), first)
     rng = np.random.default_rng(seed)
-    out = {"first": first, "own_error_explained_by": smoothness(sims, rolls, first), "from_truth_rms_um": {k: (1e6 * np.sqrt(v)).tolist() for k, v in truth.items()}}
+    out = {"first": first, "own_error_explained_by": smoothness(sims, rolls, first),
+           "from_truth_rms_um": {k: (1e6 * np.sqrt(v)).tolist() for k, v in truth.items()}, "displaced": {}}
     for size in sizes_um:
         for shape, z_off in displacements(sims, rolls, first, size * 1e-6, rng).items():
             z0 = [s.z[first] + d for s, d in zip(sims, z_off)]
             e = position_errors(sims, rollout(model, sims, first=first, z0=z0), first)
-            out[f"{shape}_{size:g}um"] = {
+            out["displaced"][f"{shape}_{size:g}um"] = {
                 "rms_um": {k: (1e6 * np.sqrt(v)).tolist() for k, v in e.items()},
                 "retained": (1e6 * np.sqrt(np.maximum(e["free"] - truth["free"], 0)) / size).tolist()}
     return out
@@ -112,10 +111,9 @@ def main():
             print(f"{run} on {path}: its own position error at snapshot {first}, share fitted by smooth fields:",
                   json.dumps(res["own_error_explained_by"]))
             print(f"{run} on {path} (from snapshot {first}): retained after 1 / 5 / {sims[0].steps - first} steps")
-            for key, r in res.items():
-                if isinstance(r, dict) and "retained" in r:
-                    ret = r["retained"]
-                    print(f"  {key:>10}: {ret[0]:.2f} / {ret[min(4, len(ret) - 1)]:.2f} / {ret[-1]:.2f}")
+            for key, r in res["displaced"].items():
+                ret = r["retained"]
+                print(f"  {key:>10}: {ret[0]:.2f} / {ret[min(4, len(ret) - 1)]:.2f} / {ret[-1]:.2f}")
     open(a.json, "w").write(json.dumps(record, indent=1))
 
 

@@ -46,8 +46,8 @@ def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1
            "steps": steps, "seconds": time.time() - t0}
     for name, sims in (("train", train), ("test", test)):
         out[name] = training.validate(model, sims)["rrmse"]
-    rec = probe(model, test, ramp_steps(test[0]), [100.0, 400.0])
-    out["test_retained_after_hold"] = {k: v["retained"][-1] for k, v in rec.items() if isinstance(v, dict) and "retained" in v}
+    displaced = probe(model, test, ramp_steps(test[0]), [100.0, 400.0])["displaced"]
+    out["test_retained_after_hold"] = {k: v["retained"][-1] for k, v in displaced.items()}
     return out
 
 

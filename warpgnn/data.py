@@ -230,11 +230,17 @@ def vertical_rotations(angles: torch.Tensor) -> torch.Tensor:
     return torch.stack([c, -s, zero, s, c, zero, zero, zero, one], -1).reshape(-1, 3, 3)
 
 
+def quadratic_basis(x: torch.Tensor) -> torch.Tensor:
+    """(N, 10) monomials of the coordinates x up to degree 2: 1, x, y, z, x^2, y^2, z^2, xy, yz, zx
+    (the first column spans the uniform fields, the first four the affine ones)."""
+    return torch.cat([torch.ones_like(x[:, :1]), x, x.square(), x * x.roll(-1, 1)], 1)
+
+
 def smooth_displacements(rest: torch.Tensor, sizes: torch.Tensor, weight: torch.Tensor, amplitude: torch.Tensor,
                          coefficients: torch.Tensor) -> torch.Tensor:
     """(N, 3) quadratic displacement fields of the rest coordinates, one per stacked graph (``sizes``
-    nodes each): sum_k coefficients[g, k] phi_k(x) over phi = 1, x, y, z, x^2, y^2, z^2, xy, yz, zx
-    of the graph's coordinates centred and scaled to unit RMS radius, then scaled to RMS
+    nodes each): sum_k coefficients[g, k] phi_k(x) over the ``quadratic_basis`` phi of the graph's
+    coordinates centred and scaled to unit RMS radius, then scaled to RMS
     ``amplitude[g]`` over the nodes of ``weight`` (1: counted and displaced, 0: left in place)."""
     graph_of = torch.repeat_interleave(torch.arange(len(sizes), device=rest.device), sizes.to(rest.device))
     n = sizes.to(rest.device, rest.dtype)[:, None]
@@ -242,8 +248,7 @@ def smooth_displacements(rest: torch.Tensor, sizes: torch.Tensor, weight: torch.
     radius = (torch.zeros(len(sizes), device=rest.device, dtype=rest.dtype).index_add(0, graph_of, x.square().sum(1))
               / n[:, 0]).sqrt()
     x = x / radius[graph_of, None]
-    phi = torch.cat([torch.ones_like(x[:, :1]), x, x.square(), x * x.roll(-1, 1)], 1)  # (N, 10)
-    d = torch.einsum("nk,nkc->nc", phi, coefficients.to(rest)[graph_of]) * weight[:, None]
+    d = torch.einsum("nk,nkc->nc", quadratic_basis(x), coefficients.to(rest)[graph_of]) * weight[:, None]
     rms = (torch.zeros_like(radius).index_add(0, graph_of, d.square().sum(1))
            / torch.zeros_like(radius).index_add(0, graph_of, 3 * weight).clamp_min(1)).sqrt()
     return d * (amplitude.to(rest) / rms.clamp_min(1e-30))[graph_of, None]
