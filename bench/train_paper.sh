@@ -116,7 +116,13 @@ seeds stable_rot_pf4 $STABLE_FLAGS --rotate --pushforward 4
 # (bench/results/gnn_noise_q3e2_e24_h100.json: seed 0 at 24e beside the recipe's)
 seeds stable_rot_nq3e2 $STABLE_FLAGS --rotate --noise-q 3e-2
 # the same with a random smooth (quadratic) displacement of the free nodes, RMS up to 5 % of the mean edge (~450 um,
-# the far field's rollout error is ~400 um and 60-63 % quadratic): the shape per-node noise cannot teach. Not run yet
+# the far field's rollout error is ~400 um and 60-63 % quadratic): the shape per-node noise cannot teach
 seeds stable_rot_smooth $STABLE_FLAGS --rotate --noise-smooth 5e-2
+# (bench/results/gnn_noise_smooth_e24_h100.json: seed 0 at 24e beside the recipe's, -1.3 / -0.7 / -1.3 % on L5, within the
+# recipe's run-to-run spread, and no smooth displacement pulled back: perturbation_recovery_smooth_cpu.json). Four times
+# the amplitude (RMS up to ~1.8 mm, beyond the far field's error) in case the signal was too weak to learn
+seeds stable_rot_smooth2e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1
+# (same record: seed 0 at 24e, -9.9 / +3.3 / -2.7 % against the recipe's three 24e runs; it pulls displacements back,
+# but its far field drifts in the hold: error_breakdown_smooth_cpu.json. Next: 1800 s)
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"
