@@ -518,6 +518,9 @@ def _ddp_worker(rank, world, store, data_file, normalizer_file, samples, out_dir
         batch = make_batch(sims, samples[rank * half:(rank + 1) * half])
         training.train_step(torch.nn.parallel.DistributedDataParallel(model), batch)
         torch.save({n: p.grad for n, p in model.named_parameters()}, out_dir / f"grads_{rank}.pt")
+        # as training.train does: a rank that tears gloo down while its peer still talks aborts
+        # now and then (SIGABRT, "terminate called without an active exception")
+        dist.barrier()
     finally:
         dist.destroy_process_group()
 
