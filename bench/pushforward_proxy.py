@@ -1,9 +1,10 @@
 """A CPU-sized probe of training options: the same small hybrid (2 passes, F = 32) trained for
 the same number of steps with --pushforward 0 and K (and optionally --rate-weights, or each of
-several --noise-smooth values), from the same seed, on a few paper-preset simulations made on the
-CPU, then rolled out on its training anatomy and an unseen one; on the unseen one also restarted
-from displaced states at the ramp's end (bench/perturbation_recovery.py: how much of a displacement
-it keeps after the hold, per node and shaped like its own error).
+several --noise-smooth values, each with each --noise-smooth-gamma), from the same seed, on a few
+paper-preset simulations made on the CPU, then rolled out on its training anatomy and an unseen one;
+on the unseen one also restarted from displaced states at the ramp's end
+(bench/perturbation_recovery.py: how much of a displacement it keeps after the hold, per node and
+shaped like its own error).
 
     python bench/pushforward_proxy.py TRAIN.h5 TEST.h5 --pushforward 0 2 --seeds 0 1 --steps 800 \\
         --json OUT.json --device "..."
@@ -28,7 +29,8 @@ from warpgnn.data import all_samples, load_file, make_batch
 from warpgnn.model import ModelConfig, TIGNN
 
 
-def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1.0), noise_smooth: float = 0.0) -> dict:
+def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1.0), noise_smooth: float = 0.0,
+        noise_smooth_gamma: float = 1.0) -> dict:
     torch.manual_seed(seed)
     model = TIGNN(ModelConfig(kind="hybrid", passes=2, latent=32, rate_weights=rate_weights))
     training.fit_normalizer(model, train)
@@ -40,9 +42,11 @@ def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1
             group["lr"] = 1e-3 * 1e-2 ** (k / steps)
         chunk = [samples[i] for i in rng.choice(len(samples), 8, replace=False)]
         opt.zero_grad()
-        training.train_step(model, make_batch(train, chunk, 3e-3, 1e-2, gen, lead=lead, noise_smooth=noise_smooth))
+        training.train_step(model, make_batch(train, chunk, 3e-3, 1e-2, gen, lead=lead, noise_smooth=noise_smooth,
+                                              noise_smooth_gamma=noise_smooth_gamma))
         opt.step()
-    out = {"pushforward": lead, "rate_weights": list(rate_weights), "noise_smooth": noise_smooth, "seed": seed,
+    out = {"pushforward": lead, "rate_weights": list(rate_weights), "noise_smooth": noise_smooth,
+           "noise_smooth_gamma": noise_smooth_gamma, "seed": seed,
            "steps": steps, "seconds": time.time() - t0}
     for name, sims in (("train", train), ("test", test)):
         out[name] = training.validate(model, sims)["rrmse"]
@@ -60,6 +64,8 @@ def main():
     ap.add_argument("--steps", type=int, default=800)
     ap.add_argument("--rate-weights", type=float, nargs=3, default=(1.0, 1.0, 1.0), metavar=("Q", "V", "SIGMA"))
     ap.add_argument("--noise-smooth", type=float, nargs="+", default=[0.0], help="each value one run (see warpgnn train)")
+    ap.add_argument("--noise-smooth-gamma", type=float, nargs="+", default=[1.0], help="each value one run per nonzero "
+                    "--noise-smooth (see warpgnn train)")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
@@ -69,8 +75,9 @@ def main():
     for seed in a.seeds:
         for lead in a.pushforward:
             for smooth in a.noise_smooth:
-                runs.append(run(train, test, lead, seed, a.steps, tuple(a.rate_weights), smooth))
-                print(json.dumps(runs[-1]), flush=True)
+                for gamma in a.noise_smooth_gamma if smooth else [1.0]:
+                    runs.append(run(train, test, lead, seed, a.steps, tuple(a.rate_weights), smooth, gamma))
+                    print(json.dumps(runs[-1]), flush=True)
     json.dump(provenance.record(a) | {"train": a.train, "test": a.test, "runs": runs}, open(a.json, "w"), indent=1)
 
 

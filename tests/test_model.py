@@ -628,6 +628,26 @@ def test_make_batch_smooth_position_noise(two_sims):
         torch.testing.assert_close(b.zdot, (paper.zdot * dt + paper.z - b.z) / dt, rtol=1e-5, atol=1e-5)
 
 
+def test_make_batch_smooth_noise_gamma(two_sims):
+    """--noise-smooth-gamma: the inputs are those of --noise-smooth alone; the target's positions keep
+    (1 - gamma) of the smooth displacement per step the network takes, the trained one plus each lead-in
+    step a sample has (t of them before the lead is full), so gamma = 1 is the full take-back."""
+    samples, a = [(0, 0), (0, 1), (1, 2), (0, 2)], 0.3
+    for lead in (0, 2):
+        def batch(**kw):
+            return make_batch(two_sims, samples, 0.05, 0.1, torch.Generator().manual_seed(0), lead=lead, **kw)
+        clean, full = batch(), batch(noise_smooth=a)
+        d = full.z[:, :3] - clean.z[:, :3]
+        assert d.abs().max() > 0 and torch.equal(full.z_next, clean.z_next)
+        assert torch.equal(batch(noise_smooth=a, noise_smooth_gamma=1.0).z_next, full.z_next)
+        steps = torch.cat([torch.full((two_sims[i].topology.n_nodes, 1), min(lead, t) + 1.0) for i, t in samples])
+        for gamma in (0.0, 0.25):
+            b = batch(noise_smooth=a, noise_smooth_gamma=gamma)
+            assert torch.equal(b.z, full.z) and torch.equal(b.z_next[:, 3:], full.z_next[:, 3:])
+            torch.testing.assert_close(b.z_next[:, :3] - full.z_next[:, :3], (1 - gamma) ** steps * d,
+                                       rtol=1e-5, atol=1e-9)
+
+
 def double_sim(sim: Simulation) -> Simulation:
     return replace(sim, topology=to_double(sim.topology), z=sim.z.double(), u=sim.u.double())
 

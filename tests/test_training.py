@@ -610,6 +610,13 @@ def test_eval_mesh_node_count_differs_from_simulations(hybrid_run, data, tmp_pat
     assert_one_line_error(proc, *(("out of range",) if change < 0 else ("L5.h5", "shape")))
 
 
+def test_train_smooth_noise_gamma_out_of_range(data, tmp_path):
+    proc = run_cli("train", "--data", data, "--passes", 2, "--latent", 16, "--epochs", 1, "--device", "cpu",
+                   "--noise-smooth", "0.2", "--noise-smooth-gamma", "1.5", "--out", tmp_path / "run")
+    assert_one_line_error(proc, "--noise-smooth-gamma", "[0, 1]")
+    assert not (tmp_path / "run" / "last.pt").exists()
+
+
 def test_train_on_a_directory_missing_a_file(data, tmp_path):
     partial = tmp_path / "data"
     shutil.copytree(data, partial)

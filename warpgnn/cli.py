@@ -170,7 +170,8 @@ def cmd_train(args):
                           compile=args.compile, cuda_graphs=args.cuda_graphs, operator_products=args.operator_products,
                           pushforward=args.pushforward,
                           rotate=args.rotate, device=args.device,
-                          **{k: getattr(args, k) for k in ("noise_q", "noise_v", "noise_v_add", "noise_smooth") if getattr(args, k) is not None})
+                          **{k: getattr(args, k) for k in ("noise_q", "noise_v", "noise_v_add", "noise_smooth", "noise_smooth_gamma")
+                             if getattr(args, k) is not None})
     except ValueError as exc:
         raise InputError(str(exc)) from None
     result = train(cfg)
@@ -260,6 +261,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--noise-smooth", type=float, help="a random quadratic displacement field on free nodes, RMS up "
                    "to this times the mean edge (default 0, the paper: none); per-node noise cannot teach the network to pull "
                    "back the smooth error its rollouts carry")
+    t.add_argument("--noise-smooth-gamma", type=float, metavar="GAMMA",
+                   help="fraction of that displacement the target takes back per step, as MeshGraphNets' noise_gamma "
+                        "(default 1: all of it at once)")
     t.add_argument("--tf32", action="store_true", help="TF32 matmuls on CUDA (default: full fp32)")
     t.add_argument("--compile", action="store_true",
                    help="torch.compile the network for training (GPU: fused kernels; compiles once, ~1 min)")

@@ -256,7 +256,8 @@ def smooth_displacements(rest: torch.Tensor, sizes: torch.Tensor, weight: torch.
 
 def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: float = 0.0,
                generator: torch.Generator | None = None, shape: BatchShape | Sequence[BatchShape] | None = None,
-               lead: int = 0, noise_v_add: float = 0.0, rotate: bool = False, noise_smooth: float = 0.0) -> Batch:
+               lead: int = 0, noise_v_add: float = 0.0, rotate: bool = False, noise_smooth: float = 0.0,
+               noise_smooth_gamma: float = 1.0) -> Batch:
     """Stack the steps t -> t+1 of ``samples`` = [(simulation index, t), ...] into one graph,
     padded to ``shape`` if given, or to the first of several shapes that it fits (the real nodes,
     their noise and targets are the same either way).
@@ -272,6 +273,9 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     ``noise_smooth`` > 0 adds to the free nodes' positions a random quadratic field of the rest
     coordinates (``smooth_displacements``, N(0, 1) coefficients drawn after everything else), of RMS
     mean_edge * noise_smooth * U(0, 1) over them: per-node noise leaves alone the smooth error a rollout carries.
+    ``noise_smooth_gamma`` is the fraction of that displacement the target takes back per step the network
+    takes (MeshGraphNets' noise_gamma): the target keeps (1 - gamma)^(k + 1) of it after the k lead-in steps
+    a sample has (1: all of it back in the trained step; 0: the target ignores it).
     With ``lead`` > 0 (pushforward training) ``z`` is the (noisy) state min(lead, t) snapshots
     before t, ``lead_u`` the tools' path from there to t (its first entries repeat the start when
     t < lead) and ``lead_active`` which nodes each lead step moves (none of the padding).
@@ -318,8 +322,12 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
         coefficients = torch.randn((len(samples), 10, 3), generator=generator, dtype=torch.float64)
         amplitude = torch.tensor([s.mean_edge * noise_smooth for s, _ in picked], dtype=torch.float64)
         amplitude = amplitude * torch.rand(len(samples), generator=generator, dtype=torch.float64)
-        z = torch.cat([z[:, :3] + smooth_displacements(top.rest[:real_nodes], sizes, free[:, 0], amplitude,
-                                                       coefficients).to(z.dtype), z[:, 3:]], -1)
+        d = smooth_displacements(top.rest[:real_nodes], sizes, free[:, 0], amplitude, coefficients).to(z.dtype)
+        z = torch.cat([z[:, :3] + d, z[:, 3:]], -1)
+        if noise_smooth_gamma != 1:
+            steps = torch.tensor([min(lead, t) + 1 for _, t in samples]).repeat_interleave(sizes)  # lead-in + trained
+            kept = ((1 - noise_smooth_gamma) ** steps.double()).to(device, z.dtype)[:, None]
+            z_next = torch.cat([z_next[:, :3] + kept * d, z_next[:, 3:]], -1)
     active = None
     if lead:  # lead step j moves a sample's nodes once its path has begun (j >= lead - t)
         first = torch.tensor([max(lead - t, 0) for _, t in samples]).repeat_interleave(sizes)
