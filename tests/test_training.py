@@ -615,6 +615,8 @@ def test_train_smooth_noise_gamma_out_of_range(data, tmp_path):
                    "--noise-smooth", "0.2", "--noise-smooth-gamma", "1.5", "--out", tmp_path / "run")
     assert_one_line_error(proc, "--noise-smooth-gamma", "[0, 1]")
     assert not (tmp_path / "run" / "last.pt").exists()
+    with pytest.raises(ValueError, match="give --noise-smooth too"):  # a gamma with nothing to take back
+        config(data, tmp_path / "alone", epochs=1, noise_smooth_gamma=0.5)
 
 
 def test_train_on_a_directory_missing_a_file(data, tmp_path):

@@ -93,6 +93,9 @@ class TrainConfig:
             raise ValueError(f"lr_schedule must be plateau or exponential, got {self.lr_schedule!r}")
         if not 0 <= self.noise_smooth_gamma <= 1:
             raise ValueError(f"--noise-smooth-gamma must be in [0, 1], got {self.noise_smooth_gamma}")
+        if self.noise_smooth_gamma != 1 and not self.noise_smooth:
+            raise ValueError("--noise-smooth-gamma sets how much of --noise-smooth's displacement the target takes "
+                             "back: give --noise-smooth too")
         if self.pushforward < 0:
             raise ValueError("--pushforward must be >= 0")
         if self.patience is not None and self.patience < 1:
