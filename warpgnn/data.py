@@ -318,6 +318,10 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
         z = torch.cat([z[:, :3] + free * amp * eps[:, :3], z[:, 3:] * (1 + eps[:, 3:] * noise_v)], -1)
         if noise_v_add > 0:
             z[:, 3:6] += free * host[:, 14:15] * host[:, 15:18]
+    active = None
+    if lead:  # lead step j moves a sample's nodes once its path has begun (j >= lead - t)
+        first = torch.tensor([max(lead - t, 0) for _, t in samples]).repeat_interleave(sizes)
+        active = (torch.arange(lead)[:, None] >= first[None]).to(device)
     if noise_smooth > 0:  # drawn last: the other noises' and the angles' streams stay as they were
         coefficients = torch.randn((len(samples), 10, 3), generator=generator, dtype=torch.float64)
         amplitude = torch.tensor([s.mean_edge * noise_smooth for s, _ in picked], dtype=torch.float64)
@@ -325,13 +329,9 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
         d = smooth_displacements(top.rest[:real_nodes], sizes, free[:, 0], amplitude, coefficients).to(z.dtype)
         z = torch.cat([z[:, :3] + d, z[:, 3:]], -1)
         if noise_smooth_gamma != 1:
-            steps = torch.tensor([min(lead, t) + 1 for _, t in samples]).repeat_interleave(sizes)  # lead-in + trained
-            kept = ((1 - noise_smooth_gamma) ** steps.double()).to(device, z.dtype)[:, None]
-            z_next = torch.cat([z_next[:, :3] + kept * d, z_next[:, 3:]], -1)
-    active = None
-    if lead:  # lead step j moves a sample's nodes once its path has begun (j >= lead - t)
-        first = torch.tensor([max(lead - t, 0) for _, t in samples]).repeat_interleave(sizes)
-        active = (torch.arange(lead)[:, None] >= first[None]).to(device)
+            steps = 1 + (active.sum(0) if lead else 0)  # the trained step and each lead-in step the node takes
+            kept = ((1 - noise_smooth_gamma) ** torch.as_tensor(steps, device=device, dtype=z.dtype))
+            z_next = torch.cat([z_next[:, :3] + kept.reshape(-1, 1) * d, z_next[:, 3:]], -1)
     if shape is None:
         return Batch(top, z, u[-2], u[-1], z_next, dt, lead_u=u[:-1] if lead else None, lead_active=active)
     mask = _grow(torch.ones(real_nodes, device=device), shape.nodes, 0.0)
