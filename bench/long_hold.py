@@ -1,7 +1,9 @@
 """Probe: does a trained network stay at rest once the tools stop? Rolls each simulation out over
 its 20 snapshots (tools ramp until step 10, then hold), then HOLD more steps with every tool held
-where it ended, and records per step the RMS velocity of the free nodes and how far they have
-moved since step 20. The FEM's hold phase sets the scale: its free nodes' snapshot velocity is
+where it ended, and records per step the RMS velocity of the free nodes, how far they have
+moved since step 20, and the RMS second difference of their positions, q(t+1) - 2 q(t) + q(t-1)
+(a flip-flop of amplitude a between steps reads 4a; the FEM's smooth motion, dt^2 times its
+acceleration), and at the last snapshot whether those steps flip back and forth (flip_statistics). The FEM's hold phase sets the scale: its free nodes' snapshot velocity is
 aliased vibration of ~1e-4 m/s, and viscoelastic creep moves them by well under a millimetre.
 A network whose velocity grows step after step here is unstable under the Euler step.
 --impose-tool-velocity adds, per network, a rollout whose tool-tip nodes take the tool's velocity
@@ -33,13 +35,15 @@ from tool_velocity_oracle import tool_velocity, with_tool_velocity
 
 
 @torch.no_grad()
-def free_node_history(model, sim, hold: int, impose_tool_velocity: bool) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:
-    """Per step (0 .. steps + hold): RMS |v| of the free nodes [m/s] and their RMS distance from
-    where they were at the last snapshot [m] (zero before it); and the network's state there."""
+def free_node_history(model, sim, hold: int, impose_tool_velocity: bool
+                      ) -> tuple[np.ndarray, np.ndarray, torch.Tensor, torch.Tensor]:
+    """Per step (0 .. steps + hold): RMS |v| of the free nodes [m/s], their RMS distance from
+    where they were at the last snapshot [m] (zero before it) and their states (steps x nodes x 12);
+    and the network's state at the last snapshot."""
     top, z = sim.topology, sim.z[0]
     free = top.node_type == NODE_FREE
     u = torch.cat([sim.u, sim.u[-1:].expand(hold, -1, -1)])  # tools held after the last snapshot
-    speeds, qs, z_end = [], [], None
+    speeds, zs, z_end = [], [], None
     for t in range(sim.steps + hold + 1):
         if t:
             z = model.step(top, z, u[t - 1], u[t], sim.dt)
@@ -49,10 +53,36 @@ def free_node_history(model, sim, hold: int, impose_tool_velocity: bool) -> tupl
         if t == sim.steps:
             z_end = z
         speeds.append(z[free, 3:6].norm(dim=1).pow(2).mean().sqrt().item())
-        qs.append(z[free, :3])
-    q_end = qs[sim.steps]
-    moved = [0.0 if t <= sim.steps else (q - q_end).norm(dim=1).pow(2).mean().sqrt().item() for t, q in enumerate(qs)]
-    return np.array(speeds), np.array(moved), z_end
+        zs.append(z[free])
+    q_end = zs[sim.steps][:, :3]
+    moved = [0.0 if t <= sim.steps else (z[:, :3] - q_end).norm(dim=1).pow(2).mean().sqrt().item()
+             for t, z in enumerate(zs)]
+    return np.array(speeds), np.array(moved), torch.stack(zs), z_end
+
+
+def second_difference(q: torch.Tensor) -> np.ndarray:
+    """RMS over nodes of q(t+1) - 2 q(t) + q(t-1), for t = 1 .. len(q) - 2 (q: steps x nodes x 3)."""
+    return (q[2:] - 2 * q[1:-1] + q[:-2]).norm(dim=2).pow(2).mean(1).sqrt().numpy()
+
+
+def flip_statistics(z: torch.Tensor, t: int, dt: float) -> dict:
+    """At step t of one rollout's free-node states z (steps x nodes x 12): the cosine between the
+    position increments into and out of it (-1: every node steps back exactly where it came from, a
+    period-2 flip; the FEM's smooth motion: near +1), the share of the squared second difference on
+    the 10 nodes with the largest one, that largest one [m], and on those 10 nodes the RMS rate of
+    the step out, |q(t+1) - q(t)| / dt, over their RMS velocity |v(t+1)| (1 for a consistent state)."""
+    q, v = z[..., :3], z[..., 3:6]
+    step_in, step_out = q[t] - q[t - 1], q[t + 1] - q[t]
+    node = (step_out - step_in).norm(dim=1).square()
+    largest = node.argsort(descending=True)[:10]
+
+    def rms(x):  # over those 10 nodes
+        return x[largest].norm(dim=1).pow(2).mean().sqrt()
+
+    return {"increment_cosine": torch.nn.functional.cosine_similarity(step_in.flatten(), step_out.flatten(), dim=0).item(),
+            "share_10_largest_nodes": (node[largest].sum() / node.sum().clamp_min(1e-30)).item(),
+            "largest_node_m": node[largest[0]].sqrt().item(),
+            "rate_over_velocity_10_largest": (rms(step_out) / dt / rms(v[t + 1]).clamp_min(1e-30)).item()}
 
 
 # perturbations are measured in 1 mm, 1 mm/s and 1 kPa (the eigenvalues do not depend on this
@@ -109,17 +139,24 @@ def main():
     steps = sims[0].steps
     record = provenance.record(a) | {"data": a.data, "simulations": len(sims), "hold_steps": a.hold,
                                      "fem_free_rms_speed": np.mean([fem_speed(s) for s in sims], 0).tolist(),
+                                     "fem_free_rms_second_difference": np.mean(
+                                         [second_difference(s.z[:, s.topology.node_type == NODE_FREE, :3]) for s in sims],
+                                         0).tolist(),
                                      "networks": {}}
-    fig, (ax_v, ax_q) = plt.subplots(1, 2, figsize=(12, 5.6))
+    fig, (ax_v, ax_q, ax_j) = plt.subplots(1, 3, figsize=(17, 5.6))
     t_axis = np.arange(steps + a.hold + 1)
     ax_v.plot(np.arange(steps + 1), record["fem_free_rms_speed"], "k-", lw=2, label="FEM")
+    ax_j.plot(np.arange(1, steps), np.array(record["fem_free_rms_second_difference"]) * 1e3, "k-", lw=2)
     for colour, path in zip(plt.rcParams["axes.prop_cycle"].by_key()["color"][1:] * 9, a.checkpoints):
         model, _ = load_model(path)
         model.eval().requires_grad_(False)
         run = f"{Path(path).parent.parent.name}/{Path(path).parent.name}"  # RESULTS_runs/RUN
         for imposed in (False, True) if a.impose_tool_velocity else (False,):
-            speeds, moves, z_ends = zip(*(free_node_history(model, s, a.hold, imposed) for s in sims))
+            speeds, moves, zs, z_ends = zip(*(free_node_history(model, s, a.hold, imposed) for s in sims))
             speed, moved = np.mean(speeds, 0), np.mean(moves, 0)
+            jump = np.mean([second_difference(z[..., :3]) for z in zs], 0)
+            flips = [flip_statistics(z, steps, s.dt) for z, s in zip(zs, sims)]  # at the last snapshot, still in the data
+            flip = {k: float(np.mean([f[k] for f in flips])) for k in flips[0]}
             if a.growth and not imposed:  # at the states the plain rollouts reached
                 growth = [held_step_growth(model, s, z) for s, z in zip(sims[:3], z_ends)]
                 record.setdefault("growth", {})[run] = growth
@@ -128,20 +165,31 @@ def main():
                       + "/".join(f"{growth[0]['share'][k]:.2f}" for k in GROUPS))
             name = run + (", tool velocity imposed" if imposed else "")
             record["networks"][name] = {"checkpoint": path, "tool_velocity_imposed": imposed,
-                                        "free_rms_speed": speed.tolist(), "free_rms_moved": moved.tolist()}
+                                        "free_rms_speed": speed.tolist(), "free_rms_moved": moved.tolist(),
+                                        "free_rms_second_difference": jump.tolist(), "flip_at_last_snapshot": flip,
+                                        "flip_at_last_snapshot_per_simulation": flips}
             print(f"{name}: free-node RMS speed at steps {steps // 2}, {steps}, {steps + a.hold // 2}, {steps + a.hold}: "
                   + ", ".join(f"{speed[t]:.2e}" for t in (steps // 2, steps, steps + a.hold // 2, steps + a.hold))
-                  + f" m/s; moved {moved[-1] * 1e3:.2f} mm during the hold")
+                  + f" m/s; moved {moved[-1] * 1e3:.2f} mm during the hold; RMS second difference of position"
+                  + f" {jump[steps // 2:steps - 1].mean() * 1e3:.3f} mm in the data's hold (FEM"
+                  + f" {np.mean(record['fem_free_rms_second_difference'][steps // 2:]) * 1e3:.3f}),"
+                  + f" {jump[steps - 1:].mean() * 1e3:.3f} mm beyond; at the last snapshot: increment cosine"
+                  + f" {flip['increment_cosine']:.2f}, 10 nodes carry {flip['share_10_largest_nodes']:.0%},"
+                  + f" largest {flip['largest_node_m'] * 1e3:.2f} mm, their position rate"
+                  + f" {flip['rate_over_velocity_10_largest']:.1f} x their velocity")
             style = dict(color=colour, ls="--" if imposed else "-")  # one colour per network
             ax_v.plot(t_axis, speed, label=name, **style)
             ax_q.plot(t_axis[steps:], moved[steps:] * 1e3, **style)
-    for ax in (ax_v, ax_q):
+            ax_j.plot(t_axis[1:-1], jump * 1e3, **style)
+    for ax in (ax_v, ax_q, ax_j):
         ax.axvline(steps, color="gray", ls=":", lw=1)
         ax.set_xlabel("step (tools ramp to step 10, hold after; dotted: last FEM snapshot)")
         ax.grid(alpha=0.3)
     ax_v.set_yscale("log")
     ax_v.set_ylabel("free-node RMS speed [m/s]")
     ax_q.set_ylabel("free-node RMS drift since the last snapshot [mm]")
+    ax_j.set_yscale("log")
+    ax_j.set_ylabel("free-node RMS second difference of position [mm]")
     fig.suptitle(f"tools held for {a.hold} more steps ({len(sims)} simulations of {Path(a.data).name}, mean)")
     fig.legend(loc="lower center", ncol=2, fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0.17, 1, 0.95))

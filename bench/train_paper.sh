@@ -130,5 +130,13 @@ seeds stable_rot_smooth2e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1
 # (bench/results/noise_smooth_gamma_cpu_proxy.json: two toy seeds disagree, nothing established)
 seeds stable_rot_smooth2e1_g3e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3
 seeds stable_rot_smooth2e1_g1e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.1
+# (bench/results/gnn_noise_smooth_gamma_e24_h100.json, 24e: G = 0.3, seeds 0 and 1, -15.6 / -1.0 / -3.9 % on L5 against
+# the recipe's three 24e runs, its q already below the 30-minute recipe's; G = 0.1 +1.1 / -0.2 / +0.9 %, no pull-back.
+# But every smooth-noise network flips a few free nodes back and forth every step once the tools stop (up to mm on
+# single nodes; RMS second difference of position 0.1-0.45 mm against the FEM's 0.003: long_hold_smooth_gamma_cpu.json).)
+# Against the flips: a 4-step lead-in (the trained step then starts where a growing flip has grown, and its target
+# takes it back), and G = 0.5 to bracket the take-back
+seeds stable_rot_smooth2e1_g3e1_pf4 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --pushforward 4
+seeds stable_rot_smooth2e1_g5e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.5
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"

@@ -391,6 +391,23 @@ def test_rollout_metrics_hand_values():
     assert metrics.mean_rrmse(m) == pytest.approx(np.mean(list(expected_rrmse.values())))
 
 
+def test_error_second_difference_hand_values():
+    """A flip of one node's position error (0, +a, -a, +a, -a along x) against a drift (e = c t):
+    second differences -3a, 4a, -4a on that node and none on the other; the drift has none."""
+    a, ref = 2e-4, np.random.default_rng(0).normal(size=(5, 2, 12))
+    flip = ref.copy()
+    flip[1:, 0, 0] += a * np.array([1, -1, 1, -1])
+    m = metrics.error_second_difference(flip, ref)
+    assert m["rms"] == pytest.approx(a * np.sqrt((9 + 16 + 16) / 6), rel=1e-9)
+    assert m["max"] == pytest.approx(4 * a, rel=1e-9)
+    drift = ref.copy()
+    drift[:, :, :3] += 1e-3 * np.arange(5)[:, None, None]
+    assert metrics.error_second_difference(drift, ref) == pytest.approx({"rms": 0.0, "max": 0.0}, abs=1e-15)
+    stress_only = ref.copy()
+    stress_only[:, :, 6:] += np.random.default_rng(1).normal(size=(5, 2, 6))  # only q counts
+    assert metrics.error_second_difference(stress_only, ref)["max"] == 0.0
+
+
 def test_set_metrics_pools_node_snapshots():
     pred1, ref1 = hand_rollouts()
     rng = np.random.default_rng(0)

@@ -678,9 +678,10 @@ def numpy_metrics(truth_file, rollouts_file):
     """The paper's RMSE/RRMSE (warpgnn/metrics.py docstring), recomputed from the two files:
     squared 2-norm per node and snapshot over snapshots 1..S; RMSE divides by the group's D,
     RRMSE by the square of the group's largest |value| over the whole reference rollout; a
-    set pools every (snapshot, node) of every rollout."""
+    set pools every (snapshot, node) of every rollout. Also the position error's second
+    difference over snapshots 1..S-1, RMS (pooled alike) and largest."""
     per, pooled = {}, {kind: {g: 0.0 for g in GROUPS} for kind in ("rmse", "rrmse")}
-    count = 0
+    count, jump2_sum, jump_count = 0, 0.0, 0
     with h5py.File(truth_file, "r") as t, h5py.File(rollouts_file, "r") as r:
         assert sorted(r["sims"]) == sorted(t["sims"])
         for name in sorted(t["sims"]):
@@ -696,8 +697,16 @@ def numpy_metrics(truth_file, rollouts_file):
                 per[name]["rrmse"][g] = np.sqrt(err2.mean() / scale2)
                 pooled["rmse"][g] += err2.sum() / d
                 pooled["rrmse"][g] += err2.sum() / scale2
+                if g == "q":  # e(t+1) - 2 e(t) + e(t-1) of the position error, snapshots 1..S-1
+                    e = pred - ref
+                    jump2 = ((e[2:] - 2 * e[1:-1] + e[:-2]) ** 2).sum(-1)
+                    per[name]["q_error_second_difference"] = {"rms": np.sqrt(jump2.mean()), "max": np.sqrt(jump2.max())}
+                    jump2_sum, jump_count = jump2_sum + jump2.sum(), jump_count + jump2.size
             count += err2.size
-    return per, {kind: {g: np.sqrt(v / count) for g, v in gs.items()} for kind, gs in pooled.items()}
+    jumps = {"rms": np.sqrt(jump2_sum / jump_count),
+             "max": max(p["q_error_second_difference"]["max"] for p in per.values())}
+    return per, {kind: {g: np.sqrt(v / count) for g, v in gs.items()} for kind, gs in pooled.items()} | {
+        "q_error_second_difference": jumps}
 
 
 def test_eval_writes_metrics_rollouts_and_plots(evaluated, data):
@@ -712,11 +721,11 @@ def test_eval_writes_metrics_rollouts_and_plots(evaluated, data):
     assert not list(out.glob("*.tmp"))
 
     per, pooled = numpy_metrics(data / "L5.h5", out / "rollouts.h5")
-    for kind in ("rmse", "rrmse"):
+    for kind in ("rmse", "rrmse", "q_error_second_difference"):
         assert m[kind] == pytest.approx(pooled[kind], rel=1e-6)
     for p in m["per_rollout"]:
         name = p["name"].split("/")[-1]
-        for kind in ("rmse", "rrmse"):
+        for kind in ("rmse", "rrmse", "q_error_second_difference"):
             assert p[kind] == pytest.approx(per[name][kind], rel=1e-6)
 
 

@@ -28,6 +28,16 @@ def rollout_metrics(pred: np.ndarray, ref: np.ndarray) -> dict[str, dict[str, fl
     return out
 
 
+def error_second_difference(pred: np.ndarray, ref: np.ndarray) -> dict[str, float]:
+    """How much a rollout's position error jitters, arrays (S+1, N, 12): the RMS over nodes and
+    snapshots 1..S-1 of e(t+1) - 2 e(t) + e(t-1), e = q_pred - q_ref [m], and its largest node value.
+    A smooth error (a drift, a lag) has next to none; a network that flips nodes back and forth
+    between steps reads four times the flip, which the RMSE, averaged over snapshots, hides."""
+    e = pred[:, :, GROUPS["q"]].astype(np.float64) - ref[:, :, GROUPS["q"]]
+    d2 = np.linalg.norm(e[2:] - 2 * e[1:-1] + e[:-2], axis=-1)
+    return {"rms": float(np.sqrt((d2 ** 2).mean())), "max": float(d2.max())}
+
+
 def set_metrics(per_rollout: list[dict], weights=None) -> dict[str, dict[str, float]]:
     """Pool per-rollout metrics (each a ``rollout_metrics`` dict), weighted by node-snapshots."""
     w = np.ones(len(per_rollout)) if weights is None else np.asarray(weights, float)

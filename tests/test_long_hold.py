@@ -1,0 +1,56 @@
+"""bench/long_hold.py's flip measures against motions whose answer is known by hand: a period-2 flip,
+a uniform motion and a constant acceleration."""
+
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from long_hold import flip_statistics, second_difference
+
+STEPS, NODES, DT = 8, 20, 0.05
+
+
+def states(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """steps x nodes x 12 states of positions q and velocities v (stress zero)."""
+    return torch.cat([q, v.expand_as(q), torch.zeros_like(q).repeat(1, 1, 2)], -1)
+
+
+def directions(seed: int = 0) -> torch.Tensor:
+    d = torch.randn(NODES, 3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    return d / d.norm(dim=1, keepdim=True)
+
+
+def test_a_period_two_flip_reads_four_times_its_amplitude_and_cosine_minus_one():
+    a, start = 2e-4, torch.randn(NODES, 3, dtype=torch.float64)
+    sign = torch.tensor([(-1.0) ** t for t in range(STEPS)], dtype=torch.float64)
+    q = start + a * sign[:, None, None] * directions()  # every node steps back where it came from
+    assert second_difference(q) == pytest.approx([4 * a] * (STEPS - 2), rel=1e-9)
+    flip = flip_statistics(states(q, torch.full((1, 1, 3), 1e-3 / 3 ** 0.5, dtype=torch.float64)), 3, DT)
+    assert flip["increment_cosine"] == pytest.approx(-1.0, abs=1e-12)
+    assert flip["largest_node_m"] == pytest.approx(4 * a, rel=1e-9)
+    assert flip["share_10_largest_nodes"] == pytest.approx(10 / NODES, rel=1e-9)  # all nodes alike
+    assert flip["rate_over_velocity_10_largest"] == pytest.approx(2 * a / DT / 1e-3, rel=1e-9)  # |v| = 1 mm/s
+
+
+def test_a_flip_on_one_node_is_all_in_the_largest_ten():
+    q = torch.zeros(STEPS, NODES, 3, dtype=torch.float64)
+    q[1::2, 7, 0] = 1e-3
+    assert second_difference(q) == pytest.approx([2e-3 / NODES ** 0.5] * (STEPS - 2), rel=1e-9)
+    flip = flip_statistics(states(q, torch.zeros(1, 1, 3, dtype=torch.float64)), 4, DT)
+    assert flip["share_10_largest_nodes"] == pytest.approx(1.0)
+    assert flip["largest_node_m"] == pytest.approx(2e-3, rel=1e-9)
+
+
+def test_uniform_motion_has_no_second_difference_and_constant_acceleration_its_own():
+    t = torch.arange(STEPS, dtype=torch.float64)[:, None, None]
+    velocity, acceleration = 3e-4 * directions(1), 5e-5 * directions(2)
+    uniform = velocity * t
+    assert second_difference(uniform) == pytest.approx([0.0] * (STEPS - 2), abs=1e-15)
+    flip = flip_statistics(states(uniform * DT, velocity[None]), 3, DT)  # a step of velocity * DT
+    assert flip["increment_cosine"] == pytest.approx(1.0, abs=1e-12)
+    assert flip["rate_over_velocity_10_largest"] == pytest.approx(1.0, rel=1e-9)  # consistent state
+    accelerated = uniform + 0.5 * acceleration * t ** 2  # q(t+1) - 2 q(t) + q(t-1) = acceleration exactly
+    assert second_difference(accelerated) == pytest.approx([5e-5] * (STEPS - 2), rel=1e-9)
