@@ -3,8 +3,9 @@ its 20 snapshots (tools ramp until step 10, then hold), then HOLD more steps wit
 where it ended, and records per step the RMS velocity of the free nodes, how far they have
 moved since step 20, and the RMS second difference of their positions, q(t+1) - 2 q(t) + q(t-1)
 (a flip-flop of amplitude a between steps reads 4a; the FEM's smooth motion, dt^2 times its
-acceleration), and at the last snapshot whether those steps flip back and forth (flip_statistics). The FEM's hold phase sets the scale: its free nodes' snapshot velocity is
-aliased vibration of ~1e-4 m/s, and viscoelastic creep moves them by well under a millimetre.
+acceleration), and at the last snapshot whether those steps flip back and forth (flip_statistics).
+The FEM's hold phase sets the scale: its free nodes' snapshot velocity is aliased vibration of
+~1e-4 m/s, and viscoelastic creep moves them by well under a millimetre.
 A network whose velocity grows step after step here is unstable under the Euler step.
 --impose-tool-velocity adds, per network, a rollout whose tool-tip nodes take the tool's velocity
 after every step (central differences of the imposed displacements, zero while held): whether
