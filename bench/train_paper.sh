@@ -134,8 +134,10 @@ seeds stable_rot_smooth2e1_g1e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noi
 # the recipe's three 24e runs, its q already below the 30-minute recipe's; G = 0.1 +1.1 / -0.2 / +0.9 %, no pull-back.
 # But every smooth-noise network flips a few free nodes back and forth every step once the tools stop (up to mm on
 # single nodes; RMS second difference of position 0.1-0.45 mm against the FEM's 0.003: long_hold_smooth_gamma_cpu.json).)
-# Against the flips: a 4-step lead-in (the trained step then starts where a growing flip has grown, and its target
-# takes it back), and G = 0.5 to bracket the take-back
+# Against the flips, whose nodes move 20-31x faster than their velocity says: the take-back in the target's velocity
+# too (--noise-smooth-velocity), so that the position moves back at the velocity the state holds; a 4-step lead-in
+# (the trained step then starts where a growing flip has grown, and its target takes it back); G = 0.5 to bracket
+seeds stable_rot_smooth2e1_g3e1_vel $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity
 seeds stable_rot_smooth2e1_g3e1_pf4 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --pushforward 4
 seeds stable_rot_smooth2e1_g5e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.5
 dispatch

@@ -665,6 +665,27 @@ def test_make_batch_smooth_noise_gamma(two_sims):
                                        rtol=1e-5, atol=1e-9)
 
 
+def test_make_batch_smooth_noise_velocity(two_sims):
+    """--noise-smooth-velocity: the target's positions are those of --noise-smooth-gamma alone, and its velocities
+    take back, over the trained step, the share gamma of what is left of the displacement after the sample's
+    lead-in steps: v - gamma (1 - gamma)^k d / dt; the inputs and the stresses are unchanged."""
+    samples, a = [(0, 0), (0, 1), (1, 2), (0, 2)], 0.3
+    for lead in (0, 2):
+        def batch(lead=lead, **kw):
+            return make_batch(two_sims, samples, 0.05, 0.1, torch.Generator().manual_seed(0), lead=lead,
+                              noise_smooth=a, **kw)
+        d = batch().z[:, :3] - make_batch(two_sims, samples, 0.05, 0.1, torch.Generator().manual_seed(0),
+                                           lead=lead).z[:, :3]
+        led = torch.cat([torch.full((two_sims[i].topology.n_nodes, 1), float(min(lead, t))) for i, t in samples])
+        dt = torch.cat([torch.full((two_sims[i].topology.n_nodes, 1), two_sims[i].dt) for i, _ in samples])
+        for gamma in (1.0, 0.25):
+            plain, moving = batch(noise_smooth_gamma=gamma), batch(noise_smooth_gamma=gamma, noise_smooth_velocity=True)
+            assert torch.equal(moving.z, plain.z) and torch.equal(moving.z_next[:, :3], plain.z_next[:, :3])
+            assert torch.equal(moving.z_next[:, 6:], plain.z_next[:, 6:])
+            torch.testing.assert_close(moving.z_next[:, 3:6] - plain.z_next[:, 3:6],
+                                       -gamma * (1 - gamma) ** led * d / dt, rtol=1e-5, atol=1e-7)
+
+
 def double_sim(sim: Simulation) -> Simulation:
     return replace(sim, topology=to_double(sim.topology), z=sim.z.double(), u=sim.u.double())
 

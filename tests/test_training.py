@@ -617,6 +617,22 @@ def test_train_smooth_noise_gamma_out_of_range(data, tmp_path):
     assert not (tmp_path / "run" / "last.pt").exists()
     with pytest.raises(ValueError, match="give --noise-smooth too"):  # a gamma with nothing to take back
         config(data, tmp_path / "alone", epochs=1, noise_smooth_gamma=0.5)
+    proc = run_cli("train", "--data", data, "--passes", 2, "--latent", 16, "--epochs", 1, "--device", "cpu",
+                   "--noise-smooth-velocity", "--out", tmp_path / "run")  # nor a velocity for it
+    assert_one_line_error(proc, "--noise-smooth-velocity", "give --noise-smooth too")
+    assert not (tmp_path / "run" / "last.pt").exists()
+
+
+def test_smooth_noise_velocity_reaches_the_training_batches(data, tmp_path):
+    """--noise-smooth-velocity changes only the velocity targets: the run trains (finite losses) and, from
+    the same seed, differs from the run without it, which it would not if the flag never reached make_batch."""
+    flags = {"pushforward": 2, "noise_smooth": 0.2, "noise_smooth_gamma": 0.3}
+    plain, _ = quiet_train(config(data, tmp_path / "plain", epochs=2, **flags))
+    moving, _ = quiet_train(config(data, tmp_path / "moving", epochs=2, noise_smooth_velocity=True, **flags))
+    assert all(np.isfinite(h["loss"]) for h in moving["history"])
+    assert moving["history"][0]["loss"] != pytest.approx(plain["history"][0]["loss"], rel=1e-6)
+    saved = torch.load(tmp_path / "moving" / "last.pt", weights_only=False)["train_config"]
+    assert saved["noise_smooth_velocity"] is True and saved["noise_smooth_gamma"] == 0.3
 
 
 def test_train_on_a_directory_missing_a_file(data, tmp_path):

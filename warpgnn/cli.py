@@ -169,7 +169,7 @@ def cmd_train(args):
                           time_limit=args.time_limit, time_budget=args.time_budget, tf32=args.tf32,
                           compile=args.compile, cuda_graphs=args.cuda_graphs, operator_products=args.operator_products,
                           pushforward=args.pushforward,
-                          rotate=args.rotate, device=args.device,
+                          rotate=args.rotate, noise_smooth_velocity=args.noise_smooth_velocity, device=args.device,
                           **{k: getattr(args, k) for k in ("noise_q", "noise_v", "noise_v_add", "noise_smooth", "noise_smooth_gamma")
                              if getattr(args, k) is not None})
     except ValueError as exc:
@@ -264,6 +264,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--noise-smooth-gamma", type=float, metavar="GAMMA",
                    help="fraction of that displacement the target takes back per step, as MeshGraphNets' noise_gamma "
                         "(default 1: all of it at once)")
+    t.add_argument("--noise-smooth-velocity", action="store_true",
+                   help="the target's velocity takes that displacement back too, so the position moves back at the "
+                        "velocity the state holds (default: the position alone)")
     t.add_argument("--tf32", action="store_true", help="TF32 matmuls on CUDA (default: full fp32)")
     t.add_argument("--compile", action="store_true",
                    help="torch.compile the network for training (GPU: fused kernels; compiles once, ~1 min)")

@@ -257,7 +257,7 @@ def smooth_displacements(rest: torch.Tensor, sizes: torch.Tensor, weight: torch.
 def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: float = 0.0,
                generator: torch.Generator | None = None, shape: BatchShape | Sequence[BatchShape] | None = None,
                lead: int = 0, noise_v_add: float = 0.0, rotate: bool = False, noise_smooth: float = 0.0,
-               noise_smooth_gamma: float = 1.0) -> Batch:
+               noise_smooth_gamma: float = 1.0, noise_smooth_velocity: bool = False) -> Batch:
     """Stack the steps t -> t+1 of ``samples`` = [(simulation index, t), ...] into one graph,
     padded to ``shape`` if given, or to the first of several shapes that it fits (the real nodes,
     their noise and targets are the same either way).
@@ -276,6 +276,9 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     ``noise_smooth_gamma`` is the fraction of that displacement the target takes back per step the network
     takes (MeshGraphNets' noise_gamma): the target keeps (1 - gamma)^(k + 1) of it after the k lead-in steps
     a sample has (1: all of it back in the trained step; 0: the target ignores it).
+    ``noise_smooth_velocity`` gives the target's velocity that take-back too, v - gamma (1 - gamma)^k d / dt,
+    so that the position moves back at the velocity the state holds instead of a rate the velocity does not
+    carry (networks trained without it flip nodes back and forth once the tools stop: bench/long_hold.py).
     With ``lead`` > 0 (pushforward training) ``z`` is the (noisy) state min(lead, t) snapshots
     before t, ``lead_u`` the tools' path from there to t (its first entries repeat the start when
     t < lead) and ``lead_active`` which nodes each lead step moves (none of the padding).
@@ -328,10 +331,13 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
         amplitude = amplitude * torch.rand(len(samples), generator=generator, dtype=torch.float64)
         d = smooth_displacements(top.rest[:real_nodes], sizes, free[:, 0], amplitude, coefficients).to(z.dtype)
         z = torch.cat([z[:, :3] + d, z[:, 3:]], -1)
-        if noise_smooth_gamma != 1:
-            steps = 1 + (active.sum(0) if lead else 0)  # the trained step and each lead-in step the node takes
-            kept = ((1 - noise_smooth_gamma) ** torch.as_tensor(steps, device=device, dtype=z.dtype))
-            z_next = torch.cat([z_next[:, :3] + kept.reshape(-1, 1) * d, z_next[:, 3:]], -1)
+        # the lead-in steps the node takes before the trained step
+        led = torch.as_tensor(active.sum(0) if lead else 0, device=device, dtype=z.dtype).reshape(-1, 1)
+        left = (1 - noise_smooth_gamma) ** led * d  # what is left of it when the trained step starts
+        q_next, v_next = z_next[:, :3] + (1 - noise_smooth_gamma) * left, z_next[:, 3:6]
+        if noise_smooth_velocity:
+            v_next = v_next - noise_smooth_gamma * left / dt.to(z.dtype)
+        z_next = torch.cat([q_next, v_next, z_next[:, 6:]], -1)
     if shape is None:
         return Batch(top, z, u[-2], u[-1], z_next, dt, lead_u=u[:-1] if lead else None, lead_active=active)
     mask = _grow(torch.ones(real_nodes, device=device), shape.nodes, 0.0)

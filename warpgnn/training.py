@@ -68,6 +68,9 @@ class TrainConfig:
     # the fraction of that displacement the target takes back per step (MeshGraphNets' noise_gamma; 1: all in one
     # step). At 2e-1 a full take-back is a position rate of up to ~1.8 mm / 0.05 s = 36 mm/s, as fast as the tools
     noise_smooth_gamma: float = 1.0
+    # that take-back in the target's velocity too (False: in the position alone, a rate v does not carry; the
+    # networks trained so flip a few nodes back and forth once the tools stop: bench/results/long_hold_smooth_gamma_cpu.json)
+    noise_smooth_velocity: bool = False
     # steps the network takes (without gradient) from the true state before the trained step, whose
     # target then leads from its own rollout back to the ground truth (0: the paper's one-step training)
     pushforward: int = 0
@@ -96,6 +99,9 @@ class TrainConfig:
         if self.noise_smooth_gamma != 1 and not self.noise_smooth:
             raise ValueError("--noise-smooth-gamma sets how much of --noise-smooth's displacement the target takes "
                              "back: give --noise-smooth too")
+        if self.noise_smooth_velocity and not self.noise_smooth:
+            raise ValueError("--noise-smooth-velocity puts --noise-smooth's take-back in the target's velocity: "
+                             "give --noise-smooth too")
         if self.pushforward < 0:
             raise ValueError("--pushforward must be >= 0")
         if self.patience is not None and self.patience < 1:
@@ -412,7 +418,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
         sums, n = {}, 0
         chunks = [mine[i:i + cfg.batch_size] for i in range(0, len(mine), cfg.batch_size)]
         batches = prefetched(lambda c: make_batch(train_sims, c, cfg.noise_q, cfg.noise_v, gen, shapes, cfg.pushforward,
-                                                  cfg.noise_v_add, cfg.rotate, cfg.noise_smooth, cfg.noise_smooth_gamma),
+                                                  cfg.noise_v_add, cfg.rotate, cfg.noise_smooth, cfg.noise_smooth_gamma,
+                                                  cfg.noise_smooth_velocity),
                                      chunks)
         bar = tqdm(batches, total=len(chunks), desc=f"epoch {epoch}", leave=False, disable=True if rank else None)
         for b in bar:
