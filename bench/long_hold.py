@@ -136,6 +136,8 @@ def main():
     ap.add_argument("--png", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
+    if a.hold < 1:
+        ap.error("--hold must be at least 1 (the flip statistics look one step past the data)")
     sims = load_file(a.data)
     steps = sims[0].steps
     record = provenance.record(a) | {"data": a.data, "simulations": len(sims), "hold_steps": a.hold,

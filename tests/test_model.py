@@ -403,9 +403,9 @@ def test_error_second_difference_hand_values():
     drift = ref.copy()
     drift[:, :, :3] += 1e-3 * np.arange(5)[:, None, None]
     assert metrics.error_second_difference(drift, ref) == pytest.approx({"rms": 0.0, "max": 0.0}, abs=1e-15)
-    stress_only = ref.copy()
-    stress_only[:, :, 6:] += np.random.default_rng(1).normal(size=(5, 2, 6))  # only q counts
-    assert metrics.error_second_difference(stress_only, ref)["max"] == 0.0
+    not_q = ref.copy()
+    not_q[:, :, 3:] += np.random.default_rng(1).normal(size=(5, 2, 9))  # only q counts, not v or sigma
+    assert metrics.error_second_difference(not_q, ref)["max"] == 0.0
 
 
 def test_set_metrics_pools_node_snapshots():

@@ -336,7 +336,7 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
         left = (1 - noise_smooth_gamma) ** led * d  # what is left of it when the trained step starts
         q_next, v_next = z_next[:, :3] + (1 - noise_smooth_gamma) * left, z_next[:, 3:6]
         if noise_smooth_velocity:
-            v_next = v_next - noise_smooth_gamma * left / dt.to(z.dtype)
+            v_next = v_next - noise_smooth_gamma * left / dt.to(z.dtype)  # (dt as the float32 batch holds it)
         z_next = torch.cat([q_next, v_next, z_next[:, 6:]], -1)
     if shape is None:
         return Batch(top, z, u[-2], u[-1], z_next, dt, lead_u=u[:-1] if lead else None, lead_active=active)

@@ -31,10 +31,12 @@ def rollout_metrics(pred: np.ndarray, ref: np.ndarray) -> dict[str, dict[str, fl
 def error_second_difference(pred: np.ndarray, ref: np.ndarray) -> dict[str, float]:
     """How much a rollout's position error jitters, arrays (S+1, N, 12): the RMS over nodes and
     snapshots 1..S-1 of e(t+1) - 2 e(t) + e(t-1), e = q_pred - q_ref [m], and its largest node value.
-    A smooth error (a drift, a lag) has next to none; a network that flips nodes back and forth
-    between steps reads four times the flip, which the RMSE, averaged over snapshots, hides."""
+    A smooth error (a drift, a lag) has next to none; a network that flips nodes between +a and -a
+    reads 4a, which the RMSE, averaged over snapshots, hides. NaN for fewer than 3 snapshots."""
     e = pred[:, :, GROUPS["q"]].astype(np.float64) - ref[:, :, GROUPS["q"]]
     d2 = np.linalg.norm(e[2:] - 2 * e[1:-1] + e[:-2], axis=-1)
+    if d2.size == 0:
+        return {"rms": float("nan"), "max": float("nan")}
     return {"rms": float(np.sqrt((d2 ** 2).mean())), "max": float(d2.max())}
 
 
