@@ -32,6 +32,7 @@ import provenance  # bench/, beside this script
 from warpgnn.checkpoint import load_model
 from warpgnn.data import load_file
 from warpgnn.graphs import GROUPS, NODE_FREE, apply_boundary_conditions
+from warpgnn.metrics import second_difference_norms
 from tool_velocity_oracle import tool_velocity, with_tool_velocity
 
 
@@ -63,7 +64,7 @@ def free_node_history(model, sim, hold: int, impose_tool_velocity: bool
 
 def second_difference(q: torch.Tensor) -> np.ndarray:
     """RMS over nodes of q(t+1) - 2 q(t) + q(t-1), for t = 1 .. len(q) - 2 (q: steps x nodes x 3)."""
-    return (q[2:] - 2 * q[1:-1] + q[:-2]).norm(dim=2).pow(2).mean(1).sqrt().numpy()
+    return np.sqrt(np.mean(second_difference_norms(q.double().numpy()) ** 2, axis=1))
 
 
 def flip_statistics(z: torch.Tensor, t: int, dt: float) -> dict:

@@ -43,8 +43,9 @@ def evaluate(checkpoint_path, data_file, out_dir, device=None, backend: str = "t
     seconds = time.perf_counter() - t0
     per = []
     for r, s in zip(rolls, sims):
-        m = metrics.rollout_metrics(r.z, s.z.cpu().numpy())
-        rec = {"name": r.name, **m, "q_error_second_difference": metrics.error_second_difference(r.z, s.z.cpu().numpy())}
+        ref = s.z.cpu().numpy()
+        rec = {"name": r.name, **metrics.rollout_metrics(r.z, ref),
+               "q_error_second_difference": metrics.error_second_difference(r.z, ref)}
         if r.degeneracy is not None:
             rec.update(degeneracy_mean=float(r.degeneracy.mean()), degeneracy_max=float(r.degeneracy.max()),
                        entropy_production_min=float(r.entropy_production_min.min()),

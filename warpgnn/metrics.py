@@ -28,13 +28,18 @@ def rollout_metrics(pred: np.ndarray, ref: np.ndarray) -> dict[str, dict[str, fl
     return out
 
 
+def second_difference_norms(x: np.ndarray) -> np.ndarray:
+    """|x(t+1) - 2 x(t) + x(t-1)| per node, for t = 1 .. len(x) - 2 (x: steps x nodes x 3)."""
+    return np.linalg.norm(x[2:] - 2 * x[1:-1] + x[:-2], axis=-1)
+
+
 def error_second_difference(pred: np.ndarray, ref: np.ndarray) -> dict[str, float]:
     """How much a rollout's position error jitters, arrays (S+1, N, 12): the RMS over nodes and
     snapshots 1..S-1 of e(t+1) - 2 e(t) + e(t-1), e = q_pred - q_ref [m], and its largest node value.
     A smooth error (a drift, a lag) has next to none; a network that flips nodes between +a and -a
     reads 4a, which the RMSE, averaged over snapshots, hides. NaN for fewer than 3 snapshots."""
     e = pred[:, :, GROUPS["q"]].astype(np.float64) - ref[:, :, GROUPS["q"]]
-    d2 = np.linalg.norm(e[2:] - 2 * e[1:-1] + e[:-2], axis=-1)
+    d2 = second_difference_norms(e)
     if d2.size == 0:
         return {"rms": float("nan"), "max": float("nan")}
     return {"rms": float(np.sqrt((d2 ** 2).mean())), "max": float(d2.max())}
