@@ -140,5 +140,12 @@ seeds stable_rot_smooth2e1_g1e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noi
 seeds stable_rot_smooth2e1_g3e1_vel $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity
 seeds stable_rot_smooth2e1_g3e1_pf4 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --pushforward 4
 seeds stable_rot_smooth2e1_g5e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.5
+# (bench/results/gnn_smooth_flipfix_e24_h100.json, 24e, seed 0, L5 against the recipe's three 24e runs: _vel
+# -13.5 / +7.5 / +0.0 % and no flips (long_hold_flipfix_cpu.json); _pf4 -16.9 / +1.5 / -8.9 % and _g5e1
+# -18.7 / -1.9 / -2.2 %, both flipping as G = 0.3 did.) The velocity take-back with the others' levers, and _vel's
+# second seed (same record: _vel two seeds -13.9 / +5.3 / -1.0 %, seed 1 a ~0.04 mm jitter beyond the data;
+# _g5e1_vel -15.6 / +10.3 / +4.0 % and _g3e1_vel_pf4 -15.6 / +7.6 / -6.2 %, both ~0.1 mm. Next: _vel, seed 0, 1800 s)
+seeds stable_rot_smooth2e1_g5e1_vel $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.5 --noise-smooth-velocity
+seeds stable_rot_smooth2e1_g3e1_vel_pf4 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity --pushforward 4
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"
