@@ -145,6 +145,11 @@ seeds stable_rot_smooth2e1_g5e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noi
 # -18.7 / -1.9 / -2.2 %, both flipping as G = 0.3 did.) The velocity take-back with the others' levers, and _vel's
 # second seed (same record: _vel two seeds -13.9 / +5.3 / -1.0 %, seed 1 a ~0.04 mm jitter beyond the data;
 # _g5e1_vel -15.6 / +10.3 / +4.0 % and _g3e1_vel_pf4 -15.6 / +7.6 / -6.2 %, both ~0.1 mm. Next: _vel, seed 0, 1800 s)
+# Its velocity cost is the hold's: each network returns its own position error at a speed the FEM does not have.
+# Half of the take-back in the velocity (a position rate twice the velocity, where the flipping networks' was 20-31x),
+# and less take-back at all (G = 0.2); vanilla_p5_stable_rot_smooth2e1_g3e1_vel_s0 is _vel's vanilla peer
+seeds stable_rot_smooth2e1_g3e1_vel5e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity 0.5
+seeds stable_rot_smooth2e1_g2e1_vel $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.2 --noise-smooth-velocity
 seeds stable_rot_smooth2e1_g5e1_vel $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.5 --noise-smooth-velocity
 seeds stable_rot_smooth2e1_g3e1_vel_pf4 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity --pushforward 4
 dispatch

@@ -666,9 +666,9 @@ def test_make_batch_smooth_noise_gamma(two_sims):
 
 
 def test_make_batch_smooth_noise_velocity(two_sims):
-    """--noise-smooth-velocity: the target's positions are those of --noise-smooth-gamma alone, and its velocities
-    take back, over the trained step, the share gamma of what is left of the displacement after the sample's
-    lead-in steps: v - gamma (1 - gamma)^k d / dt; the inputs and the stresses are unchanged."""
+    """--noise-smooth-velocity S: the target's positions are those of --noise-smooth-gamma alone, and its velocities
+    take back, over the trained step, S times the share gamma of what is left of the displacement after the
+    sample's lead-in steps: v - S gamma (1 - gamma)^k d / dt; the inputs and the stresses are unchanged."""
     samples, a = [(0, 0), (0, 1), (1, 2), (0, 2)], 0.3
     for lead in (0, 2):
         def batch(lead=lead, **kw):
@@ -678,12 +678,13 @@ def test_make_batch_smooth_noise_velocity(two_sims):
                                            lead=lead).z[:, :3]
         led = torch.cat([torch.full((two_sims[i].topology.n_nodes, 1), float(min(lead, t))) for i, t in samples])
         dt = torch.cat([torch.full((two_sims[i].topology.n_nodes, 1), two_sims[i].dt) for i, _ in samples])
-        for gamma in (1.0, 0.25):
-            plain, moving = batch(noise_smooth_gamma=gamma), batch(noise_smooth_gamma=gamma, noise_smooth_velocity=True)
+        for gamma, share in ((1.0, 1.0), (0.25, 1.0), (0.25, 0.5)):
+            plain = batch(noise_smooth_gamma=gamma)
+            moving = batch(noise_smooth_gamma=gamma, noise_smooth_velocity=share)
             assert torch.equal(moving.z, plain.z) and torch.equal(moving.z_next[:, :3], plain.z_next[:, :3])
             assert torch.equal(moving.z_next[:, 6:], plain.z_next[:, 6:])
             torch.testing.assert_close(moving.z_next[:, 3:6] - plain.z_next[:, 3:6],
-                                       -gamma * (1 - gamma) ** led * d / dt, rtol=1e-5, atol=1e-7)
+                                       -share * gamma * (1 - gamma) ** led * d / dt, rtol=1e-5, atol=1e-7)
 
 
 def double_sim(sim: Simulation) -> Simulation:

@@ -621,6 +621,10 @@ def test_train_smooth_noise_gamma_out_of_range(data, tmp_path):
                    "--noise-smooth-velocity", "--out", tmp_path / "run")  # nor a velocity for it
     assert_one_line_error(proc, "--noise-smooth-velocity", "give --noise-smooth too")
     assert not (tmp_path / "run" / "last.pt").exists()
+    proc = run_cli("train", "--data", data, "--passes", 2, "--latent", 16, "--epochs", 1, "--device", "cpu",
+                   "--noise-smooth", "0.2", "--noise-smooth-velocity", "1.5", "--out", tmp_path / "run")
+    assert_one_line_error(proc, "--noise-smooth-velocity", "[0, 1]")  # a share of the take-back
+    assert not (tmp_path / "run" / "last.pt").exists()
 
 
 def test_smooth_noise_velocity_reaches_the_training_batches(data, tmp_path):
@@ -628,11 +632,11 @@ def test_smooth_noise_velocity_reaches_the_training_batches(data, tmp_path):
     the same seed, differs from the run without it, which it would not if the flag never reached make_batch."""
     flags = {"pushforward": 2, "noise_smooth": 0.2, "noise_smooth_gamma": 0.3}
     plain, _ = quiet_train(config(data, tmp_path / "plain", epochs=2, **flags))
-    moving, _ = quiet_train(config(data, tmp_path / "moving", epochs=2, noise_smooth_velocity=True, **flags))
+    moving, _ = quiet_train(config(data, tmp_path / "moving", epochs=2, noise_smooth_velocity=1.0, **flags))
     assert all(np.isfinite(h["loss"]) for h in moving["history"])
     assert moving["history"][0]["loss"] != pytest.approx(plain["history"][0]["loss"], rel=1e-6)
     saved = torch.load(tmp_path / "moving" / "last.pt", weights_only=False)["train_config"]
-    assert saved["noise_smooth_velocity"] is True and saved["noise_smooth_gamma"] == 0.3
+    assert saved["noise_smooth_velocity"] == 1.0 and saved["noise_smooth_gamma"] == 0.3
 
 
 def test_train_on_a_directory_missing_a_file(data, tmp_path):

@@ -264,9 +264,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--noise-smooth-gamma", type=float, metavar="GAMMA",
                    help="fraction of that displacement the target takes back per step, as MeshGraphNets' noise_gamma "
                         "(default 1: all of it at once)")
-    t.add_argument("--noise-smooth-velocity", action="store_true",
-                   help="the target's velocity takes that displacement back too, so the position moves back at the "
-                        "velocity the state holds (default: the position alone)")
+    t.add_argument("--noise-smooth-velocity", type=float, nargs="?", const=1.0, default=0.0, metavar="SHARE",
+                   help="the share of that take-back the target's velocity carries too (alone: 1, the position moves "
+                        "back at the velocity the state holds; default 0: the position alone)")
     t.add_argument("--tf32", action="store_true", help="TF32 matmuls on CUDA (default: full fp32)")
     t.add_argument("--compile", action="store_true",
                    help="torch.compile the network for training (GPU: fused kernels; compiles once, ~1 min)")

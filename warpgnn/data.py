@@ -257,7 +257,7 @@ def smooth_displacements(rest: torch.Tensor, sizes: torch.Tensor, weight: torch.
 def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: float = 0.0,
                generator: torch.Generator | None = None, shape: BatchShape | Sequence[BatchShape] | None = None,
                lead: int = 0, noise_v_add: float = 0.0, rotate: bool = False, noise_smooth: float = 0.0,
-               noise_smooth_gamma: float = 1.0, noise_smooth_velocity: bool = False) -> Batch:
+               noise_smooth_gamma: float = 1.0, noise_smooth_velocity: float = 0.0) -> Batch:
     """Stack the steps t -> t+1 of ``samples`` = [(simulation index, t), ...] into one graph,
     padded to ``shape`` if given, or to the first of several shapes that it fits (the real nodes,
     their noise and targets are the same either way).
@@ -276,9 +276,10 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     ``noise_smooth_gamma`` is the fraction of that displacement the target takes back per step the network
     takes (MeshGraphNets' noise_gamma): the target keeps (1 - gamma)^(k + 1) of it after the k lead-in steps
     a sample has (1: all of it back in the trained step; 0: the target ignores it).
-    ``noise_smooth_velocity`` gives the target's velocity that take-back too, v - gamma (1 - gamma)^k d / dt,
-    so that the position moves back at the velocity the state holds instead of a rate the velocity does not
-    carry (networks trained without it flip nodes back and forth once the tools stop: bench/long_hold.py).
+    ``noise_smooth_velocity`` is the share S of that take-back the target's velocity carries too,
+    v - S gamma (1 - gamma)^k d / dt: at 1 the position moves back at the velocity the state holds, at 0 (the
+    default) at a rate the velocity does not carry (networks trained so flip nodes back and forth once the
+    tools stop: bench/long_hold.py).
     With ``lead`` > 0 (pushforward training) ``z`` is the (noisy) state min(lead, t) snapshots
     before t, ``lead_u`` the tools' path from there to t (its first entries repeat the start when
     t < lead) and ``lead_active`` which nodes each lead step moves (none of the padding).
@@ -336,7 +337,7 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
         left = (1 - noise_smooth_gamma) ** led * d  # what is left of it when the trained step starts
         q_next, v_next = z_next[:, :3] + (1 - noise_smooth_gamma) * left, z_next[:, 3:6]
         if noise_smooth_velocity:
-            v_next = v_next - noise_smooth_gamma * left / dt.to(z.dtype)  # (dt as the float32 batch holds it)
+            v_next = v_next - noise_smooth_velocity * noise_smooth_gamma * left / dt.to(z.dtype)  # (float32 dt)
         z_next = torch.cat([q_next, v_next, z_next[:, 6:]], -1)
     if shape is None:
         return Batch(top, z, u[-2], u[-1], z_next, dt, lead_u=u[:-1] if lead else None, lead_active=active)

@@ -68,9 +68,10 @@ class TrainConfig:
     # the fraction of that displacement the target takes back per step (MeshGraphNets' noise_gamma; 1: all in one
     # step). At 2e-1 a full take-back is a position rate of up to ~1.8 mm / 0.05 s = 36 mm/s, as fast as the tools
     noise_smooth_gamma: float = 1.0
-    # that take-back in the target's velocity too (False: in the position alone, a rate v does not carry; the
-    # networks trained so flip a few nodes back and forth once the tools stop: bench/results/long_hold_smooth_gamma_cpu.json)
-    noise_smooth_velocity: bool = False
+    # the share of that take-back the target's velocity carries too (0: the position alone, at a rate v does not
+    # carry; the networks trained so flip a few nodes back and forth once the tools stop:
+    # bench/results/long_hold_smooth_gamma_cpu.json; 1 removes the flips: long_hold_flipfix_cpu.json)
+    noise_smooth_velocity: float = 0.0
     # steps the network takes (without gradient) from the true state before the trained step, whose
     # target then leads from its own rollout back to the ground truth (0: the paper's one-step training)
     pushforward: int = 0
@@ -99,6 +100,8 @@ class TrainConfig:
         if self.noise_smooth_gamma != 1 and not self.noise_smooth:
             raise ValueError("--noise-smooth-gamma sets how much of --noise-smooth's displacement the target takes "
                              "back: give --noise-smooth too")
+        if not 0 <= self.noise_smooth_velocity <= 1:
+            raise ValueError(f"--noise-smooth-velocity must be in [0, 1], got {self.noise_smooth_velocity}")
         if self.noise_smooth_velocity and not self.noise_smooth:
             raise ValueError("--noise-smooth-velocity puts --noise-smooth's take-back in the target's velocity: "
                              "give --noise-smooth too")
