@@ -629,12 +629,15 @@ def test_train_smooth_noise_gamma_out_of_range(data, tmp_path):
 
 def test_smooth_noise_velocity_reaches_the_training_batches(data, tmp_path):
     """--noise-smooth-velocity changes only the velocity targets: the run trains (finite losses) and, from
-    the same seed, differs from the run without it, which it would not if the flag never reached make_batch."""
+    the same seed, differs from the run without it, which it would not if the flag never reached make_batch,
+    and a share of 0.5 from the full share, which it would not if the share were rounded to a switch."""
     flags = {"pushforward": 2, "noise_smooth": 0.2, "noise_smooth_gamma": 0.3}
     plain, _ = quiet_train(config(data, tmp_path / "plain", epochs=2, **flags))
     moving, _ = quiet_train(config(data, tmp_path / "moving", epochs=2, noise_smooth_velocity=1.0, **flags))
     assert all(np.isfinite(h["loss"]) for h in moving["history"])
     assert moving["history"][0]["loss"] != pytest.approx(plain["history"][0]["loss"], rel=1e-6)
+    half, _ = quiet_train(config(data, tmp_path / "half", epochs=1, noise_smooth_velocity=0.5, **flags))
+    assert half["history"][0]["loss"] != pytest.approx(moving["history"][0]["loss"], rel=1e-6)
     saved = torch.load(tmp_path / "moving" / "last.pt", weights_only=False)["train_config"]
     assert saved["noise_smooth_velocity"] == 1.0 and saved["noise_smooth_gamma"] == 0.3
 
