@@ -39,7 +39,7 @@ PNGS = ("rrmse_boxplot.png", "final_step_median.png", "final_step_worst.png", "n
 
 def config(data, out, epochs, kind="hybrid", **kw) -> TrainConfig:
     return TrainConfig(data=str(data), out=str(out), model=ModelConfig(kind=kind, **TINY), epochs=epochs,
-                       batch_size=4, device="cpu", **kw)
+                       device="cpu", **{"batch_size": 4, **kw})
 
 
 def quiet_train(cfg):
@@ -127,12 +127,27 @@ def test_resume_continues_bit_for_bit(data, tmp_path):
     quiet_train(config(data, tmp_path / "b", epochs=2))
     resumed, lines = quiet_train(config(data, tmp_path / "b", epochs=4, resume=True))
     assert trained_epochs(lines) == [2, 3]
+    assert not [line for line in lines if line.startswith("note:")]  # the same settings: nothing to note
     # Every epoch's order and noise derive from (seed, epoch), and CPU kernels are deterministic
     # for a fixed thread count, so exact equality is expected (no tolerance needed).
     assert_same_weights(tmp_path / "a" / "last.pt", tmp_path / "b" / "last.pt")
     assert without_seconds(resumed["history"]) == without_seconds(straight["history"])
     assert without_seconds(read_log(tmp_path / "b" / "log.csv")[1]) == \
         without_seconds(read_log(tmp_path / "a" / "log.csv")[1])
+
+
+def test_resume_notes_each_changed_training_setting(data, tmp_path):
+    """A resume with other noise or batch settings than the checkpoint's goes on, one note per change, with
+    the flag's name; a setting the checkpoint predates counts as its default then."""
+    out = tmp_path / "run"
+    quiet_train(config(data, out, epochs=1, noise_smooth=0.2))
+    _, lines = quiet_train(config(data, out, epochs=2, noise_smooth=0.2, noise_smooth_velocity=0.5, batch_size=3,
+                                  resume=True))
+    notes = [line for line in lines if line.startswith("note:")]
+    assert notes == [f"note: {out} was trained with --batch 4; it continues with 3",
+                     f"note: {out} was trained with --noise-smooth-velocity 0.0; it continues with 0.5"]
+    assert trained_epochs(lines) == [1]
+    assert training.changed_training_settings({}, TrainConfig(rotate=True)) == [("--rotate", False, True)]
 
 
 def test_exponential_schedule_values():

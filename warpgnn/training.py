@@ -36,6 +36,14 @@ from .rollout import rollout
 from .run_log import write_log
 
 
+# the settings that shape what a run learns (its samples, noise, targets and schedule), which a resume may change
+# on purpose (a longer lead-in, say) but rarely should: each change is noted. Their flags are --name-with-dashes,
+# but for those _FLAG_NAMES names
+TRAINING_SETTINGS = ("batch_size", "lr", "lr_schedule", "lr_final", "noise_q", "noise_v", "noise_v_add", "noise_smooth",
+                     "noise_smooth_gamma", "noise_smooth_velocity", "pushforward", "rotate", "train_fraction", "seed")
+_FLAG_NAMES = {"batch_size": "--batch"}
+
+
 @dataclass
 class TrainConfig:
     data: str = "data"
@@ -328,6 +336,15 @@ def _from_rank0(value: float, world: int, device) -> float:
     return float(t.item())
 
 
+def changed_training_settings(saved: dict, cfg: TrainConfig) -> list[tuple[str, object, object]]:
+    """(flag, value in the checkpoint, value now) for each of TRAINING_SETTINGS that differs; a setting added
+    since the checkpoint was written counts as its default then."""
+    defaults = TrainConfig()
+    return [(_FLAG_NAMES.get(name, "--" + name.replace("_", "-")), before, getattr(cfg, name))
+            for name in TRAINING_SETTINGS
+            if (before := saved.get(name, getattr(defaults, name))) != getattr(cfg, name)]
+
+
 def train(cfg: TrainConfig, log=print) -> dict:
     if cfg.cuda_graphs and int(os.environ.get("WORLD_SIZE", "1")) > 1:
         raise InputError("--cuda-graphs trains on one GPU; under torchrun use --compile")
@@ -368,9 +385,9 @@ def train(cfg: TrainConfig, log=print) -> dict:
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=cfg.lr_factor, patience=cfg.lr_patience,
                                                        min_lr=cfg.min_lr)
     history, best, best_epoch, start = [], math.inf, -1, 0
-    trained_with = state.get("train_config", {}).get("pushforward", 0) if state is not None else cfg.pushforward
-    if rank == 0 and trained_with != cfg.pushforward:
-        log(f"note: {out} was trained with --pushforward {trained_with}; it continues with {cfg.pushforward}")
+    if rank == 0 and state is not None:
+        for flag, before, now in changed_training_settings(state.get("train_config", {}), cfg):
+            log(f"note: {out} was trained with {flag} {before}; it continues with {now}")
     if state is not None:
         opt.load_state_dict(state["optimizer"])
         sched.load_state_dict(state["scheduler"])
