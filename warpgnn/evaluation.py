@@ -56,8 +56,8 @@ def evaluate(checkpoint_path, data_file, out_dir, device=None, backend: str = "t
               "model": model.describe(), "trained_epochs": payload.get("epoch"), "device": str(device),
               "rollout_seconds": seconds, "simulations": len(sims),
               "q_error_second_difference": {  # pooled over its node-snapshots like the RMSE, and the largest
-                  "rms": float(np.sqrt(np.average([p["q_error_second_difference"]["rms"] ** 2 for p in per],
-                                                  weights=[s.topology.n_nodes * (s.steps - 1) for s in sims]))),
+                  "rms": metrics.pooled_rms([p["q_error_second_difference"]["rms"] for p in per],
+                                            [s.topology.n_nodes * (s.steps - 1) for s in sims]),
                   "max": max(p["q_error_second_difference"]["max"] for p in per)}}
     if per and "entropy_production_min" in per[0]:
         result["entropy_production_min"] = min(p["entropy_production_min"] for p in per)

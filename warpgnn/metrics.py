@@ -45,11 +45,16 @@ def error_second_difference(pred: np.ndarray, ref: np.ndarray) -> dict[str, floa
     return {"rms": float(np.sqrt((d2 ** 2).mean())), "max": float(d2.max())}
 
 
+def pooled_rms(values, weights=None) -> float:
+    """One RMS from per-rollout RMS values, each weighted by the entries it averaged (node-snapshots)."""
+    w = np.ones(len(values)) if weights is None else np.asarray(weights, float)
+    w = w / w.sum()
+    return float(np.sqrt(sum(wi * v ** 2 for wi, v in zip(w, values))))
+
+
 def set_metrics(per_rollout: list[dict], weights=None) -> dict[str, dict[str, float]]:
     """Pool per-rollout metrics (each a ``rollout_metrics`` dict), weighted by node-snapshots."""
-    w = np.ones(len(per_rollout)) if weights is None else np.asarray(weights, float)
-    w = w / w.sum()
-    return {kind: {g: float(np.sqrt(sum(wi * r[kind][g] ** 2 for wi, r in zip(w, per_rollout)))) for g in GROUPS}
+    return {kind: {g: pooled_rms([r[kind][g] for r in per_rollout], weights) for g in GROUPS}
             for kind in ("rmse", "rrmse")}
 
 
