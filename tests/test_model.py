@@ -5,6 +5,7 @@ conditions, batching, noise augmentation and standardisation statistics.
 Everything runs on tiny models and small box meshes on the CPU; symmetry and assembly checks
 run in float64 so their tolerances can stay tight."""
 
+import itertools
 import math
 from dataclasses import replace
 
@@ -685,6 +686,27 @@ def test_make_batch_smooth_noise_velocity(two_sims):
             assert torch.equal(moving.z_next[:, 6:], plain.z_next[:, 6:])
             torch.testing.assert_close(moving.z_next[:, 3:6] - plain.z_next[:, 3:6],
                                        -share * gamma * (1 - gamma) ** led * d / dt, rtol=1e-5, atol=1e-7)
+
+
+def test_make_batch_smooth_noise_share(two_sims):
+    """--noise-smooth-share P: each sample is displaced with probability P by a draw of its own after the others, so
+    a displaced sample's inputs and targets are those P = 1 gives it, draw for draw, and the others' are those of no
+    smooth noise; about P of them are displaced, and P = 1 is the default's stream."""
+    samples, a = [(i % 2, t) for i in range(2) for t in range(3)] * 20, 0.3
+    def batch(**kw):
+        return make_batch(two_sims, samples, 0.05, 0.1, torch.Generator().manual_seed(0), lead=1,
+                          noise_smooth_gamma=0.3, noise_smooth_velocity=1.0, **kw)
+    clean = make_batch(two_sims, samples, 0.05, 0.1, torch.Generator().manual_seed(0), lead=1)
+    full, half = batch(noise_smooth=a), batch(noise_smooth=a, noise_smooth_share=0.5)
+    assert torch.equal(batch(noise_smooth=a, noise_smooth_share=1.0).z, full.z)
+    offsets = np.cumsum([0] + [two_sims[i].topology.n_nodes for i, _ in samples])
+    displaced = []
+    for lo, hi in itertools.pairwise(offsets):
+        moved = not torch.equal(half.z[lo:hi], clean.z[lo:hi])
+        like = full if moved else clean
+        assert torch.equal(half.z[lo:hi], like.z[lo:hi]) and torch.equal(half.z_next[lo:hi], like.z_next[lo:hi])
+        displaced.append(moved)
+    assert 0.35 < np.mean(displaced) < 0.65  # 120 samples: P = 0.5 within 3.3 standard deviations
 
 
 def double_sim(sim: Simulation) -> Simulation:

@@ -657,6 +657,25 @@ def test_smooth_noise_velocity_reaches_the_training_batches(data, tmp_path):
     assert saved["noise_smooth_velocity"] == 1.0 and saved["noise_smooth_gamma"] == 0.3
 
 
+def test_smooth_noise_share(data, tmp_path):
+    """--noise-smooth-share: out of (0, 1], or without --noise-smooth, one clear line and no run; within, it reaches
+    the training batches (from the same seed a share of 0.5 trains differently from all) and the checkpoint."""
+    for share, message in (("0", "(0, 1]"), ("1.5", "(0, 1]")):
+        proc = run_cli("train", "--data", data, "--passes", 2, "--latent", 16, "--epochs", 1, "--device", "cpu",
+                       "--noise-smooth", "0.2", "--noise-smooth-share", share, "--out", tmp_path / "run")
+        assert_one_line_error(proc, "--noise-smooth-share", message)
+    proc = run_cli("train", "--data", data, "--passes", 2, "--latent", 16, "--epochs", 1, "--device", "cpu",
+                   "--noise-smooth-share", "0.5", "--out", tmp_path / "run")
+    assert_one_line_error(proc, "--noise-smooth-share", "give --noise-smooth too")
+    assert not (tmp_path / "run" / "last.pt").exists()
+    flags = {"noise_smooth": 0.2, "noise_smooth_gamma": 0.3, "noise_smooth_velocity": 1.0}
+    full, _ = quiet_train(config(data, tmp_path / "full", epochs=1, **flags))
+    half, _ = quiet_train(config(data, tmp_path / "half", epochs=1, noise_smooth_share=0.5, **flags))
+    assert np.isfinite(half["history"][0]["loss"])
+    assert half["history"][0]["loss"] != pytest.approx(full["history"][0]["loss"], rel=1e-6)
+    assert torch.load(tmp_path / "half" / "last.pt", weights_only=False)["train_config"]["noise_smooth_share"] == 0.5
+
+
 def test_train_on_a_directory_missing_a_file(data, tmp_path):
     partial = tmp_path / "data"
     shutil.copytree(data, partial)

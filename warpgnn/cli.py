@@ -170,7 +170,8 @@ def cmd_train(args):
                           compile=args.compile, cuda_graphs=args.cuda_graphs, operator_products=args.operator_products,
                           pushforward=args.pushforward,
                           rotate=args.rotate, noise_smooth_velocity=args.noise_smooth_velocity, device=args.device,
-                          **{k: getattr(args, k) for k in ("noise_q", "noise_v", "noise_v_add", "noise_smooth", "noise_smooth_gamma")
+                          **{k: getattr(args, k) for k in ("noise_q", "noise_v", "noise_v_add", "noise_smooth",
+                                                           "noise_smooth_gamma", "noise_smooth_share")
                              if getattr(args, k) is not None})
     except ValueError as exc:
         raise InputError(str(exc)) from None
@@ -267,6 +268,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--noise-smooth-velocity", type=float, nargs="?", const=1.0, default=0.0, metavar="SHARE",
                    help="the share of that take-back the target's velocity carries too (alone: 1, the position moves "
                         "back at the velocity the state holds; default 0: the position alone)")
+    t.add_argument("--noise-smooth-share", type=float, metavar="P",
+                   help="the share of the samples that smooth displacement is given to, the rest left clean "
+                        "(default 1: all of them)")
     t.add_argument("--tf32", action="store_true", help="TF32 matmuls on CUDA (default: full fp32)")
     t.add_argument("--compile", action="store_true",
                    help="torch.compile the network for training (GPU: fused kernels; compiles once, ~1 min)")

@@ -257,7 +257,8 @@ def smooth_displacements(rest: torch.Tensor, sizes: torch.Tensor, weight: torch.
 def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: float = 0.0,
                generator: torch.Generator | None = None, shape: BatchShape | Sequence[BatchShape] | None = None,
                lead: int = 0, noise_v_add: float = 0.0, rotate: bool = False, noise_smooth: float = 0.0,
-               noise_smooth_gamma: float = 1.0, noise_smooth_velocity: float = 0.0) -> Batch:
+               noise_smooth_gamma: float = 1.0, noise_smooth_velocity: float = 0.0,
+               noise_smooth_share: float = 1.0) -> Batch:
     """Stack the steps t -> t+1 of ``samples`` = [(simulation index, t), ...] into one graph,
     padded to ``shape`` if given, or to the first of several shapes that it fits (the real nodes,
     their noise and targets are the same either way).
@@ -280,6 +281,9 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     v - S gamma (1 - gamma)^k d / dt: at 1 the position moves back at the velocity the state holds, at 0 (the
     default) at a rate the velocity does not carry (networks trained so flip nodes back and forth once the
     tools stop: bench/long_hold.py).
+    ``noise_smooth_share`` P < 1 displaces each sample with probability P only (its own draw, after the others),
+    leaving the rest clean: a network that never sees a clean state learns a take-back there too, a pull toward a
+    wrong rest point (bench/results/perturbation_recovery_vel1800_cpu.json).
     With ``lead`` > 0 (pushforward training) ``z`` is the (noisy) state min(lead, t) snapshots
     before t, ``lead_u`` the tools' path from there to t (its first entries repeat the start when
     t < lead) and ``lead_active`` which nodes each lead step moves (none of the padding).
@@ -330,6 +334,9 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
         coefficients = torch.randn((len(samples), 10, 3), generator=generator, dtype=torch.float64)
         amplitude = torch.tensor([s.mean_edge * noise_smooth for s, _ in picked], dtype=torch.float64)
         amplitude = amplitude * torch.rand(len(samples), generator=generator, dtype=torch.float64)
+        if noise_smooth_share < 1:  # drawn only then: P = 1 keeps the stream of the runs before it
+            displaced = torch.rand(len(samples), generator=generator, dtype=torch.float64) < noise_smooth_share
+            amplitude = amplitude * displaced
         d = smooth_displacements(top.rest[:real_nodes], sizes, free[:, 0], amplitude, coefficients).to(z.dtype)
         z = torch.cat([z[:, :3] + d, z[:, 3:]], -1)
         # the lead-in steps the node takes before the trained step

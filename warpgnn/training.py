@@ -40,7 +40,8 @@ from .run_log import write_log
 # on purpose (a longer lead-in, say) but rarely should: each change is noted. Their flags are --name-with-dashes,
 # but for those _FLAG_NAMES names
 TRAINING_SETTINGS = ("batch_size", "lr", "lr_schedule", "lr_final", "noise_q", "noise_v", "noise_v_add", "noise_smooth",
-                     "noise_smooth_gamma", "noise_smooth_velocity", "pushforward", "rotate", "train_fraction", "seed")
+                     "noise_smooth_gamma", "noise_smooth_velocity", "noise_smooth_share", "pushforward", "rotate",
+                     "train_fraction", "seed")
 _FLAG_NAMES = {"batch_size": "--batch"}
 
 
@@ -80,6 +81,10 @@ class TrainConfig:
     # carry; the networks trained so flip a few nodes back and forth once the tools stop:
     # bench/results/long_hold_smooth_gamma_cpu.json; 1 removes the flips: long_hold_flipfix_cpu.json)
     noise_smooth_velocity: float = 0.0
+    # the share of the samples that get the smooth displacement, the rest left clean (1: all). Trained on displaced
+    # states only, a network takes back, from a clean state, the displacement it expects there: a pull toward a
+    # wrong rest point (bench/results/perturbation_recovery_vel1800_cpu.json)
+    noise_smooth_share: float = 1.0
     # steps the network takes (without gradient) from the true state before the trained step, whose
     # target then leads from its own rollout back to the ground truth (0: the paper's one-step training)
     pushforward: int = 0
@@ -112,6 +117,11 @@ class TrainConfig:
             raise ValueError(f"--noise-smooth-velocity must be in [0, 1], got {self.noise_smooth_velocity}")
         if self.noise_smooth_velocity and not self.noise_smooth:
             raise ValueError("--noise-smooth-velocity puts --noise-smooth's take-back in the target's velocity: "
+                             "give --noise-smooth too")
+        if not 0 < self.noise_smooth_share <= 1:
+            raise ValueError(f"--noise-smooth-share must be in (0, 1], got {self.noise_smooth_share}")
+        if self.noise_smooth_share != 1 and not self.noise_smooth:
+            raise ValueError("--noise-smooth-share is the share of the samples --noise-smooth displaces: "
                              "give --noise-smooth too")
         if self.pushforward < 0:
             raise ValueError("--pushforward must be >= 0")
@@ -439,7 +449,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
         chunks = [mine[i:i + cfg.batch_size] for i in range(0, len(mine), cfg.batch_size)]
         batches = prefetched(lambda c: make_batch(train_sims, c, cfg.noise_q, cfg.noise_v, gen, shapes, cfg.pushforward,
                                                   cfg.noise_v_add, cfg.rotate, cfg.noise_smooth, cfg.noise_smooth_gamma,
-                                                  cfg.noise_smooth_velocity),
+                                                  cfg.noise_smooth_velocity, cfg.noise_smooth_share),
                                      chunks)
         bar = tqdm(batches, total=len(chunks), desc=f"epoch {epoch}", leave=False, disable=True if rank else None)
         for b in bar:
