@@ -3,7 +3,7 @@ FIRST (default: the ramp's end, when the tools stop) from the true state with it
 positions displaced, and rolled to the end with the true tools. Two shapes of displacement: the
 network's own rollout position error at FIRST (smooth, what a rollout actually carries) and
 independent Gaussian noise per node; each scaled to a given RMS over the free nodes. Beside them,
-the restart from the undisplaced truth. Reported per step: the free nodes' and the far field's
+the restart from the undisplaced truth, and whether it drifts toward the network's own full rollout. Reported per step: the free nodes' and the far field's
 (free nodes more than 2 cm from any tool) RMS position error, and how much of the displacement is
 retained, sqrt(max(e^2 - e_truth^2, 0)) / size over the free nodes (1: nothing pulled back).
 Beside them, how smooth the network's own error is (the share a quadratic field of the rest
@@ -76,12 +76,31 @@ def position_errors(sims, rolls, first: int) -> dict[str, np.ndarray]:
     return {k: np.mean(v, 0) for k, v in sq.items()}
 
 
+def drift_toward_own_error(sims, rolls, restarted, first: int) -> dict[str, list[float]]:
+    """Where the rollout restarted from the true state at ``first`` drifts, against the network's own full
+    rollout error at the same snapshot, over the free nodes, after each step (mean over simulations): their
+    cosine, and the restarted drift's projection on the own error over the own error's norm (1: the restart
+    reaches the full rollout's state). A network with a rest point of its own drifts toward it from anywhere."""
+    cosine, reached = [], []
+    for sim, full, restart in zip(sims, rolls, restarted):
+        free = node_classes(sim) >= 2
+        ref = sim.z.numpy()[first + 1:, free, :3].reshape(len(restart.z) - 1, -1)
+        own = full.z[first + 1:, free, :3].reshape(len(ref), -1) - ref
+        drift = restart.z[1:, free, :3].reshape(len(ref), -1) - ref
+        dot, n_own, n_drift = (own * drift).sum(1), np.linalg.norm(own, axis=1), np.linalg.norm(drift, axis=1)
+        cosine.append(dot / np.maximum(n_own * n_drift, 1e-30))
+        reached.append(dot / np.maximum(n_own ** 2, 1e-30))
+    return {"cosine": np.mean(cosine, 0).tolist(), "reached": np.mean(reached, 0).tolist()}
+
+
 def probe(model, sims, first: int, sizes_um: list[float], seed: int = 0) -> dict:
     rolls = rollout(model, sims)
-    truth = position_errors(sims, rollout(model, sims, first=first), first)
+    restarted = rollout(model, sims, first=first)
+    truth = position_errors(sims, restarted, first)
     rng = np.random.default_rng(seed)
     out = {"first": first, "own_error_explained_by": smoothness(sims, rolls, first),
-           "from_truth_rms_um": {k: (1e6 * np.sqrt(v)).tolist() for k, v in truth.items()}, "displaced": {}}
+           "from_truth_rms_um": {k: (1e6 * np.sqrt(v)).tolist() for k, v in truth.items()},
+           "from_truth_toward_own_error": drift_toward_own_error(sims, rolls, restarted, first), "displaced": {}}
     for size in sizes_um:
         for shape, z_off in displacements(sims, rolls, first, size * 1e-6, rng).items():
             z0 = [s.z[first] + d for s, d in zip(sims, z_off)]
@@ -110,6 +129,10 @@ def main():
             record["runs"].setdefault(run, {"checkpoint": checkpoint, "files": {}})["files"][path] = res
             print(f"{run} on {path}: its own position error at snapshot {first}, share fitted by smooth fields:",
                   json.dumps(res["own_error_explained_by"]))
+            toward = res["from_truth_toward_own_error"]
+            print(f"{run} on {path}: restarted from the truth at snapshot {first}, its drift after 1 / "
+                  f"{len(toward['cosine'])} steps has cosine {toward['cosine'][0]:.2f} / {toward['cosine'][-1]:.2f} with "
+                  f"its own rollout error and reaches {toward['reached'][0]:.2f} / {toward['reached'][-1]:.2f} of it")
             print(f"{run} on {path} (from snapshot {first}): retained after 1 / 5 / {sims[0].steps - first} steps")
             for key, r in res["displaced"].items():
                 ret = r["retained"]
