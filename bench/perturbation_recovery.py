@@ -3,9 +3,10 @@ FIRST (default: the ramp's end, when the tools stop) from the true state with it
 positions displaced, and rolled to the end with the true tools. Two shapes of displacement: the
 network's own rollout position error at FIRST (smooth, what a rollout actually carries) and
 independent Gaussian noise per node; each scaled to a given RMS over the free nodes. Beside them,
-the restart from the undisplaced truth, and whether it drifts toward the network's own full rollout. Reported per step: the free nodes' and the far field's
-(free nodes more than 2 cm from any tool) RMS position error, and how much of the displacement is
-retained, sqrt(max(e^2 - e_truth^2, 0)) / size over the free nodes (1: nothing pulled back).
+the restart from the undisplaced truth, and whether it drifts toward the network's own full
+rollout. Reported per step: the free nodes' and the far field's (free nodes more than 2 cm from
+any tool) RMS position error, and how much of the displacement is retained,
+sqrt(max(e^2 - e_truth^2, 0)) / size over the free nodes (1: nothing pulled back).
 Beside them, how smooth the network's own error is (the share a quadratic field of the rest
 coordinates fits).
 
@@ -77,20 +78,20 @@ def position_errors(sims, rolls, first: int) -> dict[str, np.ndarray]:
 
 
 def drift_toward_own_error(sims, rolls, restarted, first: int) -> dict[str, list[float]]:
-    """Where the rollout restarted from the true state at ``first`` drifts, against the network's own full
-    rollout error at the same snapshot, over the free nodes, after each step (mean over simulations): their
-    cosine, and the restarted drift's projection on the own error over the own error's norm (1: the restart
-    reaches the full rollout's state). A network with a rest point of its own drifts toward it from anywhere."""
-    cosine, reached = [], []
+    """Where the rollout restarted from the true state at ``first`` drifts (its position error), against the
+    network's own full rollout error at the same snapshot, after each step, over the free nodes of all the
+    simulations together (one vector a step, so that no simulation with a small error dominates): their cosine,
+    and the drift's projection on the own error over the own error's norm (1: the restart reaches the full
+    rollout's state). A network with a rest point of its own drifts toward it from anywhere."""
+    dot = own_sq = drift_sq = 0.0
     for sim, full, restart in zip(sims, rolls, restarted):
         free = node_classes(sim) >= 2
         ref = sim.z.numpy()[first + 1:, free, :3].reshape(len(restart.z) - 1, -1)
         own = full.z[first + 1:, free, :3].reshape(len(ref), -1) - ref
         drift = restart.z[1:, free, :3].reshape(len(ref), -1) - ref
-        dot, n_own, n_drift = (own * drift).sum(1), np.linalg.norm(own, axis=1), np.linalg.norm(drift, axis=1)
-        cosine.append(dot / np.maximum(n_own * n_drift, 1e-30))
-        reached.append(dot / np.maximum(n_own ** 2, 1e-30))
-    return {"cosine": np.mean(cosine, 0).tolist(), "reached": np.mean(reached, 0).tolist()}
+        dot, own_sq, drift_sq = dot + (own * drift).sum(1), own_sq + (own ** 2).sum(1), drift_sq + (drift ** 2).sum(1)
+    return {"cosine": (dot / np.maximum(np.sqrt(own_sq * drift_sq), 1e-30)).tolist(),
+            "reached": (dot / np.maximum(own_sq, 1e-30)).tolist()}
 
 
 def probe(model, sims, first: int, sizes_um: list[float], seed: int = 0) -> dict:

@@ -155,7 +155,8 @@ seeds stable_rot_smooth2e1_g3e1_vel_pf4 $STABLE_FLAGS --rotate --noise-smooth 2e
 # (bench/results/gnn_smooth_vel1800_h100.json: _vel, seed 0, 1800 s: -13.8 / +2.3 / -5.7 % on L5 against the recipe's three
 # 30-minute seeds, no flips.) Restarted from the FEM's state, every smooth-noise network moves 300-400 um from it in ten
 # hold steps, the recipe's 70-115 um (perturbation_recovery_vel1800_cpu.json): trained on displaced states only, it takes
-# back from a clean state the displacement it expects there. Half the samples left clean (--noise-smooth-share 0.5)
+# back from a clean state the displacement it expects there. Half the samples left clean (--noise-smooth-share 0.5; it also
+# halves the mean smooth-noise energy: if it moves the rest point, --noise-smooth 1.41e-1 at share 1 is the control)
 seeds stable_rot_smooth2e1_g3e1_vel_p5e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity --noise-smooth-share 0.5
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"

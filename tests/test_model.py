@@ -691,22 +691,27 @@ def test_make_batch_smooth_noise_velocity(two_sims):
 def test_make_batch_smooth_noise_share(two_sims):
     """--noise-smooth-share P: each sample is displaced with probability P by a draw of its own after the others, so
     a displaced sample's inputs and targets are those P = 1 gives it, draw for draw, and the others' are those of no
-    smooth noise; about P of them are displaced, and P = 1 is the default's stream."""
-    samples, a = [(i % 2, t) for i in range(2) for t in range(3)] * 20, 0.3
-    def batch(**kw):
-        return make_batch(two_sims, samples, 0.05, 0.1, torch.Generator().manual_seed(0), lead=1,
+    smooth noise; about P of them are displaced, and P = 1 draws nothing more (the stream of the runs before it)."""
+    samples, a, share = [(i % 2, t) for i in range(2) for t in range(3)] * 20, 0.3, 0.25
+    def batch(generator=None, **kw):
+        return make_batch(two_sims, samples, 0.05, 0.1, generator or torch.Generator().manual_seed(0), lead=1,
                           noise_smooth_gamma=0.3, noise_smooth_velocity=1.0, **kw)
     clean = make_batch(two_sims, samples, 0.05, 0.1, torch.Generator().manual_seed(0), lead=1)
-    full, half = batch(noise_smooth=a), batch(noise_smooth=a, noise_smooth_share=0.5)
-    assert torch.equal(batch(noise_smooth=a, noise_smooth_share=1.0).z, full.z)
+    full, part = batch(noise_smooth=a), batch(noise_smooth=a, noise_smooth_share=share)
     offsets = np.cumsum([0] + [two_sims[i].topology.n_nodes for i, _ in samples])
     displaced = []
     for lo, hi in itertools.pairwise(offsets):
-        moved = not torch.equal(half.z[lo:hi], clean.z[lo:hi])
+        moved = not torch.equal(part.z[lo:hi], clean.z[lo:hi])
         like = full if moved else clean
-        assert torch.equal(half.z[lo:hi], like.z[lo:hi]) and torch.equal(half.z_next[lo:hi], like.z_next[lo:hi])
+        assert torch.equal(part.z[lo:hi], like.z[lo:hi]) and torch.equal(part.z_next[lo:hi], like.z_next[lo:hi])
         displaced.append(moved)
-    assert 0.35 < np.mean(displaced) < 0.65  # 120 samples: P = 0.5 within 3.3 standard deviations
+    assert 0.15 < np.mean(displaced) < 0.35  # 120 samples: P = 0.25 within 2.5 standard deviations, not 1 - P
+    # the share's draw is one per sample, and only when P < 1: P = 1 leaves the generator where it was without it
+    g_share, g_all = torch.Generator().manual_seed(0), torch.Generator().manual_seed(0)
+    batch(g_share, noise_smooth=a, noise_smooth_share=share)
+    assert torch.equal(batch(g_all, noise_smooth=a, noise_smooth_share=1.0).z, full.z)
+    torch.rand(len(samples), generator=g_all, dtype=torch.float64)
+    assert torch.equal(g_share.get_state(), g_all.get_state())
 
 
 def double_sim(sim: Simulation) -> Simulation:

@@ -148,6 +148,10 @@ def test_resume_notes_each_changed_training_setting(data, tmp_path):
                      f"note: {out} was trained with --noise-smooth-velocity 0.0; it continues with 0.5"]
     assert trained_epochs(lines) == [1]
     assert training.changed_training_settings({}, TrainConfig(rotate=True)) == [("--rotate", False, True)]
+    before_share = {k: v for k, v in vars(TrainConfig(noise_smooth=0.2)).items() if k != "noise_smooth_share"}
+    assert training.changed_training_settings(before_share, TrainConfig(noise_smooth=0.2)) == []
+    assert training.changed_training_settings(before_share, TrainConfig(noise_smooth=0.2, noise_smooth_share=0.5)) == \
+        [("--noise-smooth-share", 1.0, 0.5)]
 
 
 def test_exponential_schedule_values():

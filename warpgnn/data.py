@@ -272,7 +272,7 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     draws, which keeps the noise's random stream): without gravity and with an isotropic material a
     rotated simulation is another exact one (the fixed visceral face stays a z plane).
     ``noise_smooth`` > 0 adds to the free nodes' positions a random quadratic field of the rest
-    coordinates (``smooth_displacements``, N(0, 1) coefficients drawn after everything else), of RMS
+    coordinates (``smooth_displacements``, N(0, 1) coefficients drawn after the other noises), of RMS
     mean_edge * noise_smooth * U(0, 1) over them: per-node noise leaves alone the smooth error a rollout carries.
     ``noise_smooth_gamma`` is the fraction of that displacement the target takes back per step the network
     takes (MeshGraphNets' noise_gamma): the target keeps (1 - gamma)^(k + 1) of it after the k lead-in steps
