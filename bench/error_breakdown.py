@@ -1,9 +1,10 @@
 """Where a trained network's error comes from, by node class (tool tip, fixed face, free nodes
 within 2 cm of a loaded node, the free far field): the one-step error per class and component,
 the rollout error's share per class and its RMS per class after 5, 10, 15 and 20 steps (the tools
-ramp until step 10, then hold), and whether the loaded nodes' stress error at the ramp's end is a
-per-step bias or compounded drift; beside it, how much of the ground truth's snapshot velocity is
-aliased vibration in each phase (a floor no network reaches from snapshots alone).
+ramp until step 10, then hold), whether its position rate follows its own velocity (and how it would
+roll out if its positions moved at that velocity), and whether the loaded nodes' stress error at the
+ramp's end is a per-step bias or compounded drift; beside it, how much of the ground truth's snapshot
+velocity is aliased vibration in each phase (a floor no network reaches from snapshots alone).
 
     python bench/error_breakdown.py CHECKPOINT.pt [...] DATA_FILE.h5 [...] --json OUT.json --device "..."
 
@@ -16,6 +17,7 @@ preset; a handful of its simulations (same seeds) can be made here, see --help's
 """
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
@@ -71,6 +73,47 @@ def one_step(model, sims, errors) -> dict:
             "classes": {name: {"nodes_per_snapshot": count[k] / sum(s.steps for s in sims),
                                "mse_per_component": (sq[k] / count[k]).tolist(), "share_of_loss": sq[k].sum() / sq.sum()}
                         for k, name in enumerate(CLASSES)}}
+
+
+def position_rate(sims, errors) -> dict:
+    """Whether the network's position rate follows its own velocity. From each true state (``one_step_errors``),
+    RMS over the free nodes in m/s: the position rate's error; its distance from the network's own mean velocity
+    over the step, (v + v_next) / 2, the velocity a position update from the velocity would use; that mean
+    velocity's distance from the true position rate (what such an update would score); and the FEM's own mean
+    velocity's distance from it (the floor of such an update: the snapshots are 0.05 s apart)."""
+    sq, count = np.zeros(4), 0
+    for sim, e in zip(sims, errors):
+        z = sim.z.numpy().astype(np.float64)
+        true = (z[1:] - z[:-1]) / sim.dt
+        predicted = true + e
+        own_mean_v = z[:-1, :, 3:6] + 0.5 * sim.dt * predicted[..., 3:6]
+        fem_mean_v = 0.5 * (z[:-1, :, 3:6] + z[1:, :, 3:6])
+        free = node_classes(sim) >= 2
+        for k, d in enumerate((predicted[..., :3] - true[..., :3], predicted[..., :3] - own_mean_v,
+                               own_mean_v - true[..., :3], fem_mean_v - true[..., :3])):
+            sq[k] += (d[:, free] ** 2).sum()
+        count += free.sum() * sim.steps * 3
+    rms = np.sqrt(sq / count)
+    return dict(zip(("error", "from_own_mean_velocity", "own_mean_velocity_error", "fem_mean_velocity_floor"), rms.tolist()))
+
+
+class PositionFromVelocity(torch.nn.Module):
+    """A trained network whose position rate is replaced by its own mean velocity over the step, v + dt / 2 *
+    vdot: how a position update from the velocity would roll out, without retraining (rollouts only: the
+    standardised rates are left as they were)."""
+
+    def __init__(self, model, dt: float):
+        super().__init__()
+        self.model, self.dt, self.normalizer = model, dt, model.normalizer
+
+    def forward(self, top, z, u_now, u_next):
+        p = self.model(top, z, u_now, u_next)
+        zdot = p.zdot.clone()
+        zdot[:, :3] = z[:, 3:6] + 0.5 * self.dt * p.zdot[:, 3:6]
+        return dataclasses.replace(p, zdot=zdot)
+
+    def step(self, *args, **kwargs):
+        return self.model.step(*args, **kwargs)
 
 
 def rollout_errors(sims, rolls) -> dict:
@@ -164,10 +207,13 @@ def main():
         record["runs"][run] = {"checkpoint": checkpoint, "files": {}}
         for path, s in sims.items():
             rolls, errors = rollout(model, s), one_step_errors(model, s)
-            entry = {"one_step": one_step(model, s, errors), "rollout": rollout_errors(s, rolls),
+            from_velocity = rollout_errors(s, rollout(PositionFromVelocity(model, s[0].dt), s))
+            entry = {"one_step": one_step(model, s, errors), "position_rate": position_rate(s, errors),
+                     "rollout": rollout_errors(s, rolls),
+                     "rollout_position_from_velocity": {g: from_velocity[g]["rms_after_steps"] for g in ("q", "v")},
                      "loaded_node_stress": loaded_node_stress(s, rolls, errors)}
             record["runs"][run]["files"][path] = entry
-            print(run, path, json.dumps({"one_step_mse": entry["one_step"]["mse"],
+            print(run, path, json.dumps({"one_step_mse": entry["one_step"]["mse"], "position_rate": entry["position_rate"],
                                          "loaded_node_stress": entry["loaded_node_stress"],
                                          "rollout_share": {g: r["share_by_class"] for g, r in entry["rollout"].items()}},
                                         indent=1), flush=True)
