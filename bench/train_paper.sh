@@ -162,8 +162,9 @@ seeds stable_rot_smooth2e1_g3e1_vel_p5e1 $STABLE_FLAGS --rotate --noise-smooth 2
 # _vel5e1 +2.1 / -2.6 / +0.9 %, _g2e1_vel +4.0 / -1.3 / +6.4 %: none takes the velocity cost back, and P = 0.5 leaves the drift
 # from the truth as it was (336 um in ten hold steps; perturbation_recovery_share_cpu.json), so its control is moot. Vanilla
 # with _vel's flags, two seeds, is 7.8 / 14.2 / 0.5 % below the hybrid, where the recipe's gap at 140 epochs was 2.6 / 1.1 /
-# -4.0 %.) Next, vanilla alone: _vel1800's peer at equal epochs, 139e '^vanilla_p5_stable_rot_smooth2e1_g3e1_vel_s0$' (renamed
-# _vel_e139_s0), and the recipe's vanilla at 24e, '^vanilla_p5_stable_rot_s0$' (renamed _e24_s0): is the wider gap the noise's
-# or the fewer epochs'?
+# -4.0 %.) Next, vanilla alone: _vel1800's peer at equal epochs, PER_GPU=1 OMP_NUM_THREADS=8 ... 139e
+# '^vanilla_p5_stable_rot_smooth2e1_g3e1_vel_s0$' (renamed _vel_e139_s0; vanilla's 140e took 1457 s on a fresh H100, so it
+# fills one session's device time), and the recipe's vanilla at 24e, '^vanilla_p5_stable_rot_s0$' (renamed _e24_s0, ~5 min
+# alone): is the wider gap the noise's or the fewer epochs'?
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"
