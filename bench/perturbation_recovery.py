@@ -27,6 +27,7 @@ import provenance  # bench/, beside this script
 from error_breakdown import node_classes, ramp_steps  # likewise
 from warpgnn.checkpoint import load_model
 from warpgnn.data import load_file, quadratic_basis
+from warpgnn.graphs import NODE_FREE
 from warpgnn.rollout import rollout
 
 SHAPES = ("own", "iid")
@@ -85,7 +86,7 @@ def drift_toward_own_error(sims, rolls, restarted, first: int) -> dict[str, list
     rollout's state). A network with a rest point of its own drifts toward it from anywhere."""
     dot = own_sq = drift_sq = 0.0
     for sim, full, restart in zip(sims, rolls, restarted):
-        free = node_classes(sim) >= 2
+        free = sim.topology.node_type.numpy() == NODE_FREE
         ref = sim.z.numpy()[first + 1:, free, :3].reshape(len(restart.z) - 1, -1)
         own = full.z[first + 1:, free, :3].reshape(len(ref), -1) - ref
         drift = restart.z[1:, free, :3].reshape(len(ref), -1) - ref

@@ -11,9 +11,10 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-from error_breakdown import position_rate
+from error_breakdown import PositionFromVelocity, position_rate
 
 from warpgnn.graphs import NODE_FIXED, NODE_FREE, NODE_PRESCRIBED
+from warpgnn.model import Prediction
 
 STEPS, NODES, DT = 5, 10, 0.05
 
@@ -64,16 +65,10 @@ def test_position_rate_following_its_own_velocity():
 def test_position_from_velocity_moves_positions_at_the_networks_mean_velocity():
     """The wrapper hands the rollout the network's rates with the position rate replaced by v + dt / 2 * vdot,
     and leaves the other rates (and the step) to the network."""
-    from error_breakdown import PositionFromVelocity
-
-    from warpgnn.model import Prediction
-
     g = torch.Generator().manual_seed(3)
     rates = torch.randn(NODES, 12, generator=g, dtype=torch.float64)
 
     class Network(torch.nn.Module):
-        normalizer = None
-
         def forward(self, top, z, u_now, u_next):
             return Prediction(rates, rates / 2)
 
