@@ -38,7 +38,7 @@ def displacements(sims, rolls, first: int, size_m: float, rng) -> dict[str, list
     over them."""
     out = {shape: [] for shape in SHAPES}
     for sim, r in zip(sims, rolls):
-        free = node_classes(sim) >= 2
+        free = sim.topology.node_type.numpy() == NODE_FREE
         shapes = {"own": r.z[first, free, :3] - sim.z[first, free, :3].numpy(),
                   "iid": rng.normal(size=(free.sum(), 3))}
         for shape, d in shapes.items():
