@@ -166,5 +166,13 @@ seeds stable_rot_smooth2e1_g3e1_vel_p5e1 $STABLE_FLAGS --rotate --noise-smooth 2
 # '^vanilla_p5_stable_rot_smooth2e1_g3e1_vel_s0$' (renamed _vel_e139_s0; vanilla's 140e took 1457 s on a fresh H100, so it
 # fills one session's device time), and the recipe's vanilla at 24e, '^vanilla_p5_stable_rot_s0$' (renamed _e24_s0, ~5 min
 # alone): is the wider gap the noise's or the fewer epochs'?
+# (bench/results/gnn_vanilla_peers_h100.json: _vel_e139_s0 8.98e-3 / 3.38e-2 / 5.42e-2, the 30-minute hybrid +7.1 / +10.6 /
+# -3.7 % against it; _e24_s0 1.23e-2 / 4.01e-2 / 6.85e-2, the recipe's three 24e hybrids +8.5 / +7.7 / -5.6 %. The recipe's gap
+# shrinks with epochs (2.6 / 1.1 / -4.0 % at 140), the smooth noise's does not: the noise's.) Next, more epochs in the same
+# 30 minutes for the hybrid, whose gap shrinks with them: a step of 32 snapshots (~16k nodes) leaves an H100 mostly idle.
+# Screen at equal time, one after the other, each in a RUNS of its own (side by side they would share the GPU):
+# PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs ... RUNS_B32 600 '^hybrid_p5_stable_rot_s0$', then BATCH=64
+# EXTRA='--cuda-graphs --lr 1.4e-3' FALLBACK='--compile --lr 1.4e-3' ... RUNS_B64 600 (the same regex; renamed _t600_s0 and
+# _b64_t600_s0; the step time at batch 64 is not measured yet, and the host's batch stacking may bound it)
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"
