@@ -173,6 +173,8 @@ seeds stable_rot_smooth2e1_g3e1_vel_p5e1 $STABLE_FLAGS --rotate --noise-smooth 2
 # Screen at equal time, one after the other, each in a RUNS of its own (side by side they would share the GPU):
 # PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs ... RUNS_B32 600 '^hybrid_p5_stable_rot_s0$', then BATCH=64
 # EXTRA='--cuda-graphs --lr 1.4e-3' FALLBACK='--compile --lr 1.4e-3' ... RUNS_B64 600 (the same regex; renamed _t600_s0 and
-# _b64_t600_s0; the step time at batch 64 is not measured yet, and the host's batch stacking may bound it)
+# _b64_t600_s0). The step time at batch 64 is not measured yet, and the host's batch stacking may bound it: first
+# python bench/train_step_time.py DATA --batch B --files L1,L2,L3,L4 --configs hybrid:5:64 --modes graphs --pushforward 2
+# --json OUT for B = 32 and 64 (a few minutes); the screen is worth its 20 minutes only if 64 takes well under twice 32's step
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"
