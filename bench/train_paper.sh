@@ -176,5 +176,9 @@ seeds stable_rot_smooth2e1_g3e1_vel_p5e1 $STABLE_FLAGS --rotate --noise-smooth 2
 # _b64_t600_s0). The step time at batch 64 is not measured yet, and the host's batch stacking may bound it: first
 # python bench/train_step_time.py DATA --batch B --files L1,L2,L3,L4 --configs hybrid:5:64 --modes graphs --pushforward 2
 # --json OUT for B = 32 and 64 (a few minutes); the screen is worth its 20 minutes only if 64 takes well under twice 32's step
+# The hybrid's operator entries bounded by tanh, as the public port-metriplectic code of the paper's group does
+# (--operator-activation tanh): 24e alone, '^hybrid_p5_stable_rot_tanh_s0$', against the recipe's three 24e hybrids
+# (1.331e-2 / 4.316e-2 / 6.462e-2) and its vanilla at 24e (1.227e-2 / 4.009e-2 / 6.846e-2); ~6 min, run it first
+seeds stable_rot_tanh $STABLE_FLAGS --rotate --operator-activation tanh
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"

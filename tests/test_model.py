@@ -22,8 +22,8 @@ from warpgnn.core_model import EdgeMLP
 from warpgnn.mesh import TetMesh, box_tet_mesh
 from warpgnn.model import ModelConfig, Prediction, TIGNN
 from warpgnn.normalization import FEATURES, Normalizer
-from warpgnn.port_metriplectic import (N_L, N_M, OPERATOR_PRODUCTS, PortMetriplecticDecoder, apply_L, apply_M,
-                                       lower_triangular, set_operator_products)
+from warpgnn.port_metriplectic import (N_L, N_M, OPERATOR_ACTIVATIONS, OPERATOR_PRODUCTS, PortMetriplecticDecoder,
+                                       apply_L, apply_M, lower_triangular, set_operator_products)
 from warpgnn.training import pushed_forward, train_step
 
 VARIANTS = [("hybrid", True), ("hybrid", False), ("vanilla", True), ("vanilla", False)]
@@ -226,11 +226,14 @@ def test_edge_mlp_is_the_mlp_of_the_concatenation(layer_norm):
 
 
 @pytest.mark.parametrize("products", list(OPERATOR_PRODUCTS))
-def test_generic_decoder_matches_dense_assembly(products):
+@pytest.mark.parametrize("activation", list(OPERATOR_ACTIVATIONS))
+def test_generic_decoder_matches_dense_assembly(products, activation):
     torch.manual_seed(5)
     F, N = 8, 5
-    dec = PortMetriplecticDecoder(F).double()
+    dec = PortMetriplecticDecoder(F, operator_activation=activation).double()
     set_operator_products(dec, products)
+    with torch.no_grad():  # operator outputs of order 1-10, where tanh is far from linear
+        dec.delta_e.rest[-1].weight.mul_(100.0)
     # bidirected pairs, a one-way edge 0 -> 3 (catches a sender/receiver swap), node 4 isolated
     senders = torch.tensor([0, 1, 1, 2, 3, 2, 0])
     receivers = torch.tensor([1, 0, 2, 1, 2, 3, 3])
@@ -246,6 +249,7 @@ def test_generic_decoder_matches_dense_assembly(products):
         lm_edge = concatenated_mlp(dec.delta_e, torch.cat([e, x[receivers], x[senders]], -1)).numpy()
 
     def dense(lm):
+        lm = np.tanh(lm) if activation == "tanh" else lm
         A = np.zeros((len(lm), 12, 12))
         B = np.zeros((len(lm), 12, 12))
         (ra, ca), (rb, cb) = np.tril_indices(12, -1), np.tril_indices(12)
@@ -357,6 +361,8 @@ def test_tip_weight_hand_values():
     for bad in (0.0, -2.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="tip weight"):
             ModelConfig(tip_weight=bad)
+    with pytest.raises(ValueError, match="operator activation must be one of none, tanh"):
+        ModelConfig(operator_activation="relu")
 
 
 # --------------------------------------------------------------------------- 7. metrics

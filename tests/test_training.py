@@ -572,13 +572,15 @@ def test_torchrun_two_processes(data, tmp_path):
     proc = subprocess.run(
         [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
          "-m", "warpgnn.cli", "train", "--data", str(data), "--model", "hybrid", "--passes", "2", "--latent", "16",
-         "--batch", "4", "--epochs", "1", "--device", "cpu", "--out", str(out), "--skip-imposed-rates"],
+         "--batch", "4", "--epochs", "1", "--device", "cpu", "--out", str(out), "--skip-imposed-rates",
+         "--operator-activation", "tanh"],
         capture_output=True, text=True, timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "x 2 processes" in proc.stdout
     model, payload = checkpoint.load_model(out / "last.pt")
     assert payload["epoch"] == 0 and len(read_log(out / "log.csv")[1]) == 1
-    assert not model.config.imposed_in_loss  # the loss option reaches the saved configuration
+    # the loss and decoder options reach the saved configuration
+    assert not model.config.imposed_in_loss and model.config.operator_activation == "tanh"
 
 
 # --------------------------------------------------------------------------- bad input

@@ -18,7 +18,7 @@ from .core_model import EdgeSet, EncodeProcess, MultiGraph, mlp
 from .graphs import (GROUPS, NODE_PRESCRIBED, NODE_TYPES, STATE, Topology, apply_boundary_conditions, imposed_components,
                      raw_features)
 from .normalization import FEATURES, Normalizer
-from .port_metriplectic import PortMetriplecticDecoder
+from .port_metriplectic import OPERATOR_ACTIVATIONS, PortMetriplecticDecoder
 
 
 @dataclass
@@ -40,6 +40,9 @@ class ModelConfig:
     # score the rates the Euler step overwrites (fixed nodes' q and v, tool tips' q) in the data loss
     # (the paper: yes). The hybrid must build those rates from its GENERIC sums too, vanilla only from a one-hot
     imposed_in_loss: bool = True
+    # the hybrid's operator entries (A, B of L = A - A^T, M = B B^T): "none" linear (the paper says nothing),
+    # "tanh" bounded to (-1, 1) as the port-metriplectic code of the paper's group does (port_metriplectic.py)
+    operator_activation: str = "none"
 
     def __post_init__(self):
         if self.kind not in ("hybrid", "vanilla"):
@@ -51,6 +54,9 @@ class ModelConfig:
             raise ValueError(f"rate weights are three non-negative numbers (q, v, sigma), not all 0: {self.rate_weights}")
         if not (math.isfinite(self.tip_weight) and self.tip_weight > 0):
             raise ValueError(f"the tip weight must be a finite number > 0, got {self.tip_weight}")
+        if self.operator_activation not in OPERATOR_ACTIVATIONS:
+            raise ValueError(f"operator activation must be one of {', '.join(OPERATOR_ACTIVATIONS)}, "
+                             f"got {self.operator_activation!r}")
 
 
 @dataclass
@@ -80,7 +86,7 @@ class TIGNN(nn.Module):
         self.core = EncodeProcess(node_in, FEATURES["mesh_edge"], FEATURES["actuator_node"], FEATURES["actuator_edge"],
                                   c.latent, c.passes, c.hidden_layers, c.actuator_graphs)
         if c.kind == "hybrid":
-            self.decoder = PortMetriplecticDecoder(c.latent, c.hidden_layers)
+            self.decoder = PortMetriplecticDecoder(c.latent, c.hidden_layers, c.operator_activation)
         else:
             self.decoder = mlp(c.latent, c.latent, STATE, c.hidden_layers, layer_norm=False)
 

@@ -7,7 +7,10 @@ symmetric positive semi-definite for any network weights. Per node
 
     zdot_i = L_ii dE_i + M_ii dS_i - sum_{j -> i} (L_ij dE_j + M_ij dS_j)
 
-L and M are never formed: L x = A x - A^T x and M x = B (B^T x). The degeneracy residuals
+L and M are never formed: L x = A x - A^T x and M x = B (B^T x). With ``operator_activation``
+"tanh" every entry of A and B is bounded to (-1, 1), as the port-metriplectic code of Tierz et al.
+(the same group's local thermodynamics-informed GNN) does; "none" (default) leaves them linear. The
+magnitudes of L dE and M dS are then carried by the gradients. The degeneracy residuals
 L_ii dS_i and M_ii dE_i are returned for the loss, and the bulk entropy production
 dS_i . M_ii dS_i, which is >= 0 by construction.
 """
@@ -29,6 +32,7 @@ N_M = STATE * (STATE + 1) // 2  # 78
 # hybrid's first predictions are 10-70x the targets' scale (initial loss ~1e3 against the
 # vanilla decoder's ~3) and training spends its first epochs undoing that.
 OPERATOR_INIT_SCALE = 0.05
+OPERATOR_ACTIVATIONS = {"none": nn.Identity, "tanh": nn.Tanh}  # no weights: checkpoints load either way
 
 
 def lower_triangular(values: torch.Tensor, strict: bool) -> torch.Tensor:
@@ -83,8 +87,9 @@ class GenericOutput:
 
 
 class PortMetriplecticDecoder(nn.Module):
-    def __init__(self, latent: int, hidden_layers: int = 1):
+    def __init__(self, latent: int, hidden_layers: int = 1, operator_activation: str = "none"):
         super().__init__()
+        self.activation = OPERATOR_ACTIVATIONS[operator_activation]()
         self.delta_v = mlp(latent, latent, 2 * STATE, hidden_layers, layer_norm=False)
         self.delta_e = EdgeMLP(latent, latent, N_L + N_M, hidden_layers, layer_norm=False)
         self.self_loop = nn.Parameter(torch.randn(latent) / latent**0.5)  # the learned edge latent x_ii
@@ -94,9 +99,9 @@ class PortMetriplecticDecoder(nn.Module):
             last.weight.mul_(OPERATOR_INIT_SCALE)
             last.bias.mul_(OPERATOR_INIT_SCALE)
 
-    @staticmethod
-    def operators(lm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def operators(self, lm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(E, 144) decoder output -> A (strictly lower) and B (lower), each (E, 12, 12)."""
+        lm = self.activation(lm)
         return lower_triangular(lm[:, :N_L], strict=True), lower_triangular(lm[:, N_L:], strict=False)
 
     def forward(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor) -> GenericOutput:
