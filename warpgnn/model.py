@@ -104,9 +104,12 @@ class TIGNN(nn.Module):
         act_edges = EdgeSet(norm("actuator_edge", raw["actuator_edge"]), top.act_senders, top.act_receivers)
         return MultiGraph(torch.cat(nodes, -1), mesh, actuator, act_edges)
 
+    def latents(self, top: Topology, z, u_now, u_next) -> tuple[torch.Tensor, torch.Tensor]:
+        """The processed node and mesh-edge latents the decoder reads."""
+        return self.core(self.graph(top, z, u_now, u_next))
+
     def forward(self, top: Topology, z: torch.Tensor, u_now: torch.Tensor, u_next: torch.Tensor) -> Prediction:
-        g = self.graph(top, z, u_now, u_next)
-        x, e = self.core(g)
+        x, e = self.latents(top, z, u_now, u_next)
         if self.config.kind == "vanilla":
             out = self.decoder(x)
             return Prediction(out * self.normalizer.zdot_scale, out)

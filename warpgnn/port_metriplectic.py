@@ -104,13 +104,18 @@ class PortMetriplecticDecoder(nn.Module):
         lm = self.activation(lm)
         return lower_triangular(lm[:, :N_L], strict=True), lower_triangular(lm[:, N_L:], strict=False)
 
+    def operator_outputs(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+        """delta_e's raw (l, m), before any operator activation: (N, 144) on the self-loops, (E, 144) on the edges."""
+        return self.delta_e.self_loop(self.self_loop, x), self.delta_e(e, x, x, receivers, senders)
+
     def forward(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor) -> GenericOutput:
         n = x.shape[0]
         apply_L, apply_M = OPERATOR_PRODUCTS[self.products]
         grads = self.delta_v(x)
         dE, dS = grads[:, :STATE], grads[:, STATE:]
-        A_ii, B_ii = self.operators(self.delta_e.self_loop(self.self_loop, x))
-        A_ij, B_ij = self.operators(self.delta_e(e, x, x, receivers, senders))
+        lm_ii, lm_ij = self.operator_outputs(x, e, senders, receivers)
+        (A_ii, B_ii), (A_ij, B_ij) = self.operators(lm_ii), self.operators(lm_ij)
         port = apply_L(A_ij, dE[senders]) + apply_M(B_ij, dS[senders])
         M_dS = apply_M(B_ii, dS)
         zdot = apply_L(A_ii, dE) + M_dS - scatter_sum(port, receivers, n)
