@@ -179,6 +179,8 @@ seeds stable_rot_smooth2e1_g3e1_vel_p5e1 $STABLE_FLAGS --rotate --noise-smooth 2
 # The hybrid's operator entries bounded by tanh, as the public port-metriplectic code of the paper's group does
 # (--operator-activation tanh): 24e alone, '^hybrid_p5_stable_rot_tanh_s0$', against the recipe's three 24e hybrids
 # (1.331e-2 / 4.316e-2 / 6.462e-2) and its vanilla at 24e (1.227e-2 / 4.009e-2 / 6.846e-2); ~6 min, run it first
-seeds stable_rot_tanh $STABLE_FLAGS --rotate --operator-activation tanh
+for s in 0 1 2; do  # the hybrid alone: vanilla has no operators (it refuses the flag)
+  run hybrid_p5_stable_rot_tanh_s$s --model hybrid --passes 5 --latent 64 --seed $s $STABLE_FLAGS --rotate --operator-activation tanh
+done
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"

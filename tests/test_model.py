@@ -363,6 +363,8 @@ def test_tip_weight_hand_values():
             ModelConfig(tip_weight=bad)
     with pytest.raises(ValueError, match="operator activation must be one of none, tanh"):
         ModelConfig(operator_activation="relu")
+    with pytest.raises(ValueError, match="vanilla has none"):
+        ModelConfig(kind="vanilla", operator_activation="tanh")
 
 
 # --------------------------------------------------------------------------- 7. metrics

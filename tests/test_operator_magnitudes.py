@@ -25,10 +25,10 @@ def sims(tmp_path_factory):
     return load_file(make_dataset(tmp_path_factory.mktemp("om"), sims_per_file=2, steps=4) / "L5.h5")
 
 
-def constant_operators(sims, l_value, m_value):
+def constant_operators(sims, l_value, m_value, activation="none"):
     """A tiny hybrid whose edge decoder gives l_value in every l entry and m_value in every m entry."""
     torch.manual_seed(0)
-    model = TIGNN(ModelConfig(passes=1, latent=8))
+    model = TIGNN(ModelConfig(passes=1, latent=8, operator_activation=activation))
     fit_normalizer(model, sims)
     last = model.decoder.delta_e.rest[-1]
     with torch.no_grad():
@@ -37,7 +37,8 @@ def constant_operators(sims, l_value, m_value):
     return model.eval()
 
 
-def test_rows_are_every_self_loop_and_edge_of_every_snapshot_by_receiving_class(sims):
+def test_rows_are_every_self_loop_and_edge_of_every_snapshot(sims):
+    """Counts per class (on a bidirected mesh they cannot tell receivers from senders: the last test does)."""
     model = TIGNN(ModelConfig(passes=1, latent=8))
     fit_normalizer(model, sims)
     sim = sims[0]
@@ -63,6 +64,8 @@ def test_statistics_of_known_outputs(sims):
     small = by_class(constant_operators(sims, 0.75, 0.1), sims)["all"]
     assert small["row_share_above"] == {"0.5": 1.0, "1.0": 0.0} and small["entry_share_above_1"] == 0.0
     assert np.isclose(small["row_max_median"], 0.75)
+    # the raw outputs, before the activation a tanh network applies to them
+    assert by_class(constant_operators(sims, -2.0, 0.25, "tanh"), sims)["all"]["row_max_median"] == pytest.approx(2.0)
 
 
 def test_each_edge_row_is_classed_by_its_receiving_node(sims):

@@ -57,6 +57,8 @@ class ModelConfig:
         if self.operator_activation not in OPERATOR_ACTIVATIONS:
             raise ValueError(f"operator activation must be one of {', '.join(OPERATOR_ACTIVATIONS)}, "
                              f"got {self.operator_activation!r}")
+        if self.kind == "vanilla" and self.operator_activation != "none":
+            raise ValueError("an operator activation applies to the hybrid's operators; vanilla has none")
 
 
 @dataclass
