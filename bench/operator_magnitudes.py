@@ -36,7 +36,8 @@ def operator_outputs(model, sim) -> tuple[np.ndarray, np.ndarray]:
 
 def statistics(lm: np.ndarray) -> dict:
     """Percentiles of |entry|, the share of entries beyond 1, and per row its largest |entry|."""
-    entries, row_max = np.abs(lm), np.abs(lm).max(1)
+    entries = np.abs(lm)
+    row_max = entries.max(1)
     return {"rows": len(lm), "entry_percentiles": {p: float(np.percentile(entries, p)) for p in (50, 90, 99, 99.9)},
             "entry_share_above_1": float((entries > 1).mean()), "row_max_median": float(np.median(row_max)),
             "row_share_above": {str(t): float((row_max > t).mean()) for t in ROW_THRESHOLDS}}

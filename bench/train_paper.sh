@@ -49,11 +49,11 @@ dispatch() {  # each GPU's queue runs PER_GPU at a time, in a session of its own
     echo $! > "$QUEUE.$g.pid"
   done
 }
-# ARM's 5-pass runs, hybrid and vanilla for seeds 0-2, named <model>_p5[_ARM]_s<seed>, with FLAGS
+# ARM's 5-pass runs, hybrid and vanilla (or the models of SEED_MODELS) for seeds 0-2, named <model>_p5[_ARM]_s<seed>, with FLAGS
 seeds() {
   local arm=$1 s m; shift
   for s in 0 1 2; do
-    for m in hybrid vanilla; do
+    for m in ${SEED_MODELS:-hybrid vanilla}; do
       run ${m}_p5${arm:+_$arm}_s$s --model $m --passes 5 --latent 64 --seed $s "$@"
     done
   done
@@ -179,8 +179,6 @@ seeds stable_rot_smooth2e1_g3e1_vel_p5e1 $STABLE_FLAGS --rotate --noise-smooth 2
 # The hybrid's operator entries bounded by tanh, as the public port-metriplectic code of the paper's group does
 # (--operator-activation tanh): 24e alone, '^hybrid_p5_stable_rot_tanh_s0$', against the recipe's three 24e hybrids
 # (1.331e-2 / 4.316e-2 / 6.462e-2) and its vanilla at 24e (1.227e-2 / 4.009e-2 / 6.846e-2); ~6 min, run it first
-for s in 0 1 2; do  # the hybrid alone: vanilla has no operators (it refuses the flag)
-  run hybrid_p5_stable_rot_tanh_s$s --model hybrid --passes 5 --latent 64 --seed $s $STABLE_FLAGS --rotate --operator-activation tanh
-done
+SEED_MODELS=hybrid seeds stable_rot_tanh $STABLE_FLAGS --rotate --operator-activation tanh  # vanilla has no operators
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"

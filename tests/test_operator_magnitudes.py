@@ -25,11 +25,16 @@ def sims(tmp_path_factory):
     return load_file(make_dataset(tmp_path_factory.mktemp("om"), sims_per_file=2, steps=4) / "L5.h5")
 
 
-def constant_operators(sims, l_value, m_value, activation="none"):
-    """A tiny hybrid whose edge decoder gives l_value in every l entry and m_value in every m entry."""
-    torch.manual_seed(0)
+def tiny_hybrid(sims, seed=0, activation="none"):
+    torch.manual_seed(seed)
     model = TIGNN(ModelConfig(passes=1, latent=8, operator_activation=activation))
     fit_normalizer(model, sims)
+    return model
+
+
+def constant_operators(sims, l_value, m_value, activation="none"):
+    """A tiny hybrid whose edge decoder gives l_value in every l entry and m_value in every m entry."""
+    model = tiny_hybrid(sims, activation=activation)
     last = model.decoder.delta_e.rest[-1]
     with torch.no_grad():
         last.weight.zero_()
@@ -39,10 +44,8 @@ def constant_operators(sims, l_value, m_value, activation="none"):
 
 def test_rows_are_every_self_loop_and_edge_of_every_snapshot(sims):
     """Counts per class (on a bidirected mesh they cannot tell receivers from senders: the last test does)."""
-    model = TIGNN(ModelConfig(passes=1, latent=8))
-    fit_normalizer(model, sims)
     sim = sims[0]
-    lm, cls = operator_outputs(model, sim)
+    lm, cls = operator_outputs(tiny_hybrid(sims), sim)
     top, node_cls = sim.topology, node_classes(sim)
     assert lm.shape == (sim.steps * (top.n_nodes + len(top.receivers)), N_L + N_M)
     for k in range(len(CLASSES)):
@@ -72,9 +75,7 @@ def test_each_edge_row_is_classed_by_its_receiving_node(sims):
     """With the edge decoder blind to the edge latent and the sender, an edge's output is its receiver's
     self-loop output: every distinct output must then carry one class (a sender's class would differ on
     edges between classes, which the synthetic box has)."""
-    torch.manual_seed(1)
-    model = TIGNN(ModelConfig(passes=1, latent=8))
-    fit_normalizer(model, sims)
+    model = tiny_hybrid(sims, seed=1)
     with torch.no_grad():
         model.decoder.delta_e.edge.weight.zero_()
         model.decoder.delta_e.sender.weight.zero_()
