@@ -154,6 +154,28 @@ def test_resume_notes_each_changed_training_setting(data, tmp_path):
         [("--noise-smooth-share", 1.0, 0.5)]
 
 
+def parameter_norm(path) -> float:
+    state = torch.load(path, weights_only=False)["model"]
+    return float(sum(v.square().sum() for k, v in state.items() if not k.startswith("normalizer.")).sqrt())
+
+
+def test_weight_decay_shrinks_the_weights_and_a_resume_takes_the_new_value(data, tmp_path):
+    """--weight-decay is Adam's L2 penalty: strong enough, it outweighs the data gradient and every step pulls
+    each weight toward 0. A resume's value replaces the one the checkpoint's optimiser groups carry."""
+    quiet_train(config(data, tmp_path / "plain", epochs=2, lr=1e-2))
+    quiet_train(config(data, tmp_path / "decayed", epochs=2, lr=1e-2, weight_decay=100.0))
+    assert parameter_norm(tmp_path / "decayed" / "last.pt") < 0.6 * parameter_norm(tmp_path / "plain" / "last.pt")
+    out = tmp_path / "resumed"
+    quiet_train(config(data, out, epochs=1))
+    _, lines = quiet_train(config(data, out, epochs=2, weight_decay=1e-4, resume=True))
+    assert [line for line in lines if line.startswith("note:")] == \
+        [f"note: {out} was trained with --weight-decay 0.0; it continues with 0.0001"]
+    groups = torch.load(out / "last.pt", weights_only=False)["optimizer"]["param_groups"]
+    assert [g["weight_decay"] for g in groups] == [1e-4]
+    with pytest.raises(ValueError, match="--weight-decay"):
+        TrainConfig(weight_decay=-1.0)
+
+
 def test_exponential_schedule_values():
     cfg = TrainConfig(lr=1e-3, lr_final=1e-5, lr_schedule="exponential", time_budget=100.0)
     assert training.scheduled_lr(cfg, 0.0, epoch=7) == pytest.approx(1e-3)  # a budget decides, not the epoch

@@ -165,7 +165,8 @@ def cmd_train(args):
         raise InputError("--train-fraction must be in (0, 1]")
     try:
         cfg = TrainConfig(data=args.data, out=args.out, model=model, epochs=args.epochs, batch_size=args.batch,
-                          lr=args.lr, lr_schedule=args.lr_schedule, lr_final=args.lr_final, patience=args.patience,
+                          lr=args.lr, lr_schedule=args.lr_schedule, lr_final=args.lr_final,
+                          weight_decay=args.weight_decay, patience=args.patience,
                           train_fraction=args.train_fraction, seed=args.seed, resume=args.resume,
                           time_limit=args.time_limit, time_budget=args.time_budget, tf32=args.tf32,
                           compile=args.compile, cuda_graphs=args.cuda_graphs, operator_products=args.operator_products,
@@ -243,6 +244,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="plateau: halve on a training-loss plateau (the paper); exponential: lr -> --lr-final "
                         "over --time-budget, or over --epochs without one (runs compared at equal epochs)")
     t.add_argument("--lr-final", type=float, default=1e-5, help="exponential schedule: the rate at the end of the budget (or of the epochs)")
+    t.add_argument("--weight-decay", type=float, default=0.0, metavar="WD",
+                   help="Adam's L2 penalty on every parameter (default 0: the paper names none; the public "
+                        "port-metriplectic code of the paper's group uses 1e-4)")
     t.add_argument("--patience", type=int, default=None,
                    help="epochs without a better validation rollout before stopping (default: 30 under the "
                         "plateau schedule, none under the exponential one: its --time-budget ends the run); "
