@@ -184,9 +184,9 @@ SEED_MODELS=hybrid seeds stable_rot_tanh $STABLE_FLAGS --rotate --operator-activ
 # the two side by side on one GPU (PER_GPU=2: at equal epochs the schedule does not depend on the speed)
 SEED_MODELS=hybrid seeds stable_rot_wd1e4 $STABLE_FLAGS --rotate --weight-decay 1e-4
 # (bench/results/gnn_tanh_wd_e24_h100.json, seeds 0 and 1 of each: tanh -1.2 / -0.6 / -1.7 %, weight decay -2.2 / -1.6 / +1.1 %
-# against the recipe's three 24e hybrids, about their spread; still +7.1 / +7.0 and +6.1 / +5.9 % behind vanilla on q / v.)
-# The batch-64 screen above: a step of 64 takes 1.64x one of 32 for 2.13x the nodes (train_step_batch64_h100.json), ~23 %
-# more epochs in 30 minutes, which the learning curve puts at 1-2 % on q, below the seeds' spread: a screen of one run
-# each cannot resolve it; three seeds of each at 1800 s can (~3 sessions of device time)
+# against the recipe's three 24e hybrids, less than their range; still +7.1 / +7.0 and +6.1 / +5.9 % behind vanilla on q / v.)
+# The batch-64 screen above: a step of 64 takes 1.64x one of 32 for 2.13x the nodes (train_step_batch64_h100.json), ~30 %
+# more epochs in 30 minutes, which the learning curve puts at ~2.5 % on q, within the difference of two single runs' noise
+# (2.3 %): one run each cannot resolve it; three seeds of each at 1800 s would, at about two standard errors (~3 sessions)
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"

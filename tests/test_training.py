@@ -167,8 +167,11 @@ def test_weight_decay_shrinks_the_weights_and_a_resume_takes_the_new_value(data,
     assert parameter_norm(tmp_path / "decayed" / "last.pt") < 0.6 * parameter_norm(tmp_path / "plain" / "last.pt")
     out = tmp_path / "resumed"
     quiet_train(config(data, out, epochs=1))
-    _, lines = quiet_train(config(data, out, epochs=2, weight_decay=1e-4, resume=True))
-    assert [line for line in lines if line.startswith("note:")] == \
+    # through the command line, so that the flag's way into TrainConfig is checked too
+    proc = run_cli("train", "--data", data, "--out", out, "--passes", TINY["passes"], "--latent", TINY["latent"],
+                   "--batch", 4, "--epochs", 2, "--device", "cpu", "--resume", "--weight-decay", 1e-4)
+    assert proc.returncode == 0, proc.stderr
+    assert [line for line in proc.stdout.splitlines() if line.startswith("note:")] == \
         [f"note: {out} was trained with --weight-decay 0.0; it continues with 0.0001"]
     groups = torch.load(out / "last.pt", weights_only=False)["optimizer"]["param_groups"]
     assert [g["weight_decay"] for g in groups] == [1e-4]
