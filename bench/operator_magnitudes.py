@@ -7,17 +7,13 @@ tanh changes an entry by more than 4 % only beyond |0.35| and halves it near |2|
     python bench/operator_magnitudes.py DATA_FILE.h5 CHECKPOINT.pt [...] --json OUT.json --device "..." --command "..."
 """
 
-import argparse
-import json
-from pathlib import Path
 
 import numpy as np
 import provenance  # bench/, beside this script
 import torch
 from error_breakdown import CLASSES, node_classes  # likewise
 
-from warpgnn.checkpoint import load_model
-from warpgnn.data import load_file, make_batch
+from warpgnn.data import make_batch
 
 ROW_THRESHOLDS = (0.5, 1.0)  # |entry| marks: shares of rows (edges, self-loops) holding an entry beyond each
 
@@ -49,26 +45,14 @@ def by_class(model, sims) -> dict:
     return {"all": statistics(lm)} | {name: statistics(lm[cls == k]) for k, name in enumerate(CLASSES) if (cls == k).any()}
 
 
-def main():
-    ap = argparse.ArgumentParser()
-    provenance.add_probe_arguments(ap)
-    a = ap.parse_args()
-    torch.set_num_threads(2)
-    sims = load_file(a.data)
-    record = provenance.record(a) | {"data": a.data, "simulations": len(sims), "networks": {}}
-    for checkpoint in a.checkpoints:
-        model, _ = load_model(checkpoint)
-        if model.config.kind != "hybrid":
-            raise SystemExit(f"operator_magnitudes: {checkpoint} is a {model.config.kind} network, without operators")
-        name = f"{Path(checkpoint).parent.name}/{Path(checkpoint).stem}"
-        record["networks"][name] = {"checkpoint": checkpoint, "operator_activation": model.config.operator_activation,
-                                    "classes": by_class(model, sims)}
-        for cls, st in record["networks"][name]["classes"].items():
-            print(f"{name} {cls:9s} rows {st['rows']:7d}: |entry| median {st['entry_percentiles'][50]:.3f}, "
-                  f"99% {st['entry_percentiles'][99]:.3f}; rows' largest entry median {st['row_max_median']:.3f}, "
-                  f"beyond 0.5 / 1: {st['row_share_above']['0.5']:.3f} / {st['row_share_above']['1.0']:.3f}")
-    Path(a.json).write_text(json.dumps(record, indent=1))
+def measure(name, model, sims) -> dict:
+    classes = by_class(model, sims)
+    for cls, st in classes.items():
+        print(f"{name} {cls:9s} rows {st['rows']:7d}: |entry| median {st['entry_percentiles'][50]:.3f}, "
+              f"99% {st['entry_percentiles'][99]:.3f}; rows' largest entry median {st['row_max_median']:.3f}, "
+              f"beyond 0.5 / 1: {st['row_share_above']['0.5']:.3f} / {st['row_share_above']['1.0']:.3f}")
+    return {"operator_activation": model.config.operator_activation, "classes": classes}
 
 
 if __name__ == "__main__":
-    main()
+    provenance.run_hybrid_probe("operator_magnitudes", measure)

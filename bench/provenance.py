@@ -3,6 +3,8 @@ scripts that are run elsewhere than the measurement and so are told the device a
 
 import argparse
 import datetime
+import json
+from pathlib import Path
 
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
@@ -36,3 +38,27 @@ def parse_checkpoints_then_data(ap: argparse.ArgumentParser, need_checkpoint: bo
     if (need_checkpoint and not checkpoints) or not data:
         ap.error("give " + ("at least one checkpoint (*.pt) and " if need_checkpoint else "") + "at least one data file")
     return a, checkpoints, data
+
+
+def run_hybrid_probe(probe: str, measure, **fields) -> None:
+    """The main of a probe of trained hybrids on one data file (DATA CHECKPOINT [...] --json OUT): each network's
+    entry is {"checkpoint": ...} | measure(name, model, sims); a vanilla network is refused in one line. ``fields``
+    join the record's top level."""
+    import torch  # the report scripts that use only the above need no torch
+
+    from warpgnn.checkpoint import load_model
+    from warpgnn.data import load_file
+
+    ap = argparse.ArgumentParser()
+    add_probe_arguments(ap)
+    a = ap.parse_args()
+    torch.set_num_threads(2)
+    sims = load_file(a.data)
+    out = record(a) | {"data": a.data, "simulations": len(sims)} | fields | {"networks": {}}
+    for checkpoint in a.checkpoints:
+        model, _ = load_model(checkpoint)
+        if model.config.kind != "hybrid":
+            raise SystemExit(f"{probe}: {checkpoint} is a {model.config.kind} network, without L and M")
+        name = f"{Path(checkpoint).parent.name}/{Path(checkpoint).stem}"
+        out["networks"][name] = {"checkpoint": checkpoint} | measure(name, model, sims)
+    Path(a.json).write_text(json.dumps(out, indent=1))

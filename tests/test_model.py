@@ -268,6 +268,11 @@ def test_generic_decoder_matches_dense_assembly(products, activation):
         Mbig[12 * i:12 * i + 12, 12 * j:12 * j + 12] -= M_e[k]
     zdot = (Lbig @ dE.ravel() + Mbig @ dS.ravel()).reshape(N, 12)
     np.testing.assert_allclose(out.zdot.numpy(), zdot, rtol=1e-10, atol=1e-12 * np.abs(zdot).max())
+    # its two parts (bench/generic_parts.py): the reversible L dE and the irreversible M dS
+    with torch.no_grad():
+        reversible, irreversible = dec.parts(x, e, senders, receivers)
+    for part, reference in ((reversible, Lbig @ dE.ravel()), (irreversible, Mbig @ dS.ravel())):
+        np.testing.assert_allclose(part.numpy(), reference.reshape(N, 12), rtol=1e-10, atol=1e-12 * np.abs(zdot).max())
     # the isolated node only sees its self-loop
     np.testing.assert_allclose(out.zdot[4].numpy(), L_ii[4] @ dE[4] + M_ii[4] @ dS[4], rtol=1e-10)
 

@@ -109,13 +109,26 @@ class PortMetriplecticDecoder(nn.Module):
         """delta_e's raw (l, m), before any operator activation: (N, 144) on the self-loops, (E, 144) on the edges."""
         return self.delta_e.self_loop(self.self_loop, x), self.delta_e(e, x, x, receivers, senders)
 
+    def fields(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor):
+        """dE, dS (N, 12) and the operators' A, B on the self-loops (N, 12, 12) and on the edges (E, 12, 12)."""
+        grads = self.delta_v(x)
+        lm_ii, lm_ij = self.operator_outputs(x, e, senders, receivers)
+        return grads[:, :STATE], grads[:, STATE:], *self.operators(lm_ii), *self.operators(lm_ij)
+
+    def parts(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+        """zdot split into its reversible part L dE (self-loop minus the ports') and its irreversible part M dS;
+        they sum to forward's zdot. For probes (bench/generic_parts.py): training needs only the sum."""
+        n = x.shape[0]
+        apply_L, apply_M = OPERATOR_PRODUCTS[self.products]
+        dE, dS, A_ii, B_ii, A_ij, B_ij = self.fields(x, e, senders, receivers)
+        return (apply_L(A_ii, dE) - scatter_sum(apply_L(A_ij, dE[senders]), receivers, n),
+                apply_M(B_ii, dS) - scatter_sum(apply_M(B_ij, dS[senders]), receivers, n))
+
     def forward(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor) -> GenericOutput:
         n = x.shape[0]
         apply_L, apply_M = OPERATOR_PRODUCTS[self.products]
-        grads = self.delta_v(x)
-        dE, dS = grads[:, :STATE], grads[:, STATE:]
-        lm_ii, lm_ij = self.operator_outputs(x, e, senders, receivers)
-        (A_ii, B_ii), (A_ij, B_ij) = self.operators(lm_ii), self.operators(lm_ij)
+        dE, dS, A_ii, B_ii, A_ij, B_ij = self.fields(x, e, senders, receivers)
         port = apply_L(A_ij, dE[senders]) + apply_M(B_ij, dS[senders])
         M_dS = apply_M(B_ii, dS)
         zdot = apply_L(A_ii, dE) + M_dS - scatter_sum(port, receivers, n)
