@@ -188,5 +188,10 @@ SEED_MODELS=hybrid seeds stable_rot_wd1e4 $STABLE_FLAGS --rotate --weight-decay 
 # The batch-64 screen above: a step of 64 takes 1.64x one of 32 for 2.13x the nodes (train_step_batch64_h100.json), ~30 %
 # more epochs in 30 minutes, which the learning curve puts at ~2.5 % on q, within the difference of two single runs' noise
 # (2.3 %): one run each cannot resolve it; three seeds of each at 1800 s would, at about two standard errors (~3 sessions)
+# Positions moved by L dE alone (--reversible-positions: M without position rows or columns): every trained hybrid moves
+# its positions partly by dissipation, M dS carrying 10-26 % of the far field's position rate, and at 24e its stress rate is
+# a difference of L dE and M dS parts each 1.2-1.6x the true rate (bench/results/generic_parts_cpu.json). 24e, seeds 0 and 1
+# side by side (PER_GPU=2), '^hybrid_p5_stable_rot_revq_s[01]$', against the recipe's three 24e hybrids and its vanilla
+SEED_MODELS=hybrid seeds stable_rot_revq $STABLE_FLAGS --rotate --reversible-positions
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"

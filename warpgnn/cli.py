@@ -158,7 +158,8 @@ def cmd_train(args):
         model = ModelConfig(kind=args.model, passes=args.passes, latent=args.latent,
                             actuator_graphs=not args.single_graph, rate_weights=tuple(args.rate_weights),
                             tip_weight=args.tip_weight, imposed_in_loss=not args.skip_imposed_rates,
-                            operator_activation=args.operator_activation)
+                            operator_activation=args.operator_activation,
+                            reversible_positions=args.reversible_positions)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     if not 0 < args.train_fraction <= 1:
@@ -289,6 +290,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--operator-activation", default="none", choices=["none", "tanh"],
                    help="the hybrid's operator entries (A, B of L = A - A^T, M = B B^T): none, linear (default); tanh, "
                         "bounded to (-1, 1) as the port-metriplectic code of the paper's group does")
+    t.add_argument("--reversible-positions", action="store_true",
+                   help="the hybrid's positions move by L dE alone: M = B B^T without position rows or columns, so "
+                        "dissipation acts on velocity and stress only (default off: the paper's unconstrained M)")
     t.add_argument("--rotate", action="store_true",
                    help="turn each training sample by a random angle about the vertical z axis (an exact new simulation: "
                         "no gravity, isotropic material; default off: the paper)")

@@ -9,7 +9,11 @@ symmetric positive semi-definite for any network weights. Per node
 
 L and M are never formed: L x = A x - A^T x and M x = B (B^T x). With ``operator_activation``
 "tanh" every entry of A and B is bounded to (-1, 1), as the port-metriplectic code of Tierz et al.
-(the same group's local thermodynamics-informed GNN) does; "none" (default) leaves them linear. The
+(the same group's local thermodynamics-informed GNN) does; "none" (default) leaves them linear. With
+``reversible_positions`` the rows of B for the position components are zero, so M = B B^T has no position
+rows or columns: the positions move by L dE alone, as a solid's do (q' = dE/dp), and the dissipation acts
+on velocity and stress (the trained hybrids otherwise move their positions partly through M:
+bench/results/generic_parts_cpu.json). The
 magnitudes of L dE and M dS are then carried by the gradients. The degeneracy residuals
 L_ii dS_i and M_ii dE_i are returned for the loss, and the bulk entropy production
 dS_i . M_ii dS_i, which is >= 0 by construction.
@@ -33,6 +37,7 @@ N_M = STATE * (STATE + 1) // 2  # 78
 # vanilla decoder's ~3) and training spends its first epochs undoing that.
 OPERATOR_INIT_SCALE = 0.05
 OPERATOR_ACTIVATIONS = {"none": nn.Identity, "tanh": nn.Tanh}  # no weights: checkpoints load either way
+POSITION = slice(0, 3)  # the position components of the 12-component state
 
 
 def lower_triangular(values: torch.Tensor, strict: bool) -> torch.Tensor:
@@ -87,9 +92,14 @@ class GenericOutput:
 
 
 class PortMetriplecticDecoder(nn.Module):
-    def __init__(self, latent: int, hidden_layers: int = 1, operator_activation: str = "none"):
+    def __init__(self, latent: int, hidden_layers: int = 1, operator_activation: str = "none",
+                 reversible_positions: bool = False):
         super().__init__()
         self.activation = OPERATOR_ACTIVATIONS[operator_activation]()
+        rows = torch.ones(STATE, 1)
+        if reversible_positions:
+            rows[POSITION] = 0.0
+        self.register_buffer("dissipative_rows", rows, persistent=False)  # B's rows kept (1) or zeroed (0)
         self.delta_v = mlp(latent, latent, 2 * STATE, hidden_layers, layer_norm=False)
         self.delta_e = EdgeMLP(latent, latent, N_L + N_M, hidden_layers, layer_norm=False)
         self.self_loop = nn.Parameter(torch.randn(latent) / latent**0.5)  # the learned edge latent x_ii
@@ -102,7 +112,7 @@ class PortMetriplecticDecoder(nn.Module):
     def operators(self, lm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(E, 144) decoder output -> A (strictly lower) and B (lower), each (E, 12, 12)."""
         lm = self.activation(lm)
-        return lower_triangular(lm[:, :N_L], strict=True), lower_triangular(lm[:, N_L:], strict=False)
+        return lower_triangular(lm[:, :N_L], strict=True), lower_triangular(lm[:, N_L:], strict=False) * self.dissipative_rows
 
     def operator_outputs(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor
                          ) -> tuple[torch.Tensor, torch.Tensor]:
