@@ -1,6 +1,6 @@
 """A CPU-sized probe of training options: the same small hybrid (2 passes, F = 32) trained for
-the same number of steps with --pushforward 0 and K (and optionally --rate-weights, or each of
-several --noise-smooth values, each with each --noise-smooth-gamma), from the same seed, on a few
+the same number of steps with --pushforward 0 and K (and optionally --rate-weights, --reversible-positions,
+or each of several --noise-smooth values, each with each --noise-smooth-gamma), from the same seed, on a few
 paper-preset simulations made on the CPU, then rolled out on its training anatomy and an unseen one;
 on the unseen one also restarted from displaced states at the ramp's end
 (bench/perturbation_recovery.py: how much of a displacement it keeps after the hold, per node and
@@ -30,9 +30,10 @@ from warpgnn.model import ModelConfig, TIGNN
 
 
 def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1.0), noise_smooth: float = 0.0,
-        noise_smooth_gamma: float = 1.0) -> dict:
+        noise_smooth_gamma: float = 1.0, reversible_positions: bool = False) -> dict:
     torch.manual_seed(seed)
-    model = TIGNN(ModelConfig(kind="hybrid", passes=2, latent=32, rate_weights=rate_weights))
+    model = TIGNN(ModelConfig(kind="hybrid", passes=2, latent=32, rate_weights=rate_weights,
+                              reversible_positions=reversible_positions))
     training.fit_normalizer(model, train)
     opt = torch.optim.Adam(model.parameters(), 1e-3)
     samples, rng, gen = all_samples(train), np.random.default_rng(seed), torch.Generator().manual_seed(seed)
@@ -46,7 +47,7 @@ def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1
                                               noise_smooth_gamma=noise_smooth_gamma))
         opt.step()
     out = {"pushforward": lead, "rate_weights": list(rate_weights), "noise_smooth": noise_smooth,
-           "noise_smooth_gamma": noise_smooth_gamma, "seed": seed,
+           "noise_smooth_gamma": noise_smooth_gamma, "reversible_positions": reversible_positions, "seed": seed,
            "steps": steps, "seconds": time.time() - t0}
     for name, sims in (("train", train), ("test", test)):
         out[name] = training.validate(model, sims)["rrmse"]
@@ -66,6 +67,8 @@ def main():
     ap.add_argument("--noise-smooth", type=float, nargs="+", default=[0.0], help="each value one run (see warpgnn train)")
     ap.add_argument("--noise-smooth-gamma", type=float, nargs="+", default=[1.0], help="each value one run per nonzero "
                     "--noise-smooth (see warpgnn train)")
+    ap.add_argument("--reversible-positions", action="store_true", help="every run's hybrid with M free of position "
+                    "rows and columns (see warpgnn train)")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
@@ -76,7 +79,8 @@ def main():
         for lead in a.pushforward:
             for smooth in a.noise_smooth:
                 for gamma in a.noise_smooth_gamma if smooth else [1.0]:
-                    runs.append(run(train, test, lead, seed, a.steps, tuple(a.rate_weights), smooth, gamma))
+                    runs.append(run(train, test, lead, seed, a.steps, tuple(a.rate_weights), smooth, gamma,
+                                    a.reversible_positions))
                     print(json.dumps(runs[-1]), flush=True)
     json.dump(provenance.record(a) | {"train": a.train, "test": a.test, "runs": runs}, open(a.json, "w"), indent=1)
 

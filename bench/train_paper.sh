@@ -192,6 +192,7 @@ SEED_MODELS=hybrid seeds stable_rot_wd1e4 $STABLE_FLAGS --rotate --weight-decay 
 # its positions partly by dissipation, M dS carrying 10-26 % of the far field's position rate, and at 24e its stress rate is
 # a difference of L dE and M dS parts each 1.2-1.6x the true rate (bench/results/generic_parts_cpu.json). 24e, seeds 0 and 1
 # side by side (PER_GPU=2), '^hybrid_p5_stable_rot_revq_s[01]$', against the recipe's three 24e hybrids and its vanilla
+# (toy scale on the CPU, two seeds: L5 -3.5 / -3.5 / -2.3 %, bench/results/reversible_positions_cpu_proxy.json); run it first
 SEED_MODELS=hybrid seeds stable_rot_revq $STABLE_FLAGS --rotate --reversible-positions
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"
