@@ -178,7 +178,7 @@ seeds stable_rot_smooth2e1_g3e1_vel_p5e1 $STABLE_FLAGS --rotate --noise-smooth 2
 # --json OUT for B = 32 and 64 (a few minutes); the screen is worth its 20 minutes only if 64 takes well under twice 32's step
 # The hybrid's operator entries bounded by tanh, as the public port-metriplectic code of the paper's group does
 # (--operator-activation tanh): 24e alone, '^hybrid_p5_stable_rot_tanh_s0$', against the recipe's three 24e hybrids
-# (1.331e-2 / 4.316e-2 / 6.462e-2) and its vanilla at 24e (1.227e-2 / 4.009e-2 / 6.846e-2); ~6 min, run it first
+# (1.331e-2 / 4.316e-2 / 6.462e-2) and its vanilla at 24e (1.227e-2 / 4.009e-2 / 6.846e-2); ~6 min
 SEED_MODELS=hybrid seeds stable_rot_tanh $STABLE_FLAGS --rotate --operator-activation tanh  # vanilla has no operators
 # Adam's L2 weight decay 1e-4 (--weight-decay), as that code trains: 24e, '^hybrid_p5_stable_rot_wd1e4_s0$', the same peers;
 # the two side by side on one GPU (PER_GPU=2: at equal epochs the schedule does not depend on the speed)
@@ -192,7 +192,8 @@ SEED_MODELS=hybrid seeds stable_rot_wd1e4 $STABLE_FLAGS --rotate --weight-decay 
 # its positions partly by dissipation, M dS carrying 10-26 % of the far field's position rate, and at 24e its stress rate is
 # a difference of L dE and M dS parts each 1.2-1.6x the true rate (bench/results/generic_parts_cpu.json). 24e, seeds 0 and 1
 # side by side (PER_GPU=2), '^hybrid_p5_stable_rot_revq_s[01]$', against the recipe's three 24e hybrids and its vanilla
-# (toy scale on the CPU, two seeds: L5 -3.5 / -3.5 / -2.3 %, bench/results/reversible_positions_cpu_proxy.json); run it first
+# (toy scale on the CPU, two seeds: L5 -3.5 / -3.5 / -2.3 % on their sums, one seed up on v and sigma: not established;
+# bench/results/reversible_positions_cpu_proxy.json). Next on the GPU
 SEED_MODELS=hybrid seeds stable_rot_revq $STABLE_FLAGS --rotate --reversible-positions
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"

@@ -96,10 +96,10 @@ class PortMetriplecticDecoder(nn.Module):
                  reversible_positions: bool = False):
         super().__init__()
         self.activation = OPERATOR_ACTIVATIONS[operator_activation]()
+        self.reversible_positions = reversible_positions
         rows = torch.ones(STATE, 1)
-        if reversible_positions:
-            rows[POSITION] = 0.0
-        self.register_buffer("dissipative_rows", rows, persistent=False)  # B's rows kept (1) or zeroed (0)
+        rows[POSITION] = 0.0
+        self.register_buffer("dissipative_rows", rows, persistent=False)  # B's rows kept (1) or, for positions, zeroed
         self.delta_v = mlp(latent, latent, 2 * STATE, hidden_layers, layer_norm=False)
         self.delta_e = EdgeMLP(latent, latent, N_L + N_M, hidden_layers, layer_norm=False)
         self.self_loop = nn.Parameter(torch.randn(latent) / latent**0.5)  # the learned edge latent x_ii
@@ -112,7 +112,8 @@ class PortMetriplecticDecoder(nn.Module):
     def operators(self, lm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(E, 144) decoder output -> A (strictly lower) and B (lower), each (E, 12, 12)."""
         lm = self.activation(lm)
-        return lower_triangular(lm[:, :N_L], strict=True), lower_triangular(lm[:, N_L:], strict=False) * self.dissipative_rows
+        A, B = lower_triangular(lm[:, :N_L], strict=True), lower_triangular(lm[:, N_L:], strict=False)
+        return A, B * self.dissipative_rows if self.reversible_positions else B  # off: the ops of before, no extra multiply
 
     def operator_outputs(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor
                          ) -> tuple[torch.Tensor, torch.Tensor]:
