@@ -47,12 +47,17 @@ def ramp_steps(sim) -> int:
     return round(SolverConfig().ramp_fraction * sim.steps)
 
 
+def true_states(sim):
+    """All snapshots of one simulation stacked in one batch, in snapshot order, without noise: the true states."""
+    return make_batch([sim], [(0, t) for t in range(sim.steps)])
+
+
 def one_step_errors(model, sims) -> list[np.ndarray]:
     """Per simulation, (steps, nodes, 12): the network's zdot from each true state (no noise)
     minus the true one, physical units (the snapshots of one simulation stacked in one batch)."""
     out = []
-    for i, sim in enumerate(sims):
-        b = make_batch(sims, [(i, t) for t in range(sim.steps)])  # stacked in snapshot order
+    for sim in sims:
+        b = true_states(sim)
         with torch.no_grad():
             err = model(b.topology, b.z, b.u_now, b.u_next).zdot - b.zdot
         out.append(err.numpy().reshape(sim.steps, sim.topology.n_nodes, 12))

@@ -12,9 +12,8 @@ cancel each other, a rate built as a small difference of large terms.
 import numpy as np
 import provenance  # bench/, beside this script
 import torch
-from error_breakdown import CLASSES, node_classes, ramp_steps  # likewise
+from error_breakdown import CLASSES, node_classes, ramp_steps, true_states  # likewise
 
-from warpgnn.data import make_batch
 from warpgnn.graphs import GROUPS
 
 PHASES = ("ramp", "hold")
@@ -24,7 +23,7 @@ TERMS = ("target", "reversible", "irreversible", "error", "error_reversible_only
 def terms(model, sim) -> tuple[dict, np.ndarray, np.ndarray]:
     """All snapshots of one simulation stacked: each term of TERMS per node (rows, 12), standardised; each row's
     node class and phase index."""
-    b = make_batch([sim], [(0, t) for t in range(sim.steps)])  # no noise: the true states
+    b = true_states(sim)
     with torch.no_grad():
         x, e = model.latents(b.topology, b.z, b.u_now, b.u_next)
         rev, irr = model.decoder.parts(x, e, b.topology.senders, b.topology.receivers)

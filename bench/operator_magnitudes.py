@@ -11,9 +11,7 @@ tanh changes an entry by more than 4 % only beyond |0.35| and halves it near |2|
 import numpy as np
 import provenance  # bench/, beside this script
 import torch
-from error_breakdown import CLASSES, node_classes  # likewise
-
-from warpgnn.data import make_batch
+from error_breakdown import CLASSES, node_classes, true_states  # likewise
 
 ROW_THRESHOLDS = (0.5, 1.0)  # |entry| marks: shares of rows (edges, self-loops) holding an entry beyond each
 
@@ -21,7 +19,7 @@ ROW_THRESHOLDS = (0.5, 1.0)  # |entry| marks: shares of rows (edges, self-loops)
 def operator_outputs(model, sim) -> tuple[np.ndarray, np.ndarray]:
     """All snapshots of one simulation stacked: the raw (l, m) of every self-loop and mesh edge, (rows, 144),
     and the class of each row's receiving node."""
-    b = make_batch([sim], [(0, t) for t in range(sim.steps)])  # no noise: the true states
+    b = true_states(sim)
     with torch.no_grad():
         x, e = model.latents(b.topology, b.z, b.u_now, b.u_next)
         lm_self, lm_edge = model.decoder.operator_outputs(x, e, b.topology.senders, b.topology.receivers)

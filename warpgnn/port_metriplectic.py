@@ -9,12 +9,12 @@ symmetric positive semi-definite for any network weights. Per node
 
 L and M are never formed: L x = A x - A^T x and M x = B (B^T x). With ``operator_activation``
 "tanh" every entry of A and B is bounded to (-1, 1), as the port-metriplectic code of Tierz et al.
-(the same group's local thermodynamics-informed GNN) does; "none" (default) leaves them linear. With
-``reversible_positions`` the rows of B for the position components are zero, so M = B B^T has no position
-rows or columns: the positions move by L dE alone, as a solid's do (q' = dE/dp), and the dissipation acts
-on velocity and stress (the trained hybrids otherwise move their positions partly through M:
-bench/results/generic_parts_cpu.json). The
-magnitudes of L dE and M dS are then carried by the gradients. The degeneracy residuals
+(the same group's local thermodynamics-informed GNN) does; "none" (default) leaves them linear. The
+magnitudes of L dE and M dS are then carried by the gradients. With ``reversible_positions`` the rows
+of B for the position components are zero, so M = B B^T has no position rows or columns: the positions
+move by L dE alone, as a solid's do (q' = dE/dp), and the dissipation acts on velocity and stress (the
+trained hybrids otherwise move their positions partly through M: bench/results/generic_parts_cpu.json).
+The degeneracy residuals
 L_ii dS_i and M_ii dE_i are returned for the loss, and the bulk entropy production
 dS_i . M_ii dS_i, which is >= 0 by construction.
 """
