@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # Evaluates every run of RUNS (its best.pt; or RUNS itself if it is one run) on Test (L5), Train
 # (L1), Extra and Extra*, four runs at a time, and extracts the median L5 rollout of each for
-# renders elsewhere. A run whose four evaluations all succeeded gets EVAL/<run>/.done.
-#   usage: bench/eval_paper.sh DATA RUNS EVAL
+# renders elsewhere. A run whose four evaluations all succeeded gets EVAL/<run>/.done. With NAMEs,
+# only those runs of RUNS.
+#   usage: bench/eval_paper.sh DATA RUNS EVAL [NAME ...]
 set -uo pipefail
-DATA=$1; RUNS=$2; EVAL=$3
+DATA=$1; RUNS=$2; EVAL=$3; shift 3
 one() {
   local run=$1 name failed=0; name=$(basename "$1")
   for set in L5 L1 extra extra_star; do
@@ -18,6 +19,7 @@ one() {
 mkdir -p "$EVAL"
 runs=("$RUNS"/*/)
 [ -f "$RUNS/best.pt" ] && runs=("$RUNS/")
+[ $# -gt 0 ] && runs=("${@/#/$RUNS/}")
 for run in "${runs[@]}"; do
   [ -f "$run/best.pt" ] || continue
   one "${run%/}" &

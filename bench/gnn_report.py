@@ -48,6 +48,10 @@ def main():
         entry = {"epochs": len(log), "training_seconds": float(log[-1]["seconds"]),
                  "best_epoch": int(best["epoch"]), "seconds_to_best": float(best["seconds"]), "sets": {}}
         for s in SETS:
+            if not (ev / run / s / "metrics.json").exists():  # e.g. an evaluation cut off by the device call's end
+                entry.setdefault("missing_sets", []).append(s)
+                print(f"{run}: no {s} evaluation, left out of its figures")
+                continue
             m = json.load(open(ev / run / s / "metrics.json"))
             entry["parameters"] = m["model"]["parameters"]
             entry["sets"][s] = {k: m[k] for k in ("rmse", "rrmse")} | {
@@ -68,9 +72,12 @@ def main():
     rrmse_boxplot(test, f"{prefix}_boxplot_test.png", "per-rollout RRMSE on the unseen anatomy L5 (190 rollouts)")
     for run in evaluated:
         if run.startswith("hybrid_p5"):
-            rrmse_boxplot({SETS[s]: per[(run, s)] for s in SETS}, f"{prefix}_boxplot_sets_{run}.png",
+            rrmse_boxplot({SETS[s]: per[(run, s)] for s in SETS if (run, s) in per}, f"{prefix}_boxplot_sets_{run}.png",
                           f"{run}: per-rollout RRMSE by set")
     for run in evaluated:
+        if not (ev / run / "L5_median.npz").exists():
+            print(f"{run}: no L5_median.npz (bench/extract_rollout.py), no render or node history")
+            continue
         d = np.load(ev / run / "L5_median.npz")
         mesh = TetMesh(d["nodes"], d["tets"], d["fixed"])
         render_comparison(mesh, d["ref"], d["pred"], d["loaded"], f"{prefix}_final_{run}.png",

@@ -195,5 +195,12 @@ SEED_MODELS=hybrid seeds stable_rot_wd1e4 $STABLE_FLAGS --rotate --weight-decay 
 # (toy scale on the CPU, two seeds: L5 -3.5 / -3.5 / -2.3 % on their sums, one seed up on v and sigma: not established;
 # bench/results/reversible_positions_cpu_proxy.json). Next on the GPU
 SEED_MODELS=hybrid seeds stable_rot_revq $STABLE_FLAGS --rotate --reversible-positions
+# (bench/results/gnn_revq_e24_h100.json: seeds 0-2 side by side, PER_GPU=3, ~15 min: -2.6 / -0.6 / -0.1 % on L5 against the recipe's
+# three 24e hybrids, every seed's q below every repeat's, 1.9 standard errors: not established; +4.4 / +5.7 / -4.1 % against
+# vanilla's two 24e seeds, where the recipe is +7.1 / +6.3 / -4.0 %; the stress parts smaller, cancelling less:
+# generic_parts_revq_cpu.json. Vanilla's second 24e seed came from '^vanilla_p5_stable_rot_s1$' alone, renamed _e24_s1.)
+# Next: the same runs at 1800 s, one seed a session, in a fresh RUNS (the names are the 24e runs', which --resume would
+# continue): PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs FALLBACK=--compile ... 1800 '^hybrid_p5_stable_rot_revq_s0$',
+# against the recipe's three 30-minute seeds (1.116e-2 / 3.646e-2 / 5.526e-2)
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"

@@ -10,20 +10,19 @@
 #   usage: bench/wait_runs.sh RUNS SECONDS [OUT [DATA]]
 RUNS=$1; LIMIT=$2; OUT=${3:-}; DATA=${4:-}; EVAL_SECONDS=${EVAL_SECONDS:-240}; t0=$SECONDS
 BENCH=$(dirname "$0")
-evaluate_finished() {  # each finished run once, while there is time for it
+evaluate_finished() {  # each finished run once, while there is time for it; those finished together side by side
   [ -n "$DATA" ] || return 0
-  local d name left
+  local d names=() left
   for d in "$RUNS"/*/; do
-    name=$(basename "$d")
-    [ -f "$d/best.pt" ] && [ ! -f "$RUNS/.eval/$name/.done" ] || continue
+    [ -f "$d/best.pt" ] && [ ! -f "$RUNS/.eval/$(basename "$d")/.done" ] || continue
     # finished: the summary is the last line (a finished run resumed with a larger budget appends more)
-    tail -n 1 "$d/stdout.txt" 2> /dev/null | grep -aq "best validation mean RRMSE" || continue
-    left=$((LIMIT - (SECONDS - t0)))
-    [ "$left" -ge "$EVAL_SECONDS" ] || continue
-    echo "--- evaluating $name"
-    # bounded, so that the packing below still happens within the call (timeout stops eval_paper's children too)
-    timeout $((left - 30)) "$BENCH/eval_paper.sh" "$DATA" "${d%/}" "$RUNS/.eval"  # marks .eval/<run>/.done
+    tail -n 1 "$d/stdout.txt" 2> /dev/null | grep -aq "best validation mean RRMSE" && names+=("$(basename "$d")")
   done
+  left=$((LIMIT - (SECONDS - t0)))
+  [ ${#names[@]} -gt 0 ] && [ "$left" -ge "$EVAL_SECONDS" ] || return 0
+  echo "--- evaluating ${names[*]}"
+  # bounded, so that the packing below still happens within the call (timeout stops eval_paper's children too)
+  timeout $((left - 30)) "$BENCH/eval_paper.sh" "$DATA" "$RUNS" "$RUNS/.eval" "${names[@]}"  # marks .eval/<run>/.done
 }
 while pgrep -f "warpgnn(.cli)? train" > /dev/null && [ $((SECONDS - t0)) -lt "$LIMIT" ]; do
   sleep $(( LIMIT - (SECONDS - t0) < 60 ? LIMIT - (SECONDS - t0) : 60 ))
@@ -35,8 +34,9 @@ pgrep -f "warpgnn(.cli)? train" > /dev/null && echo "still running" || echo "all
 evaluate_finished
 if [ -n "$OUT" ]; then
   # one archive of every run, in parts of 15 MB (a device call returns files of at most 16 MiB, and
-  # at most 8 of them: one tar per run lost runs once there were more than 8); cat runs.tar.* | tar -x
-  (cd "$RUNS" && tar -cf - --ignore-failed-read */log.csv */stdout.txt */best.pt */last.pt .eval 2>/dev/null) |
+  # at most 8 of them: one tar per run lost runs once there were more than 8); cat runs.tar.* | tar -x. Without
+  # rollouts.h5 (~70 MB a set), which an evaluation cut off before bench/eval_paper.sh removes it leaves behind
+  (cd "$RUNS" && tar -cf - --ignore-failed-read --exclude='*.h5' */log.csv */stdout.txt */best.pt */last.pt .eval 2>/dev/null) |
     split -b 15000000 -d - "$OUT/runs.tar."
   parts=$(ls "$OUT"/runs.tar.* | wc -l)
   [ "$parts" -le 8 ] || echo "wait_runs: $parts parts of runs.tar, more than a device call returns (8): pack fewer runs"

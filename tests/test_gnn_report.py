@@ -46,6 +46,15 @@ def peer_entry(l5: float) -> dict:
             "sets": {s: {k: dict.fromkeys(GROUPS, l5 if s == "L5" else 9.0) for k in ("rmse", "rrmse")} for s in SETS}}
 
 
+def run_report(tmp_path: Path, prefix: Path, *extra: str) -> subprocess.CompletedProcess:
+    """bench/gnn_report.py on tmp_path's eval and runs folders, off-screen; it must succeed."""
+    proc = subprocess.run([sys.executable, str(BENCH / "gnn_report.py"), str(tmp_path / "eval"), str(tmp_path / "runs"),
+                           str(prefix), *extra, "--device", "cpu", "--command", "t"], capture_output=True, text=True,
+                          env=os.environ | {"MPLBACKEND": "Agg", "PYVISTA_OFF_SCREEN": "true"}, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr
+    return proc
+
+
 @pytest.mark.parametrize("with_peers", [False, True])
 def test_peers_join_the_table_and_the_seed_means_not_the_plots(tmp_path, with_peers):
     for seed, l5 in enumerate((1.0, 3.0)):
@@ -57,10 +66,7 @@ def test_peers_join_the_table_and_the_seed_means_not_the_plots(tmp_path, with_pe
                                             "vanilla_x_s0": peer_entry(100.0)}}))  # evaluated here: not replaced
     prefix = tmp_path / "out" / "rep"
     peers = ["--peers", str(earlier), "^(hybrid|vanilla)_x"] if with_peers else []
-    proc = subprocess.run([sys.executable, str(BENCH / "gnn_report.py"), str(tmp_path / "eval"), str(tmp_path / "runs"),
-                           str(prefix), *peers, "--device", "cpu", "--command", "t"], capture_output=True, text=True,
-                          env=os.environ | {"MPLBACKEND": "Agg", "PYVISTA_OFF_SCREEN": "true"}, timeout=300)
-    assert proc.returncode == 0, proc.stderr
+    proc = run_report(tmp_path, prefix, *peers)
     record = json.loads(prefix.with_suffix(".json").read_text())
     means = record["seed_means_L5"]
     assert means["vanilla_x"]["seeds"] == 2
@@ -79,3 +85,24 @@ def test_peers_join_the_table_and_the_seed_means_not_the_plots(tmp_path, with_pe
     pngs = sorted(p.name for p in prefix.parent.glob("*.png"))
     assert pngs == ["rep_boxplot_test.png", "rep_final_vanilla_x_s0.png", "rep_final_vanilla_x_s1.png",
                     "rep_node_vanilla_x_s0.png", "rep_node_vanilla_x_s1.png"]
+
+
+def test_a_cut_off_evaluation_is_recorded_as_missing_and_left_out_of_the_figures(tmp_path):
+    """A run whose Extra* evaluation and median-rollout extraction were cut off (the device call
+    ended) still joins the table and the seed means on L5; its absent set is named in the record."""
+    for seed, l5 in enumerate((1.0, 3.0)):
+        write_evaluated_run(tmp_path, f"hybrid_p5_x_s{seed}", l5)
+    cut = tmp_path / "eval" / "hybrid_p5_x_s1"
+    (cut / "extra_star" / "metrics.json").unlink()
+    (cut / "L5_median.npz").unlink()
+    prefix = tmp_path / "out" / "rep"
+    proc = run_report(tmp_path, prefix)
+    record = json.loads(prefix.with_suffix(".json").read_text())
+    assert record["runs"]["hybrid_p5_x_s1"]["missing_sets"] == ["extra_star"]
+    assert set(record["runs"]["hybrid_p5_x_s1"]["sets"]) == {"L1", "extra", "L5"}
+    assert "missing_sets" not in record["runs"]["hybrid_p5_x_s0"]
+    assert record["seed_means_L5"]["hybrid_p5_x"]["rrmse"]["mean"] == pytest.approx(dict.fromkeys(GROUPS, 2.0))
+    pngs = sorted(p.name for p in prefix.parent.glob("*.png"))
+    assert pngs == ["rep_boxplot_sets_hybrid_p5_x_s0.png", "rep_boxplot_sets_hybrid_p5_x_s1.png",
+                    "rep_boxplot_test.png", "rep_final_hybrid_p5_x_s0.png", "rep_node_hybrid_p5_x_s0.png"]
+    assert "no extra_star evaluation" in proc.stdout and "no L5_median.npz" in proc.stdout

@@ -81,14 +81,16 @@ def test_wait_runs_evaluates_each_finished_run_once_and_packs_it(tmp_path):
     """bench/wait_runs.sh RUNS SECONDS OUT DATA: a run whose stdout ends with warpgnn train's summary is
     evaluated (bench/eval_paper.sh: four sets from its best.pt) once, and again only if that did not
     complete; an unfinished one not (nor one resumed past its summary), none when less than
-    EVAL_SECONDS are left; the evaluations travel in OUT's archive with the runs."""
+    EVAL_SECONDS are left; runs finished together are evaluated in one call, side by side; the
+    evaluations travel in OUT's archive with the runs."""
     stub = tmp_path / "bin" / "warpgnn"
     stub.parent.mkdir()
     log = tmp_path / "evals.log"
     stub.write_text(EVAL_STUB.format(log=log))
     stub.chmod(0o755)
     runs = tmp_path / "runs"
-    for name, lines in (("done_run", ["summary"]), ("busy_run", []), ("resumed_run", ["summary", "epoch 1 (1.0 s): loss 1"])):
+    for name, lines in (("done_run", ["summary"]), ("done_run2", ["summary"]), ("busy_run", []),
+                        ("resumed_run", ["summary", "epoch 1 (1.0 s): loss 1"])):
         (runs / name).mkdir(parents=True)
         (runs / name / "best.pt").write_text("weights")
         (runs / name / "stdout.txt").write_text("epoch 0 (1.0 s): loss 1\n" + "".join(
@@ -102,20 +104,28 @@ def test_wait_runs_evaluates_each_finished_run_once_and_packs_it(tmp_path):
                               capture_output=True, text=True, timeout=120, cwd=BENCH.parent,
                               env=os.environ | {"PATH": f"{stub.parent}:{os.environ['PATH']}"} | env)
         assert proc.returncode == 0, proc.stderr
-        return out
+        return out, proc.stdout
 
+    cut = runs / ".eval" / "cut_run" / "L5"  # an evaluation cut off before its rollouts were removed
+    cut.mkdir(parents=True)
+    (cut / "rollouts.h5").write_bytes(b"large")
+    (cut / "metrics.json").write_text("{}")
     wait("out0", EVAL_SECONDS="601")  # not enough time left: nothing evaluated
     assert not log.exists()
-    out = wait("out1")
+    out, printed = wait("out1")
+    assert [line for line in printed.splitlines() if "evaluating" in line] == ["--- evaluating done_run done_run2"]
     calls = log.read_text().splitlines()
-    assert len(calls) == 4 and all(f"--checkpoint {runs / 'done_run' / 'best.pt'}" in c for c in calls)
     assert sorted(c.split("--out ")[1].split()[0] for c in calls) == sorted(
-        str(runs / ".eval" / "done_run" / s) for s in ("L5", "L1", "extra", "extra_star"))
+        str(runs / ".eval" / run / s) for run in ("done_run", "done_run2") for s in ("L5", "L1", "extra", "extra_star"))
+    assert all(f"--checkpoint {runs / c.split('--out ')[1].split('/')[-2] / 'best.pt'}" in c for c in calls)
     wait("out2")
-    assert len(log.read_text().splitlines()) == 4  # evaluated once
+    assert len(log.read_text().splitlines()) == 8  # evaluated once
     (runs / ".eval" / "done_run" / ".done").unlink()  # as if that evaluation had been cut short
     wait("out3")
-    assert len(log.read_text().splitlines()) == 8 and (runs / ".eval" / "done_run" / ".done").exists()
+    calls = log.read_text().splitlines()
+    assert len(calls) == 12 and all("/.eval/done_run/" in c for c in calls[8:])
+    assert (runs / ".eval" / "done_run" / ".done").exists()
     archive = subprocess.run(f"cat {out}/runs.tar.* | tar -t", shell=True, capture_output=True, text=True).stdout
     assert ".eval/done_run/L5/metrics.json" in archive.split()
     assert "busy_run/best.pt" in archive.split() and "done_run/stdout.txt" in archive.split()
+    assert ".eval/cut_run/L5/metrics.json" in archive.split() and ".eval/cut_run/L5/rollouts.h5" not in archive.split()
