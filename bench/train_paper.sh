@@ -199,8 +199,11 @@ SEED_MODELS=hybrid seeds stable_rot_revq $STABLE_FLAGS --rotate --reversible-pos
 # three 24e hybrids, every seed's q below every repeat's, 1.9 standard errors: not established; +4.4 / +5.7 / -4.1 % against
 # vanilla's two 24e seeds, where the recipe is +7.1 / +6.3 / -4.0 %; the stress parts smaller, cancelling less:
 # generic_parts_revq_cpu.json. Vanilla's second 24e seed came from '^vanilla_p5_stable_rot_s1$' alone, renamed _e24_s1.)
-# Next: the same runs at 1800 s, one seed a session, in a fresh RUNS (the names are the 24e runs', which --resume would
-# continue): PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs FALLBACK=--compile ... 1800 '^hybrid_p5_stable_rot_revq_s0$',
-# against the recipe's three 30-minute seeds (1.116e-2 / 3.646e-2 / 5.526e-2)
+# Next: the same runs at 1800 s in a fresh RUNS (the names are the 24e runs', which --resume would continue), against the
+# recipe's three 30-minute seeds (1.116e-2 / 3.646e-2 / 5.526e-2, 145-153 epochs). A session's device time counts the time
+# a machine is held, not its GPUs: on nvidia-h100-x2, PER_GPU=1 puts seeds 0 and 1 one on each GPU, alone as the recipe's
+# seeds were (PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs FALLBACK=--compile ... 1800 '^hybrid_p5_stable_rot_revq_s[01]$').
+# 1800 s of training, the warm-up and the data do not fit one session's 30 minutes: the last call's archive brings last.pt
+# back (keep it in an ignored .devruns/), and the next session resumes both runs there, then seed 2
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"

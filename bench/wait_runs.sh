@@ -33,12 +33,14 @@ done
 pgrep -f "warpgnn(.cli)? train" > /dev/null && echo "still running" || echo "all runs finished"
 evaluate_finished
 if [ -n "$OUT" ]; then
-  # one archive of every run, in parts of 15 MB (a device call returns files of at most 16 MiB, and
-  # at most 8 of them: one tar per run lost runs once there were more than 8); cat runs.tar.* | tar -x. Without
-  # rollouts.h5 (~70 MB a set), which an evaluation cut off before bench/eval_paper.sh removes it leaves behind
+  # one archive of every run, in parts of 15 MB (a device call returns at most 8 files of at most 16 MiB each, 64 MiB
+  # in all: one tar per run lost runs once there were more than 8); cat runs.tar.* | tar -x. The logs and checkpoints
+  # first, so that they come back whole if the rest does not; without rollouts.h5 (~70 MB a set), which an evaluation
+  # cut off before bench/eval_paper.sh removes it leaves behind
   (cd "$RUNS" && tar -cf - --ignore-failed-read --exclude='*.h5' */log.csv */stdout.txt */best.pt */last.pt .eval 2>/dev/null) |
     split -b 15000000 -d - "$OUT/runs.tar."
-  parts=$(ls "$OUT"/runs.tar.* | wc -l)
-  [ "$parts" -le 8 ] || echo "wait_runs: $parts parts of runs.tar, more than a device call returns (8): pack fewer runs"
+  bytes=$(cat "$OUT"/runs.tar.* | wc -c)
+  [ "$bytes" -le $((64 * 1048576)) ] ||
+    echo "wait_runs: runs.tar is $((bytes / 1048576)) MiB, more than a device call returns (64 MiB): pack fewer runs"
   ls -la "$OUT"
 fi
