@@ -30,10 +30,10 @@ from warpgnn.model import ModelConfig, TIGNN
 
 
 def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1.0), noise_smooth: float = 0.0,
-        noise_smooth_gamma: float = 1.0, reversible_positions: bool = False) -> dict:
+        noise_smooth_gamma: float = 1.0, reversible_positions: bool = False, reversible_velocities: bool = False) -> dict:
     torch.manual_seed(seed)
     model = TIGNN(ModelConfig(kind="hybrid", passes=2, latent=32, rate_weights=rate_weights,
-                              reversible_positions=reversible_positions))
+                              reversible_positions=reversible_positions, reversible_velocities=reversible_velocities))
     training.fit_normalizer(model, train)
     opt = torch.optim.Adam(model.parameters(), 1e-3)
     samples, rng, gen = all_samples(train), np.random.default_rng(seed), torch.Generator().manual_seed(seed)
@@ -47,7 +47,8 @@ def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1
                                               noise_smooth_gamma=noise_smooth_gamma))
         opt.step()
     out = {"pushforward": lead, "rate_weights": list(rate_weights), "noise_smooth": noise_smooth,
-           "noise_smooth_gamma": noise_smooth_gamma, "reversible_positions": reversible_positions, "seed": seed,
+           "noise_smooth_gamma": noise_smooth_gamma, "reversible_positions": reversible_positions,
+           "reversible_velocities": reversible_velocities, "seed": seed,
            "steps": steps, "seconds": time.time() - t0}
     for name, sims in (("train", train), ("test", test)):
         out[name] = training.validate(model, sims)["rrmse"]
@@ -69,6 +70,8 @@ def main():
                     "--noise-smooth (see warpgnn train)")
     ap.add_argument("--reversible-positions", action="store_true", help="every run's hybrid with M free of position "
                     "rows and columns (see warpgnn train)")
+    ap.add_argument("--reversible-velocities", action="store_true", help="and free of velocity rows and columns: "
+                    "M on the stress alone (see warpgnn train)")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
@@ -80,7 +83,7 @@ def main():
             for smooth in a.noise_smooth:
                 for gamma in a.noise_smooth_gamma if smooth else [1.0]:
                     runs.append(run(train, test, lead, seed, a.steps, tuple(a.rate_weights), smooth, gamma,
-                                    a.reversible_positions))
+                                    a.reversible_positions, a.reversible_velocities))
                     print(json.dumps(runs[-1]), flush=True)
     json.dump(provenance.record(a) | {"train": a.train, "test": a.test, "runs": runs}, open(a.json, "w"), indent=1)
 

@@ -227,11 +227,12 @@ def test_edge_mlp_is_the_mlp_of_the_concatenation(layer_norm):
 
 @pytest.mark.parametrize("products", list(OPERATOR_PRODUCTS))
 @pytest.mark.parametrize("activation", list(OPERATOR_ACTIVATIONS))
-@pytest.mark.parametrize("reversible_positions", [False, True])
-def test_generic_decoder_matches_dense_assembly(products, activation, reversible_positions):
+@pytest.mark.parametrize("reversible_positions, reversible_velocities", [(False, False), (True, False), (True, True)])
+def test_generic_decoder_matches_dense_assembly(products, activation, reversible_positions, reversible_velocities):
     torch.manual_seed(5)
     F, N = 8, 5
-    dec = PortMetriplecticDecoder(F, operator_activation=activation, reversible_positions=reversible_positions).double()
+    dec = PortMetriplecticDecoder(F, operator_activation=activation, reversible_positions=reversible_positions,
+                                  reversible_velocities=reversible_velocities).double()
     set_operator_products(dec, products)
     with torch.no_grad():  # operator outputs of order 1-10, where tanh is far from linear
         dec.delta_e.rest[-1].weight.mul_(100.0)
@@ -258,6 +259,8 @@ def test_generic_decoder_matches_dense_assembly(products, activation, reversible
         B[:, rb, cb] = lm[:, N_L:]
         if reversible_positions:
             B[:, :3] = 0.0  # no dissipation in the position rows
+        if reversible_velocities:
+            B[:, 3:6] = 0.0  # nor in the velocity rows
         return A - A.transpose(0, 2, 1), B @ B.transpose(0, 2, 1)
 
     L_ii, M_ii = dense(lm_self)
@@ -276,9 +279,10 @@ def test_generic_decoder_matches_dense_assembly(products, activation, reversible
         reversible, irreversible = dec.parts(x, e, senders, receivers)
     for part, reference in ((reversible, Lbig @ dE.ravel()), (irreversible, Mbig @ dS.ravel())):
         np.testing.assert_allclose(part.numpy(), reference.reshape(N, 12), rtol=1e-10, atol=1e-12 * np.abs(zdot).max())
-    if reversible_positions:  # the positions move by L dE alone, whatever the weights
-        assert (irreversible[:, :3] == 0).all() and irreversible[:, 3:].abs().max() > 0
-        np.testing.assert_allclose(out.zdot[:, :3].numpy(), reversible[:, :3].numpy(), rtol=1e-12)
+    reversible_rows = slice(0, 6 if reversible_velocities else 3 if reversible_positions else 0)
+    # whatever the weights, those rows move by L dE alone (positions; velocities too) and the rest dissipate
+    assert (irreversible[:, reversible_rows] == 0).all() and irreversible[:, reversible_rows.stop:].abs().max() > 0
+    np.testing.assert_allclose(out.zdot[:, reversible_rows].numpy(), reversible[:, reversible_rows].numpy(), rtol=1e-12)
     # the isolated node only sees its self-loop
     np.testing.assert_allclose(out.zdot[4].numpy(), L_ii[4] @ dE[4] + M_ii[4] @ dS[4], rtol=1e-10)
 
@@ -376,8 +380,9 @@ def test_tip_weight_hand_values():
         ModelConfig(operator_activation="relu")
     with pytest.raises(ValueError, match="vanilla has none"):
         ModelConfig(kind="vanilla", operator_activation="tanh")
-    with pytest.raises(ValueError, match="vanilla has none"):
-        ModelConfig(kind="vanilla", reversible_positions=True)
+    for constraint in ("reversible_positions", "reversible_velocities"):
+        with pytest.raises(ValueError, match="vanilla has none"):
+            ModelConfig(kind="vanilla", **{constraint: True})
 
 
 # --------------------------------------------------------------------------- 7. metrics

@@ -598,7 +598,7 @@ def test_torchrun_two_processes(data, tmp_path):
         [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
          "-m", "warpgnn.cli", "train", "--data", str(data), "--model", "hybrid", "--passes", "2", "--latent", "16",
          "--batch", "4", "--epochs", "1", "--device", "cpu", "--out", str(out), "--skip-imposed-rates",
-         "--operator-activation", "tanh", "--reversible-positions"],
+         "--operator-activation", "tanh", "--reversible-positions", "--reversible-velocities"],
         capture_output=True, text=True, timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "x 2 processes" in proc.stdout
@@ -606,7 +606,7 @@ def test_torchrun_two_processes(data, tmp_path):
     assert payload["epoch"] == 0 and len(read_log(out / "log.csv")[1]) == 1
     # the loss and decoder options reach the saved configuration
     assert not model.config.imposed_in_loss and model.config.operator_activation == "tanh"
-    assert model.config.reversible_positions
+    assert model.config.reversible_positions and model.config.reversible_velocities
 
 
 # --------------------------------------------------------------------------- bad input

@@ -159,7 +159,8 @@ def cmd_train(args):
                             actuator_graphs=not args.single_graph, rate_weights=tuple(args.rate_weights),
                             tip_weight=args.tip_weight, imposed_in_loss=not args.skip_imposed_rates,
                             operator_activation=args.operator_activation,
-                            reversible_positions=args.reversible_positions)
+                            reversible_positions=args.reversible_positions,
+                            reversible_velocities=args.reversible_velocities)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     if not 0 < args.train_fraction <= 1:
@@ -293,6 +294,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--reversible-positions", action="store_true",
                    help="the hybrid's positions move by L dE alone: M = B B^T without position rows or columns, so "
                         "dissipation acts on velocity and stress only (default off: the paper's unconstrained M)")
+    t.add_argument("--reversible-velocities", action="store_true",
+                   help="the hybrid's velocities move by L dE alone too (with --reversible-positions: M acts on the "
+                        "stress alone, as the ground truth's Prony relaxation does; default off)")
     t.add_argument("--rotate", action="store_true",
                    help="turn each training sample by a random angle about the vertical z axis (an exact new simulation: "
                         "no gravity, isotropic material; default off: the paper)")

@@ -46,6 +46,8 @@ class ModelConfig:
     # the hybrid's positions moved by L dE alone: M without position rows or columns (port_metriplectic.py; the paper:
     # no such constraint, and its trained hybrids move positions partly by dissipation: bench/generic_parts.py)
     reversible_positions: bool = False
+    # and its velocities too: M on the stress alone, the ground truth's only dissipation (Prony relaxation)
+    reversible_velocities: bool = False
 
     def __post_init__(self):
         if self.kind not in ("hybrid", "vanilla"):
@@ -62,8 +64,8 @@ class ModelConfig:
                              f"got {self.operator_activation!r}")
         if self.kind == "vanilla" and self.operator_activation != "none":
             raise ValueError("an operator activation applies to the hybrid's operators; vanilla has none")
-        if self.kind == "vanilla" and self.reversible_positions:
-            raise ValueError("reversible positions constrain the hybrid's M; vanilla has none")
+        if self.kind == "vanilla" and (self.reversible_positions or self.reversible_velocities):
+            raise ValueError("reversible positions or velocities constrain the hybrid's M; vanilla has none")
 
 
 @dataclass
@@ -93,7 +95,8 @@ class TIGNN(nn.Module):
         self.core = EncodeProcess(node_in, FEATURES["mesh_edge"], FEATURES["actuator_node"], FEATURES["actuator_edge"],
                                   c.latent, c.passes, c.hidden_layers, c.actuator_graphs)
         if c.kind == "hybrid":
-            self.decoder = PortMetriplecticDecoder(c.latent, c.hidden_layers, c.operator_activation, c.reversible_positions)
+            self.decoder = PortMetriplecticDecoder(c.latent, c.hidden_layers, c.operator_activation, c.reversible_positions,
+                                                   c.reversible_velocities)
         else:
             self.decoder = mlp(c.latent, c.latent, STATE, c.hidden_layers, layer_norm=False)
 

@@ -14,6 +14,9 @@ magnitudes of L dE and M dS are then carried by the gradients. With ``reversible
 of B for the position components are zero, so M = B B^T has no position rows or columns: the positions
 move by L dE alone, as a solid's do (q' = dE/dp), and the dissipation acts on velocity and stress (the
 trained hybrids otherwise move their positions partly through M: bench/results/generic_parts_cpu.json).
+With ``reversible_velocities`` too, M acts on the stress alone, as in the ground truth, whose only
+dissipation is the Prony relaxation of the stress (the velocities change by the stress's forces, a
+reversible coupling).
 The degeneracy residuals
 L_ii dS_i and M_ii dE_i are returned for the loss, and the bulk entropy production
 dS_i . M_ii dS_i, which is >= 0 by construction.
@@ -38,6 +41,7 @@ N_M = STATE * (STATE + 1) // 2  # 78
 OPERATOR_INIT_SCALE = 0.05
 OPERATOR_ACTIVATIONS = {"none": nn.Identity, "tanh": nn.Tanh}  # no weights: checkpoints load either way
 POSITION = slice(0, 3)  # the position components of the 12-component state
+VELOCITY = slice(3, 6)
 
 
 def lower_triangular(values: torch.Tensor, strict: bool) -> torch.Tensor:
@@ -93,13 +97,14 @@ class GenericOutput:
 
 class PortMetriplecticDecoder(nn.Module):
     def __init__(self, latent: int, hidden_layers: int = 1, operator_activation: str = "none",
-                 reversible_positions: bool = False):
+                 reversible_positions: bool = False, reversible_velocities: bool = False):
         super().__init__()
         self.activation = OPERATOR_ACTIVATIONS[operator_activation]()
-        self.reversible_positions = reversible_positions
+        self.masked = reversible_positions or reversible_velocities
         rows = torch.ones(STATE, 1)
-        rows[POSITION] = 0.0
-        self.register_buffer("dissipative_rows", rows, persistent=False)  # B's rows kept (1) or, for positions, zeroed
+        rows[POSITION] = 0.0 if reversible_positions else 1.0
+        rows[VELOCITY] = 0.0 if reversible_velocities else 1.0
+        self.register_buffer("dissipative_rows", rows, persistent=False)  # B's rows kept (1) or zeroed (0)
         self.delta_v = mlp(latent, latent, 2 * STATE, hidden_layers, layer_norm=False)
         self.delta_e = EdgeMLP(latent, latent, N_L + N_M, hidden_layers, layer_norm=False)
         self.self_loop = nn.Parameter(torch.randn(latent) / latent**0.5)  # the learned edge latent x_ii
@@ -113,7 +118,7 @@ class PortMetriplecticDecoder(nn.Module):
         """(E, 144) decoder output -> A (strictly lower) and B (lower), each (E, 12, 12)."""
         lm = self.activation(lm)
         A, B = lower_triangular(lm[:, :N_L], strict=True), lower_triangular(lm[:, N_L:], strict=False)
-        return A, B * self.dissipative_rows if self.reversible_positions else B  # off: the ops of before, no extra multiply
+        return A, B * self.dissipative_rows if self.masked else B  # unmasked: the ops of before, no extra multiply
 
     def operator_outputs(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor
                          ) -> tuple[torch.Tensor, torch.Tensor]:
