@@ -19,7 +19,7 @@ one() {
 mkdir -p "$EVAL"
 runs=("$RUNS"/*/)
 [ -f "$RUNS/best.pt" ] && runs=("$RUNS/")
-[ $# -gt 0 ] && runs=("${@/#/$RUNS/}")
+if [ $# -gt 0 ]; then runs=(); for name; do runs+=("$RUNS/$name"); done; fi
 for run in "${runs[@]}"; do
   [ -f "$run/best.pt" ] || continue
   one "${run%/}" &

@@ -43,6 +43,9 @@ def main():
                                      "target_hybrid_5pass_rrmse": TARGET_HYBRID_5PASS, "runs": {}}
     per = {}
     for run in sorted(p.name for p in ev.iterdir() if p.is_dir()):
+        if not (ev / run / "L5" / "metrics.json").exists():  # the table, the seed means and the test plot are L5's
+            print(f"{run}: no L5 evaluation, left out")
+            continue
         log = read_log(runs / run)
         best = best_epoch(log)
         entry = {"epochs": len(log), "training_seconds": float(log[-1]["seconds"]),

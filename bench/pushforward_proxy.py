@@ -70,8 +70,8 @@ def main():
                     "--noise-smooth (see warpgnn train)")
     ap.add_argument("--reversible-positions", action="store_true", help="every run's hybrid with M free of position "
                     "rows and columns (see warpgnn train)")
-    ap.add_argument("--reversible-velocities", action="store_true", help="and free of velocity rows and columns: "
-                    "M on the stress alone (see warpgnn train)")
+    ap.add_argument("--reversible-velocities", action="store_true", help="every run's hybrid with M free of velocity "
+                    "rows and columns; with --reversible-positions, M on the stress alone (see warpgnn train)")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()

@@ -89,20 +89,23 @@ def test_peers_join_the_table_and_the_seed_means_not_the_plots(tmp_path, with_pe
 
 def test_a_cut_off_evaluation_is_recorded_as_missing_and_left_out_of_the_figures(tmp_path):
     """A run whose Extra* evaluation and median-rollout extraction were cut off (the device call
-    ended) still joins the table and the seed means on L5; its absent set is named in the record."""
-    for seed, l5 in enumerate((1.0, 3.0)):
+    ended) still joins the table and the seed means on L5; its absent set is named in the record.
+    One without L5 is left out."""
+    for seed, l5 in enumerate((1.0, 3.0, 5.0)):
         write_evaluated_run(tmp_path, f"hybrid_p5_x_s{seed}", l5)
     cut = tmp_path / "eval" / "hybrid_p5_x_s1"
     (cut / "extra_star" / "metrics.json").unlink()
     (cut / "L5_median.npz").unlink()
+    (tmp_path / "eval" / "hybrid_p5_x_s2" / "L5" / "metrics.json").unlink()  # cut off in its first set: left out
     prefix = tmp_path / "out" / "rep"
     proc = run_report(tmp_path, prefix)
     record = json.loads(prefix.with_suffix(".json").read_text())
     assert record["runs"]["hybrid_p5_x_s1"]["missing_sets"] == ["extra_star"]
     assert set(record["runs"]["hybrid_p5_x_s1"]["sets"]) == {"L1", "extra", "L5"}
-    assert "missing_sets" not in record["runs"]["hybrid_p5_x_s0"]
+    assert "missing_sets" not in record["runs"]["hybrid_p5_x_s0"] and "hybrid_p5_x_s2" not in record["runs"]
     assert record["seed_means_L5"]["hybrid_p5_x"]["rrmse"]["mean"] == pytest.approx(dict.fromkeys(GROUPS, 2.0))
     pngs = sorted(p.name for p in prefix.parent.glob("*.png"))
     assert pngs == ["rep_boxplot_sets_hybrid_p5_x_s0.png", "rep_boxplot_sets_hybrid_p5_x_s1.png",
                     "rep_boxplot_test.png", "rep_final_hybrid_p5_x_s0.png", "rep_node_hybrid_p5_x_s0.png"]
     assert "no extra_star evaluation" in proc.stdout and "no L5_median.npz" in proc.stdout
+    assert "hybrid_p5_x_s2: no L5 evaluation, left out" in proc.stdout

@@ -24,6 +24,7 @@ import torch.multiprocessing as mp
 import synthetic
 from test_cli import assert_one_line_error, run_cli
 from warpgnn import checkpoint, run_log, training
+from warpgnn.cli import build_parser, train_model_config
 from warpgnn.data import BatchShape, all_samples, load_file, make_batch, smallest
 from warpgnn.errors import InputError
 from warpgnn.model import TIGNN, ModelConfig
@@ -598,7 +599,7 @@ def test_torchrun_two_processes(data, tmp_path):
         [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
          "-m", "warpgnn.cli", "train", "--data", str(data), "--model", "hybrid", "--passes", "2", "--latent", "16",
          "--batch", "4", "--epochs", "1", "--device", "cpu", "--out", str(out), "--skip-imposed-rates",
-         "--operator-activation", "tanh", "--reversible-positions", "--reversible-velocities"],
+         "--operator-activation", "tanh", "--reversible-positions"],
         capture_output=True, text=True, timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "x 2 processes" in proc.stdout
@@ -606,7 +607,20 @@ def test_torchrun_two_processes(data, tmp_path):
     assert payload["epoch"] == 0 and len(read_log(out / "log.csv")[1]) == 1
     # the loss and decoder options reach the saved configuration
     assert not model.config.imposed_in_loss and model.config.operator_activation == "tanh"
-    assert model.config.reversible_positions and model.config.reversible_velocities
+    assert model.config.reversible_positions
+
+
+@pytest.mark.parametrize("flags, positions, velocities", [([], False, False), (["--reversible-positions"], True, False),
+                                                          (["--reversible-velocities"], False, True),
+                                                          (["--reversible-positions", "--reversible-velocities"], True, True)])
+def test_each_reversible_flag_reaches_its_own_field(flags, positions, velocities):
+    args = build_parser().parse_args(["train", "--data", "d", "--out", "o", *flags])
+    config = train_model_config(args)
+    assert (config.reversible_positions, config.reversible_velocities) == (positions, velocities)
+    if flags:  # constraints on the hybrid's M: vanilla has none
+        with pytest.raises(InputError, match="vanilla has none"):
+            train_model_config(build_parser().parse_args(["train", "--data", "d", "--out", "o", "--model", "vanilla",
+                                                          *flags]))
 
 
 # --------------------------------------------------------------------------- bad input

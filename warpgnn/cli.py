@@ -150,19 +150,25 @@ def cmd_demo(args):
     print(f"network against the FEM: {out / 'network'} (metrics.json, final_step_median.png, node_history.png)")
 
 
-def cmd_train(args):
+def train_model_config(args):
+    """`warpgnn train`'s model flags as a ModelConfig (one clear line on a bad combination)."""
     from .model import ModelConfig
-    from .training import TrainConfig, train
 
     try:
-        model = ModelConfig(kind=args.model, passes=args.passes, latent=args.latent,
-                            actuator_graphs=not args.single_graph, rate_weights=tuple(args.rate_weights),
-                            tip_weight=args.tip_weight, imposed_in_loss=not args.skip_imposed_rates,
-                            operator_activation=args.operator_activation,
-                            reversible_positions=args.reversible_positions,
-                            reversible_velocities=args.reversible_velocities)
+        return ModelConfig(kind=args.model, passes=args.passes, latent=args.latent,
+                           actuator_graphs=not args.single_graph, rate_weights=tuple(args.rate_weights),
+                           tip_weight=args.tip_weight, imposed_in_loss=not args.skip_imposed_rates,
+                           operator_activation=args.operator_activation,
+                           reversible_positions=args.reversible_positions,
+                           reversible_velocities=args.reversible_velocities)
     except ValueError as exc:
         raise InputError(str(exc)) from None
+
+
+def cmd_train(args):
+    from .training import TrainConfig, train
+
+    model = train_model_config(args)
     if not 0 < args.train_fraction <= 1:
         raise InputError("--train-fraction must be in (0, 1]")
     try:

@@ -46,7 +46,8 @@ class ModelConfig:
     # the hybrid's positions moved by L dE alone: M without position rows or columns (port_metriplectic.py; the paper:
     # no such constraint, and its trained hybrids move positions partly by dissipation: bench/generic_parts.py)
     reversible_positions: bool = False
-    # and its velocities too: M on the stress alone, the ground truth's only dissipation (Prony relaxation)
+    # the hybrid's velocities moved by L dE alone: M without velocity rows or columns; with reversible_positions, M on the
+    # stress alone, the ground truth's only dissipation (Prony relaxation)
     reversible_velocities: bool = False
 
     def __post_init__(self):
