@@ -96,8 +96,9 @@ class TIGNN(nn.Module):
         self.core = EncodeProcess(node_in, FEATURES["mesh_edge"], FEATURES["actuator_node"], FEATURES["actuator_edge"],
                                   c.latent, c.passes, c.hidden_layers, c.actuator_graphs)
         if c.kind == "hybrid":
-            self.decoder = PortMetriplecticDecoder(c.latent, c.hidden_layers, c.operator_activation, c.reversible_positions,
-                                                   c.reversible_velocities)
+            self.decoder = PortMetriplecticDecoder(c.latent, c.hidden_layers, c.operator_activation,
+                                                   reversible_positions=c.reversible_positions,
+                                                   reversible_velocities=c.reversible_velocities)
         else:
             self.decoder = mlp(c.latent, c.latent, STATE, c.hidden_layers, layer_norm=False)
 
