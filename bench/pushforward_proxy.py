@@ -1,6 +1,6 @@
 """A CPU-sized probe of training options: the same small hybrid (2 passes, F = 32) trained for
 the same number of steps with --pushforward 0 and K (and optionally --rate-weights, --reversible-positions,
-or each of several --noise-smooth values, each with each --noise-smooth-gamma), from the same seed, on a few
+--rotate, --mirror, or each of several --noise-smooth values, each with each --noise-smooth-gamma), from the same seed, on a few
 paper-preset simulations made on the CPU, then rolled out on its training anatomy and an unseen one;
 on the unseen one also restarted from displaced states at the ramp's end
 (bench/perturbation_recovery.py: how much of a displacement it keeps after the hold, per node and
@@ -30,11 +30,12 @@ from warpgnn.model import ModelConfig, TIGNN
 
 
 def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1.0), noise_smooth: float = 0.0,
-        noise_smooth_gamma: float = 1.0, reversible_positions: bool = False, reversible_velocities: bool = False) -> dict:
+        noise_smooth_gamma: float = 1.0, reversible_positions: bool = False, reversible_velocities: bool = False,
+        rotate: bool = False, mirror: bool = False) -> dict:
     torch.manual_seed(seed)
     model = TIGNN(ModelConfig(kind="hybrid", passes=2, latent=32, rate_weights=rate_weights,
                               reversible_positions=reversible_positions, reversible_velocities=reversible_velocities))
-    training.fit_normalizer(model, train)
+    training.fit_normalizer(model, train, rotate=rotate, mirror=mirror)
     opt = torch.optim.Adam(model.parameters(), 1e-3)
     samples, rng, gen = all_samples(train), np.random.default_rng(seed), torch.Generator().manual_seed(seed)
     t0 = time.time()
@@ -44,11 +45,11 @@ def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1
         chunk = [samples[i] for i in rng.choice(len(samples), 8, replace=False)]
         opt.zero_grad()
         training.train_step(model, make_batch(train, chunk, 3e-3, 1e-2, gen, lead=lead, noise_smooth=noise_smooth,
-                                              noise_smooth_gamma=noise_smooth_gamma))
+                                              noise_smooth_gamma=noise_smooth_gamma, rotate=rotate, mirror=mirror))
         opt.step()
     out = {"pushforward": lead, "rate_weights": list(rate_weights), "noise_smooth": noise_smooth,
            "noise_smooth_gamma": noise_smooth_gamma, "reversible_positions": reversible_positions,
-           "reversible_velocities": reversible_velocities, "seed": seed,
+           "reversible_velocities": reversible_velocities, "rotate": rotate, "mirror": mirror, "seed": seed,
            "steps": steps, "seconds": time.time() - t0}
     for name, sims in (("train", train), ("test", test)):
         out[name] = training.validate(model, sims)["rrmse"]
@@ -72,6 +73,8 @@ def main():
                     "rows and columns (see warpgnn train)")
     ap.add_argument("--reversible-velocities", action="store_true", help="every run's hybrid with M free of velocity "
                     "rows and columns; with --reversible-positions, M on the stress alone (see warpgnn train)")
+    ap.add_argument("--rotate", action="store_true", help="every run's samples turned about z (see warpgnn train)")
+    ap.add_argument("--mirror", action="store_true", help="every run's samples reflected, half of them (see warpgnn train)")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
@@ -83,7 +86,7 @@ def main():
             for smooth in a.noise_smooth:
                 for gamma in a.noise_smooth_gamma if smooth else [1.0]:
                     runs.append(run(train, test, lead, seed, a.steps, tuple(a.rate_weights), smooth, gamma,
-                                    a.reversible_positions, a.reversible_velocities))
+                                    a.reversible_positions, a.reversible_velocities, a.rotate, a.mirror))
                     print(json.dumps(runs[-1]), flush=True)
     json.dump(provenance.record(a) | {"train": a.train, "test": a.test, "runs": runs}, open(a.json, "w"), indent=1)
 

@@ -3,7 +3,7 @@ file's simulations out as they are and turned as a whole about their centroid (r
 states with the stress as a tensor, tools' path): without gravity and with an isotropic material
 each turned simulation is exact (tests/test_fem_physics.py), so an equivariant network would score
 the same RMSE on all of them. Turns about z keep the fixed visceral face a z plane, as in the data;
-turns about x put it elsewhere. The RRMSE normalisers (max |component|) change with the turn.
+turns about x put it elsewhere; 'm' turns reflect x -> -x first (the mirrored liver, exact as well). The RRMSE normalisers (max |component|) change with the turn.
 
     python bench/rotation_probe.py DATA_FILE.h5 CHECKPOINT [...] --json OUT.json --device "..." --command "..."
 """
@@ -21,21 +21,22 @@ from warpgnn.data import load_file, rotate_states, vertical_rotations
 from warpgnn.metrics import rollout_metrics, set_metrics
 from warpgnn.rollout import rollout
 
-TURNS = ("z0", "z90", "z180", "z270", "x90", "x180")
+TURNS = ("z0", "z90", "z180", "z270", "x90", "x180", "m0", "m90")
 
 
 def rotation(turn: str) -> torch.Tensor:
-    """'z90': 90 degrees about z; 'x180': 180 degrees about x."""
+    """'z90': 90 degrees about z; 'x180': 180 degrees about x; 'm90': x -> -x, then 90 degrees about z."""
     try:
         axis, a = turn[0], math.radians(float(turn[1:]))
     except (IndexError, ValueError):
         axis = None
-    if axis == "z":
-        return vertical_rotations(torch.tensor([a], dtype=torch.float64))[0]
+    if axis in ("z", "m"):
+        R = vertical_rotations(torch.tensor([a], dtype=torch.float64))[0]
+        return R @ torch.diag(torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64)) if axis == "m" else R
     if axis == "x":
         c, s = math.cos(a), math.sin(a)
         return torch.tensor([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]], dtype=torch.float64)
-    raise SystemExit(f"rotation_probe: a turn is z<degrees> or x<degrees>, not {turn!r}")
+    raise SystemExit(f"rotation_probe: a turn is z<degrees>, x<degrees> or m<degrees>, not {turn!r}")
 
 
 def turned(sim, R: torch.Tensor):

@@ -198,3 +198,15 @@ def test_missing_unreadable_and_unsupported_files(tmp_path):
     text.write_text("not a surface\n")
     with pytest.raises(InputError, match="unsupported"):
         mesh_from_surface(text)
+
+
+def test_a_mirrored_copy_is_reoriented_without_touching_the_original():
+    """TetMesh flips negatively oriented tets (a mirrored mesh's, all of them) into a new array: a
+    mirrored copy built on the original's tets used to flip the original's in place."""
+    mesh = box_tet_mesh(2, 2, 2, (0.02, 0.02, 0.02))
+    before = mesh.tets.copy()
+    mirrored = TetMesh(mesh.nodes * [-1.0, 1.0, 1.0], mesh.tets, mesh.fixed)
+    np.testing.assert_array_equal(mesh.tets, before)
+    assert (signed_volumes(mesh.nodes, mesh.tets) > 0).all()
+    assert (signed_volumes(mirrored.nodes, mirrored.tets) > 0).all()
+    np.testing.assert_array_equal(mirrored.tets, before[:, [0, 2, 1, 3]])  # the same tets, each re-oriented

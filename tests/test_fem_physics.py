@@ -178,10 +178,12 @@ def test_cpu_and_cuda_trajectories_agree():
     assert np.abs(cpu.sigma - gpu.sigma).max() < 1e-3 * np.abs(cpu.sigma).max()
 
 
-def test_a_turned_simulation_is_the_turned_ground_truth():
-    """Without gravity and with an isotropic material the FEM commutes with rotations: the mesh and
-    tool turned about z give rotate_states of the original trajectory (q, v and the stress tensor).
-    This is what makes training's --rotate augmentation exact."""
+@pytest.mark.parametrize("reflected", [False, True], ids=["turned", "turned-and-mirrored"])
+def test_a_turned_simulation_is_the_turned_ground_truth(reflected):
+    """Without gravity and with an isotropic material the FEM commutes with rotations and reflections:
+    the mesh and tool turned about z (after a reflection x -> -x: the mirrored liver, its tets
+    re-oriented by TetMesh) give rotate_states of the original trajectory (q, v and the stress
+    tensor). This is what makes training's --rotate and --mirror augmentations exact."""
     import torch
     from scipy.spatial.transform import Rotation
 
@@ -192,7 +194,7 @@ def test_a_turned_simulation_is_the_turned_ground_truth():
     mesh.fixed[:] = mesh.nodes[:, 2] < 1e-9
     top = np.flatnonzero(mesh.nodes[:, 2] > 0.02 - 1e-9)
     loaded, disp = top[[4]], np.array([[0.003, 0.001, 0.002]])
-    R = Rotation.from_euler("z", 37.0, degrees=True).as_matrix()
+    R = Rotation.from_euler("z", 37.0, degrees=True).as_matrix() @ np.diag([-1.0 if reflected else 1.0, 1.0, 1.0])
     turned = TetMesh(mesh.nodes @ R.T, mesh.tets, mesh.fixed)
     cfg = SolverConfig(duration=0.2, snapshots=4)
     runs = [BatchedExplicitSolver(m, [make_load_case(m, loaded, d, spread=False)], config=cfg, device="cpu").run()

@@ -815,30 +815,39 @@ def test_batch_led_by_steps_starts_earlier_and_pads_alike(two_sims):
 
 
 @pytest.mark.parametrize("padded", [False, True], ids=["plain", "padded"])
-def test_rotated_batch_turns_each_sample_as_a_whole(two_sims, padded):
-    """--rotate: each sample's rest shape, states, next state and tools' path (pushforward lead-in
-    included) are the plain batch's turned by one rotation about z of its own; padding is untouched."""
+@pytest.mark.parametrize("rotate,mirror", [(True, False), (False, True), (True, True)],
+                         ids=["rotate", "mirror", "rotate-mirror"])
+def test_rotated_batch_turns_each_sample_as_a_whole(two_sims, padded, rotate, mirror):
+    """--rotate and --mirror: each sample's rest shape, states, next state and tools' path (pushforward
+    lead-in included) are the plain batch's under one orthogonal map of its own that keeps z: a turn
+    about z (--rotate), a reflection x -> -x on some samples (--mirror), or both; padding is untouched."""
     sims = [double_sim(s) for s in two_sims]
-    samples = [(0, 1), (1, 2), (0, 2)]
-    shape = BatchShape.fitting(sims, 3) if padded else None
+    samples = [(0, 1), (1, 2), (0, 2), (1, 1), (0, 0), (1, 0)]
+    shape = BatchShape.fitting(sims, len(samples)) if padded else None
     plain = make_batch(sims, samples, shape=shape, lead=2)
-    turned = make_batch(sims, samples, generator=torch.Generator().manual_seed(1), shape=shape, lead=2, rotate=True)
+    turned = make_batch(sims, samples, generator=torch.Generator().manual_seed(1), shape=shape, lead=2,
+                        rotate=rotate, mirror=mirror)
     node0 = tool0 = 0
-    angles = []
+    angles, dets = [], []
     for i, _ in samples:
         n, k = sims[i].topology.n_nodes, len(sims[i].topology.loaded)
         nodes, tools = slice(node0, node0 + n), slice(tool0, tool0 + k)
         R = torch.linalg.lstsq(plain.topology.rest[nodes].double(), turned.topology.rest[nodes].double()).solution.T
         torch.testing.assert_close(R[2], torch.tensor([0.0, 0.0, 1.0], dtype=R.dtype), atol=1e-6, rtol=0)
         torch.testing.assert_close(R @ R.T, torch.eye(3, dtype=R.dtype), atol=1e-6, rtol=0)
-        angles.append(float(torch.atan2(R[1, 0], R[0, 0])))
+        dets.append(round(float(torch.linalg.det(R))))
+        angles.append(float(torch.atan2(R[1, 0] * dets[-1], R[0, 0] * dets[-1])))  # the turn after the reflection
         Rn = R.expand(n, 3, 3)
         torch.testing.assert_close(turned.z[nodes], rotate_states(plain.z[nodes], Rn), atol=1e-6, rtol=1e-5)
         torch.testing.assert_close(turned.z_next[nodes], rotate_states(plain.z_next[nodes], Rn), atol=1e-6, rtol=1e-5)
         for a, b in ((turned.u_now, plain.u_now), (turned.u_next, plain.u_next), *zip(turned.lead_u, plain.lead_u)):
             torch.testing.assert_close(a[tools], b[tools] @ R.T, atol=1e-9, rtol=1e-6)
         node0, tool0 = node0 + n, tool0 + k
-    assert len({round(a, 6) for a in angles}) == len(samples) and all(abs(a) > 1e-3 for a in angles)
+    if rotate:  # a different turn for every sample
+        assert len({round(a, 6) for a in angles}) == len(samples) and all(abs(a) > 1e-3 for a in angles)
+    else:
+        assert all(abs(a) < 1e-6 for a in angles)
+    assert set(dets) == ({-1, 1} if mirror else {1})  # with --mirror, some samples reflected and some not
     assert torch.equal(turned.topology.rest[node0:], plain.topology.rest[node0:])
     assert torch.equal(turned.z[node0:], plain.z[node0:]) and torch.equal(turned.u_next[tool0:], plain.u_next[tool0:])
     # lengths, and so the mesh edges' norms, the network's rotation-invariant inputs, are unchanged

@@ -149,6 +149,7 @@ def test_resume_notes_each_changed_training_setting(data, tmp_path):
                      f"note: {out} was trained with --noise-smooth-velocity 0.0; it continues with 0.5"]
     assert trained_epochs(lines) == [1]
     assert training.changed_training_settings({}, TrainConfig(rotate=True)) == [("--rotate", False, True)]
+    assert training.changed_training_settings({}, TrainConfig(mirror=True)) == [("--mirror", False, True)]
     before_share = {k: v for k, v in vars(TrainConfig(noise_smooth=0.2)).items() if k != "noise_smooth_share"}
     assert training.changed_training_settings(before_share, TrainConfig(noise_smooth=0.2)) == []
     assert training.changed_training_settings(before_share, TrainConfig(noise_smooth=0.2, noise_smooth_share=0.5)) == \
@@ -599,7 +600,7 @@ def test_torchrun_two_processes(data, tmp_path):
         [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
          "-m", "warpgnn.cli", "train", "--data", str(data), "--model", "hybrid", "--passes", "2", "--latent", "16",
          "--batch", "4", "--epochs", "1", "--device", "cpu", "--out", str(out), "--skip-imposed-rates",
-         "--operator-activation", "tanh", "--reversible-positions"],
+         "--operator-activation", "tanh", "--reversible-positions", "--rotate", "--mirror"],
         capture_output=True, text=True, timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "x 2 processes" in proc.stdout
@@ -608,6 +609,8 @@ def test_torchrun_two_processes(data, tmp_path):
     # the loss and decoder options reach the saved configuration
     assert not model.config.imposed_in_loss and model.config.operator_activation == "tanh"
     assert model.config.reversible_positions
+    # and the augmentations reach the saved training settings
+    assert payload["train_config"]["rotate"] and payload["train_config"]["mirror"]
 
 
 @pytest.mark.parametrize("flags, positions, velocities", [([], False, False), (["--reversible-positions"], True, False),
@@ -839,11 +842,11 @@ def test_hybrid_entropy_production_is_never_negative(evaluated):
 
 
 def test_rotation_probe_scores_the_unturned_problem_as_eval_does(hybrid_run, data, evaluated, tmp_path):
-    """bench/rotation_probe.py: its unturned case is `warpgnn eval`'s metrics; a turn changes the
-    problem (the network is not equivariant), and a full turn about z changes nothing."""
+    """bench/rotation_probe.py: its unturned case is `warpgnn eval`'s metrics; a turn or a reflection changes
+    the problem (the network is not equivariant), and a full turn about z changes nothing."""
     out = tmp_path / "probe.json"
     proc = subprocess.run([sys.executable, str(Path(__file__).resolve().parents[1] / "bench" / "rotation_probe.py"),
-                           str(data / "L5.h5"), str(hybrid_run[0] / "best.pt"), "--turns", "z0", "z90", "z360",
+                           str(data / "L5.h5"), str(hybrid_run[0] / "best.pt"), "--turns", "z0", "z90", "z360", "m0",
                            "--json", str(out), "--device", "cpu", "--command", "test"],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
@@ -853,6 +856,7 @@ def test_rotation_probe_scores_the_unturned_problem_as_eval_does(hybrid_run, dat
         assert scores["z0"][kind] == pytest.approx(evaluated[1][kind], rel=1e-5)
         assert scores["z360"][kind] == pytest.approx(scores["z0"][kind], rel=1e-4)
     assert scores["z90"]["rmse"]["sigma"] != pytest.approx(scores["z0"]["rmse"]["sigma"], rel=1e-3)
+    assert scores["m0"]["rmse"]["sigma"] != pytest.approx(scores["z0"]["rmse"]["sigma"], rel=1e-3)  # nor to mirrors
 
 
 def test_shipped_network_is_the_recorded_run_and_evaluates(data, tmp_path):

@@ -179,7 +179,7 @@ def cmd_train(args):
                           time_limit=args.time_limit, time_budget=args.time_budget, tf32=args.tf32,
                           compile=args.compile, cuda_graphs=args.cuda_graphs, operator_products=args.operator_products,
                           pushforward=args.pushforward,
-                          rotate=args.rotate, noise_smooth_velocity=args.noise_smooth_velocity, device=args.device,
+                          rotate=args.rotate, mirror=args.mirror, noise_smooth_velocity=args.noise_smooth_velocity, device=args.device,
                           **{k: getattr(args, k) for k in ("noise_q", "noise_v", "noise_v_add", "noise_smooth",
                                                            "noise_smooth_gamma", "noise_smooth_share")
                              if getattr(args, k) is not None})
@@ -306,6 +306,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--rotate", action="store_true",
                    help="turn each training sample by a random angle about the vertical z axis (an exact new simulation: "
                         "no gravity, isotropic material; default off: the paper)")
+    t.add_argument("--mirror", action="store_true",
+                   help="reflect each training sample with probability 1/2 through a vertical plane (exact as a turn, "
+                        "and a mirrored anatomy, its lobes swapped; default off: the paper)")
     t.add_argument("--pushforward", type=int, default=0, metavar="K",
                    help="train each step from the state the network reaches in K steps of its own (no gradient) "
                         "instead of the true state; the target leads back to the ground truth (default 0: the paper)")

@@ -258,7 +258,7 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
                generator: torch.Generator | None = None, shape: BatchShape | Sequence[BatchShape] | None = None,
                lead: int = 0, noise_v_add: float = 0.0, rotate: bool = False, noise_smooth: float = 0.0,
                noise_smooth_gamma: float = 1.0, noise_smooth_velocity: float = 0.0,
-               noise_smooth_share: float = 1.0) -> Batch:
+               noise_smooth_share: float = 1.0, mirror: bool = False) -> Batch:
     """Stack the steps t -> t+1 of ``samples`` = [(simulation index, t), ...] into one graph,
     padded to ``shape`` if given, or to the first of several shapes that it fits (the real nodes,
     their noise and targets are the same either way).
@@ -271,6 +271,10 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     angle about the vertical z axis, before the noise is added (the angles are drawn after the noise's
     draws, which keeps the noise's random stream): without gravity and with an isotropic material a
     rotated simulation is another exact one (the fixed visceral face stays a z plane).
+    ``mirror`` reflects each sample with probability 1/2 through the vertical plane x = 0 (before its turn, if
+    ``rotate``: together, through a random vertical plane; the draws follow the angles'): the reflected
+    simulation is exact too (the same FEM of the mirrored liver, tests/test_fem_physics.py) and a new anatomy,
+    its lobes swapped. Every input is a true vector or tensor, so a reflection needs no other sign change.
     ``noise_smooth`` > 0 adds to the free nodes' positions a random quadratic field of the rest
     coordinates (``smooth_displacements``, N(0, 1) coefficients drawn after the other noises), of RMS
     mean_edge * noise_smooth * U(0, 1) over them: per-node noise leaves alone the smooth error a rollout carries.
@@ -312,8 +316,12 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     dt = host[:, :1]
     # the tools' path t - lead .. t + 1 of each sample, held at its start before t = 0
     u = torch.stack([torch.cat([sims[i].u[max(t - lead + j, 0)] for i, t in samples]) for j in range(lead + 2)])
-    if rotate:
-        R = vertical_rotations(torch.rand(len(samples), generator=generator, dtype=torch.float64) * 2 * math.pi)
+    if rotate or mirror:
+        R = torch.eye(3, dtype=torch.float64).repeat(len(samples), 1, 1)
+        if rotate:
+            R = vertical_rotations(torch.rand(len(samples), generator=generator, dtype=torch.float64) * 2 * math.pi)
+        if mirror:  # R diag(s, 1, 1), s = -1 on about half the samples
+            R[:, :, 0] *= torch.where(torch.rand(len(samples), generator=generator) < 0.5, -1.0, 1.0)[:, None]
         R_node = R.repeat_interleave(sizes, 0).to(device, z.dtype)
         z, z_next = rotate_states(z, R_node), rotate_states(z_next, R_node)
         rest = torch.einsum("nij,nj->ni", R_node.to(top.rest.dtype), top.rest[:real_nodes])

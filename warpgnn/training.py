@@ -41,7 +41,7 @@ from .run_log import write_log
 # but for those _FLAG_NAMES names
 TRAINING_SETTINGS = ("batch_size", "lr", "lr_schedule", "lr_final", "weight_decay", "noise_q", "noise_v", "noise_v_add",
                      "noise_smooth", "noise_smooth_gamma", "noise_smooth_velocity", "noise_smooth_share", "pushforward", "rotate",
-                     "train_fraction", "seed")
+                     "mirror", "train_fraction", "seed")
 _FLAG_NAMES = {"batch_size": "--batch"}
 
 
@@ -95,6 +95,9 @@ class TrainConfig:
     # simulation is an exact one (no gravity, isotropic material); the network is not rotation-invariant
     # (its edge features are vectors) and four training anatomies show it few tool orientations
     rotate: bool = False
+    # each training sample reflected through a vertical plane with probability 1/2 (False: the paper): as exact as
+    # a turn, and a mirrored liver (its lobes swapped) is an anatomy the four training ones do not show
+    mirror: bool = False
     train_fraction: float = 1.0  # data-scarcity study
     seed: int = 0
     resume: bool = False
@@ -271,8 +274,9 @@ def warm_up_batches(sims, shapes, batch_size: int, lead: int) -> list[Batch]:
     return [make_batch(sims, samples, shape=s, lead=lead) for s in shapes]
 
 
-def fit_normalizer(model: TIGNN, sims, batch_size: int = 64, rotate: bool = False) -> None:
-    """Standardisation statistics of the training steps (turned as training turns them with ``rotate``)."""
+def fit_normalizer(model: TIGNN, sims, batch_size: int = 64, rotate: bool = False, mirror: bool = False) -> None:
+    """Standardisation statistics of the training steps (turned and reflected as training does with ``rotate``
+    and ``mirror``)."""
     from .graphs import raw_features
 
     samples = all_samples(sims)
@@ -280,7 +284,7 @@ def fit_normalizer(model: TIGNN, sims, batch_size: int = 64, rotate: bool = Fals
 
     def stream():
         for i in range(0, len(samples), batch_size):
-            b = make_batch(sims, samples[i:i + batch_size], generator=gen, rotate=rotate)
+            b = make_batch(sims, samples[i:i + batch_size], generator=gen, rotate=rotate, mirror=mirror)
             yield raw_features(b.topology, b.z, b.u_now, b.u_next), b.zdot
 
     model.normalizer.fit(stream())
@@ -392,7 +396,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
     train_sims, val_sims = splits["train"], splits["val"]
     model = TIGNN(cfg.model).to(device)
     if state is None:
-        fit_normalizer(model, train_sims, rotate=cfg.rotate)
+        fit_normalizer(model, train_sims, rotate=cfg.rotate, mirror=cfg.mirror)
     else:
         model.load_state_dict(state["model"])
     # fused: one kernel for the whole update instead of a few per parameter group (CUDA only)
@@ -456,7 +460,7 @@ def train(cfg: TrainConfig, log=print) -> dict:
         chunks = [mine[i:i + cfg.batch_size] for i in range(0, len(mine), cfg.batch_size)]
         batches = prefetched(lambda c: make_batch(train_sims, c, cfg.noise_q, cfg.noise_v, gen, shapes, cfg.pushforward,
                                                   cfg.noise_v_add, cfg.rotate, cfg.noise_smooth, cfg.noise_smooth_gamma,
-                                                  cfg.noise_smooth_velocity, cfg.noise_smooth_share),
+                                                  cfg.noise_smooth_velocity, cfg.noise_smooth_share, cfg.mirror),
                                      chunks)
         bar = tqdm(batches, total=len(chunks), desc=f"epoch {epoch}", leave=False, disable=True if rank else None)
         for b in bar:
