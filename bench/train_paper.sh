@@ -206,9 +206,12 @@ SEED_MODELS=hybrid seeds stable_rot_revq $STABLE_FLAGS --rotate --reversible-pos
 # 1800 s of training, the warm-up and the data do not fit one session's 30 minutes: the last call's archive brings last.pt
 # back (keep it in an ignored .devruns/), and the next session resumes both runs there, then seed 2
 # (2026-11-25, nvidia-h100-x2: seeds 0 and 1 reached 1593 s, epochs 135 and 134, in /opt/runs30; their last.pt, best.pt and
-# logs came back to the ignored .devruns/runs30, to be copied to RUNS and resumed by the same line.)
+# logs came back to the ignored .devruns/runs30, to be copied to RUNS and resumed by the same line. With s[012] seed 2 queues
+# behind seed 0 on GPU 0, alone once seed 0 is done; evaluate on the other GPU, CUDA_VISIBLE_DEVICES=1 bench/wait_runs.sh ...,
+# so that the evaluations do not slow seed 2's timed epochs.)
 # (M on the stress alone, --reversible-velocities too, is not queued: at toy scale it was worse than --reversible-positions
 # alone in all six L5 figures, bench/results/reversible_velocities_cpu_proxy.json. Nor is --mirror: the 30-minute networks
-# already score a mirrored L5 as a turned one, and at toy scale it read +2.4 / +1.5 / +1.3 %, bench/results/mirror_cpu_proxy.json)
+# score a mirrored L5 only 0.4-4.3 % worse on q than a quarter-turned one (rotation_probe_mirror_cpu.json), and at toy scale
+# it read +2.4 / +1.5 / +1.3 %, no measurable gain: bench/results/mirror_cpu_proxy.json)
 dispatch
 echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"

@@ -854,12 +854,14 @@ def test_rotated_batch_turns_each_sample_as_a_whole(two_sims, padded, rotate, mi
     torch.testing.assert_close(turned.topology.rest.norm(dim=1), plain.topology.rest.norm(dim=1))
 
 
-def test_rotate_states_turns_vectors_and_the_stress_tensor():
-    """q, v as vectors and sigma (Voigt xx yy zz xy yz xz) as R sigma R^T, against a dense numpy reference."""
+@pytest.mark.parametrize("det", [1.0, -1.0], ids=["rotations", "reflections"])
+def test_rotate_states_turns_vectors_and_the_stress_tensor(det):
+    """q, v as vectors and sigma (Voigt xx yy zz xy yz xz) as R sigma R^T, against a dense numpy reference,
+    for proper rotations (--rotate) and improper ones (--mirror)."""
     rng = np.random.default_rng(0)
     z = torch.from_numpy(rng.normal(size=(5, 12)))
     R = torch.from_numpy(np.linalg.qr(rng.normal(size=(5, 3, 3)))[0])
-    R = R * torch.linalg.det(R)[:, None, None]  # proper rotations
+    R = R * (det * torch.linalg.det(R))[:, None, None]  # det(R) = det for each
     out = rotate_states(z, R).numpy()
     pairs = [(0, 0), (1, 1), (2, 2), (0, 1), (1, 2), (0, 2)]
     for n in range(5):

@@ -594,6 +594,35 @@ def test_ddp_gradients_match_one_process(data, tmp_path):
             assert rel < 1e-5, (name, rel)
 
 
+@pytest.mark.parametrize("rotate,mirror", [(False, False), (True, True), (False, True)])
+def test_augmentation_flags_reach_every_batch_and_the_normaliser(data, tmp_path, monkeypatch, rotate, mirror):
+    """train() hands --rotate and --mirror to each training batch and to the standardisation fit (a run
+    that dropped either would still train, on unaugmented samples or statistics)."""
+    import inspect
+
+    seen = []
+    real_batch, real_fit = training.make_batch, training.fit_normalizer
+
+    def spy_batch(*args, **kwargs):
+        bound = inspect.signature(real_batch).bind(*args, **kwargs)
+        bound.apply_defaults()
+        if bound.arguments["noise_q"] > 0:  # a training batch (the warm-up's shape batches are clean)
+            seen.append(("batch", bound.arguments["rotate"], bound.arguments["mirror"]))
+        return real_batch(*args, **kwargs)
+
+    def spy_fit(*args, **kwargs):
+        bound = inspect.signature(real_fit).bind(*args, **kwargs)
+        bound.apply_defaults()
+        seen.append(("fit", bound.arguments["rotate"], bound.arguments["mirror"]))
+        return real_fit(*args, **kwargs)
+
+    monkeypatch.setattr(training, "make_batch", spy_batch)
+    monkeypatch.setattr(training, "fit_normalizer", spy_fit)
+    quiet_train(config(data, tmp_path / "run", epochs=1, rotate=rotate, mirror=mirror))
+    assert seen[0] == ("fit", rotate, mirror) and len(seen) > 1
+    assert all(s == ("batch", rotate, mirror) for s in seen[1:])
+
+
 def test_torchrun_two_processes(data, tmp_path):
     out = tmp_path / "run"
     proc = subprocess.run(
