@@ -86,7 +86,8 @@ def main():
             for smooth in a.noise_smooth:
                 for gamma in a.noise_smooth_gamma if smooth else [1.0]:
                     runs.append(run(train, test, lead, seed, a.steps, tuple(a.rate_weights), smooth, gamma,
-                                    a.reversible_positions, a.reversible_velocities, a.rotate, a.mirror))
+                                    reversible_positions=a.reversible_positions,
+                                    reversible_velocities=a.reversible_velocities, rotate=a.rotate, mirror=a.mirror))
                     print(json.dumps(runs[-1]), flush=True)
     json.dump(provenance.record(a) | {"train": a.train, "test": a.test, "runs": runs}, open(a.json, "w"), indent=1)
 

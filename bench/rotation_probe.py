@@ -3,7 +3,8 @@ file's simulations out as they are and turned as a whole about their centroid (r
 states with the stress as a tensor, tools' path): without gravity and with an isotropic material
 each turned simulation is exact (tests/test_fem_physics.py), so an equivariant network would score
 the same RMSE on all of them. Turns about z keep the fixed visceral face a z plane, as in the data;
-turns about x put it elsewhere; 'm' turns reflect x -> -x first (the mirrored liver, exact as well). The RRMSE normalisers (max |component|) change with the turn.
+turns about x put it elsewhere; 'm' turns reflect x -> -x first (the mirrored liver, exact as well).
+The RRMSE normalisers (max |component|) change with the turn.
 
     python bench/rotation_probe.py DATA_FILE.h5 CHECKPOINT [...] --json OUT.json --device "..." --command "..."
 """
@@ -31,8 +32,7 @@ def rotation(turn: str) -> torch.Tensor:
     except (IndexError, ValueError):
         axis = None
     if axis in ("z", "m"):
-        R = vertical_rotations(torch.tensor([a], dtype=torch.float64))[0]
-        return R @ torch.diag(torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64)) if axis == "m" else R
+        return vertical_rotations(torch.tensor([a], dtype=torch.float64), torch.tensor([-1.0 if axis == "m" else 1.0]))[0]
     if axis == "x":
         c, s = math.cos(a), math.sin(a)
         return torch.tensor([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]], dtype=torch.float64)

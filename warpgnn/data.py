@@ -224,10 +224,12 @@ def rotate_states(z: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
     return torch.cat([q, v, sigma[:, VOIGT_ROWS, VOIGT_COLS]], -1)
 
 
-def vertical_rotations(angles: torch.Tensor) -> torch.Tensor:
-    """(S, 3, 3) rotations by ``angles`` about the z axis."""
+def vertical_rotations(angles: torch.Tensor, mirror: torch.Tensor | None = None) -> torch.Tensor:
+    """(S, 3, 3) rotations by ``angles`` about the z axis; with ``mirror`` (S signs, +-1) each after
+    x -> mirror x, R diag(mirror, 1, 1): a reflection through a vertical plane where the sign is -1."""
     c, s, zero, one = angles.cos(), angles.sin(), torch.zeros_like(angles), torch.ones_like(angles)
-    return torch.stack([c, -s, zero, s, c, zero, zero, zero, one], -1).reshape(-1, 3, 3)
+    m = one if mirror is None else mirror.to(angles)
+    return torch.stack([c * m, -s, zero, s * m, c, zero, zero, zero, one], -1).reshape(-1, 3, 3)
 
 
 def quadratic_basis(x: torch.Tensor) -> torch.Tensor:
@@ -317,11 +319,11 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     # the tools' path t - lead .. t + 1 of each sample, held at its start before t = 0
     u = torch.stack([torch.cat([sims[i].u[max(t - lead + j, 0)] for i, t in samples]) for j in range(lead + 2)])
     if rotate or mirror:
-        R = torch.eye(3, dtype=torch.float64).repeat(len(samples), 1, 1)
-        if rotate:
-            R = vertical_rotations(torch.rand(len(samples), generator=generator, dtype=torch.float64) * 2 * math.pi)
-        if mirror:  # R diag(s, 1, 1), s = -1 on about half the samples
-            R[:, :, 0] *= torch.where(torch.rand(len(samples), generator=generator) < 0.5, -1.0, 1.0)[:, None]
+        S = len(samples)
+        angles = (torch.rand(S, generator=generator, dtype=torch.float64) * 2 * math.pi if rotate
+                  else torch.zeros(S, dtype=torch.float64))
+        signs = torch.where(torch.rand(S, generator=generator) < 0.5, -1.0, 1.0) if mirror else None  # after the angles
+        R = vertical_rotations(angles, signs)
         R_node = R.repeat_interleave(sizes, 0).to(device, z.dtype)
         z, z_next = rotate_states(z, R_node), rotate_states(z_next, R_node)
         rest = torch.einsum("nij,nj->ni", R_node.to(top.rest.dtype), top.rest[:real_nodes])

@@ -61,7 +61,7 @@ class TetMesh:
         if (vol < 0).any():
             # Orientation is a convention, not an error: flip the negative ones, into a new array (self.tets may
             # be the caller's: a mirrored copy of a mesh, built on its tets, would otherwise turn the original's)
-            self.tets = np.where((vol < 0)[:, None], self.tets[:, [0, 2, 1, 3]], self.tets).astype(np.int32)
+            self.tets = np.where((vol < 0)[:, None], self.tets[:, [0, 2, 1, 3]], self.tets)
 
     # --------------------------------------------------------------- geometry
     @property
