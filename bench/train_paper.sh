@@ -209,6 +209,13 @@ SEED_MODELS=hybrid seeds stable_rot_revq $STABLE_FLAGS --rotate --reversible-pos
 # logs came back to the ignored .devruns/runs30, to be copied to RUNS and resumed by the same line. With s[012] seed 2 queues
 # behind seed 0 on GPU 0, alone once seed 0 is done; evaluate on the other GPU, CUDA_VISIBLE_DEVICES=1 bench/wait_runs.sh ...,
 # so that the evaluations do not slow seed 2's timed epochs.)
+# (bench/results/gnn_revq1800_s01.json: seeds 0 and 1 finished on 2026-11-25, their last 207 s on an nvidia-h200-x2 (the
+# kind that came): 1.114e-2 / 3.648e-2 / 5.419e-2 on L5, -0.2 / +0.1 / -1.9 % against the recipe's three seeds, inside
+# their spread: a tie; +2.4 / +1.1 / -5.9 % against vanilla at 140e. Seed 2 trained 1263 s of its 1800, alone on GPU 0;
+# its last.pt is in the ignored .devruns/runs30 with the other two runs, which are finished: resume with the same line and
+# '^hybrid_p5_stable_rot_revq_s2$', ~540 s more.) Next, beside it on the other GPU: two more seeds of the velocity
+# take-back at 1800 s, '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s[12]$', whose seed 0 reads 9.615e-3 / 3.731e-2 /
+# 5.212e-2 (gnn_smooth_vel1800_h100.json); each takes two sessions, resumed from .devruns as above
 # (M on the stress alone, --reversible-velocities too, is not queued: at toy scale it was worse than --reversible-positions
 # alone in all six L5 figures, bench/results/reversible_velocities_cpu_proxy.json. Nor is --mirror: the 30-minute networks
 # score a mirrored L5 only 0.4-4.3 % worse on q than a quarter-turned one (rotation_probe_mirror_cpu.json), and at toy scale
