@@ -1,10 +1,11 @@
 """A CPU-sized probe of training options: the same small hybrid (2 passes, F = 32) trained for
 the same number of steps with --pushforward 0 and K (and optionally --rate-weights, --reversible-positions,
---rotate, --mirror, or each of several --noise-smooth values, each with each --noise-smooth-gamma), from the same seed, on a few
-paper-preset simulations made on the CPU, then rolled out on its training anatomy and an unseen one;
+--rotate, --mirror, --noise-v-add, or each of several --noise-smooth values, each with each --noise-smooth-gamma), from the
+same seed, on a few paper-preset simulations made on the CPU, then rolled out on its training anatomy and an unseen one;
 on the unseen one also restarted from displaced states at the ramp's end
 (bench/perturbation_recovery.py: how much of a displacement it keeps after the hold, per node and
-shaped like its own error).
+shaped like its own error). With --ema, each run also keeps exponential moving averages of its weights
+(torch.optim.swa_utils.AveragedModel), scored beside the trained weights: a paired comparison, free of seed noise.
 
     python bench/pushforward_proxy.py TRAIN.h5 TEST.h5 --pushforward 0 2 --seeds 0 1 --steps 800 \\
         --json OUT.json --device "..."
@@ -24,6 +25,7 @@ import torch
 import provenance  # bench/, beside this script
 from error_breakdown import ramp_steps  # likewise
 from perturbation_recovery import probe  # likewise
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from warpgnn import training
 from warpgnn.data import all_samples, load_file, make_batch
 from warpgnn.model import ModelConfig, TIGNN
@@ -31,12 +33,13 @@ from warpgnn.model import ModelConfig, TIGNN
 
 def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1.0), noise_smooth: float = 0.0,
         noise_smooth_gamma: float = 1.0, reversible_positions: bool = False, reversible_velocities: bool = False,
-        rotate: bool = False, mirror: bool = False) -> dict:
+        rotate: bool = False, mirror: bool = False, noise_v_add: float = 0.0, ema=()) -> dict:
     torch.manual_seed(seed)
     model = TIGNN(ModelConfig(kind="hybrid", passes=2, latent=32, rate_weights=rate_weights,
                               reversible_positions=reversible_positions, reversible_velocities=reversible_velocities))
     training.fit_normalizer(model, train, rotate=rotate, mirror=mirror)
     opt = torch.optim.Adam(model.parameters(), 1e-3)
+    averages = {d: AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(d)) for d in ema}
     samples, rng, gen = all_samples(train), np.random.default_rng(seed), torch.Generator().manual_seed(seed)
     t0 = time.time()
     for k in range(steps):
@@ -45,14 +48,19 @@ def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1
         chunk = [samples[i] for i in rng.choice(len(samples), 8, replace=False)]
         opt.zero_grad()
         training.train_step(model, make_batch(train, chunk, 3e-3, 1e-2, gen, lead=lead, noise_smooth=noise_smooth,
-                                              noise_smooth_gamma=noise_smooth_gamma, rotate=rotate, mirror=mirror))
+                                              noise_smooth_gamma=noise_smooth_gamma, rotate=rotate, mirror=mirror,
+                                              noise_v_add=noise_v_add))
         opt.step()
+        for average in averages.values():
+            average.update_parameters(model)
     out = {"pushforward": lead, "rate_weights": list(rate_weights), "noise_smooth": noise_smooth,
            "noise_smooth_gamma": noise_smooth_gamma, "reversible_positions": reversible_positions,
-           "reversible_velocities": reversible_velocities, "rotate": rotate, "mirror": mirror, "seed": seed,
-           "steps": steps, "seconds": time.time() - t0}
+           "reversible_velocities": reversible_velocities, "rotate": rotate, "mirror": mirror, "noise_v_add": noise_v_add,
+           "seed": seed, "steps": steps, "seconds": time.time() - t0}
     for name, sims in (("train", train), ("test", test)):
         out[name] = training.validate(model, sims)["rrmse"]
+    out["ema"] = {str(d): {name: training.validate(average.module, sims)["rrmse"]
+                           for name, sims in (("train", train), ("test", test))} for d, average in averages.items()}
     displaced = probe(model, test, ramp_steps(test[0]), [100.0, 400.0])["displaced"]
     out["test_retained_after_hold"] = {k: v["retained"][-1] for k, v in displaced.items()}
     return out
@@ -75,6 +83,9 @@ def main():
                     "rows and columns; with --reversible-positions, M on the stress alone (see warpgnn train)")
     ap.add_argument("--rotate", action="store_true", help="every run's samples turned about z (see warpgnn train)")
     ap.add_argument("--mirror", action="store_true", help="every run's samples reflected, half of them (see warpgnn train)")
+    ap.add_argument("--noise-v-add", type=float, default=0.0, help="additive velocity noise (see warpgnn train)")
+    ap.add_argument("--ema", type=float, nargs="*", default=[], metavar="DECAY",
+                    help="also score exponential moving averages of the weights with these decays per step")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
@@ -87,7 +98,8 @@ def main():
                 for gamma in a.noise_smooth_gamma if smooth else [1.0]:
                     runs.append(run(train, test, lead, seed, a.steps, tuple(a.rate_weights), smooth, gamma,
                                     reversible_positions=a.reversible_positions,
-                                    reversible_velocities=a.reversible_velocities, rotate=a.rotate, mirror=a.mirror))
+                                    reversible_velocities=a.reversible_velocities, rotate=a.rotate, mirror=a.mirror,
+                                    noise_v_add=a.noise_v_add, ema=a.ema))
                     print(json.dumps(runs[-1]), flush=True)
     json.dump(provenance.record(a) | {"train": a.train, "test": a.test, "runs": runs}, open(a.json, "w"), indent=1)
 
