@@ -11,7 +11,9 @@
 #   env: PER_GPU (default 2); BATCH (default 32); EXTRA, flags for every run (e.g. --cuda-graphs: a run that fails with
 #   them continues with FALLBACK instead, e.g. --compile, default none); NOISE, the noise study's flags (default 30x the paper's q noise,
 #   10x its v/sigma noise); PUSHFORWARD, the pushforward arms' lead-in steps (default 2);
-#   NOISE_V_ADD, the stable arms' additive velocity noise (default 1e-2: bench/results/gnn_stable1800_h100.json)
+#   NOISE_V_ADD, the stable arms' additive velocity noise (default 1e-2: bench/results/gnn_stable1800_h100.json);
+#   GPUS, how many GPUs to queue on (default all); FIRST_GPU, the GPU the first selected run goes to (default 0): a
+#   later invocation can then put its run on a GPU that an earlier invocation's queue has left free
 # Generates the paper dataset first if DATA lacks it. Then: bench/wait_runs.sh RUNS SECONDS.
 # To stop everything: kill $(cat RUNS/.queue.*.pid) (the dispatchers), then pkill -f 'warpgnn train'.
 set -euo pipefail
@@ -19,7 +21,7 @@ DATA=${1:-data}; RUNS=${2:-runs}; BUDGET=${3:-1200}; ONLY=${4:-.}; PER_GPU=${PER
 NOISE=${NOISE:---noise-q 3e-3 --noise-v 1e-2}; NOISE_V_ADD=${NOISE_V_ADD:-1e-2}
 PUSHFORWARD_FLAGS="$NOISE --pushforward ${PUSHFORWARD:-2}"  # the pushforward recipe, shared by its arms
 STABLE_FLAGS="$PUSHFORWARD_FLAGS --noise-v-add $NOISE_V_ADD"  # the stable recipe, likewise
-GPUS=$(python3 -c 'import torch; print(max(1, torch.cuda.device_count()))')
+GPUS=${GPUS:-$(python3 -c 'import torch; print(max(1, torch.cuda.device_count()))')}
 if [ ! -f "$DATA/manifest.json" ] && [ ! -f "$DATA/manifest.0-of-$GPUS.json" ]; then  # one shard of the sets per GPU
   for g in $(seq 0 $((GPUS - 1))); do
     warpgnn generate --preset paper --out "$DATA" --device cuda:$g --shard $g/$GPUS > "$DATA.generate.$g.log" 2>&1 &
@@ -28,7 +30,7 @@ if [ ! -f "$DATA/manifest.json" ] && [ ! -f "$DATA/manifest.0-of-$GPUS.json" ]; 
 fi
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}  # many processes share the host's cores
 if [[ $BUDGET == *e ]]; then LENGTH="--epochs ${BUDGET%e}"; else LENGTH="--time-budget $BUDGET"; fi
-n=0
+n=${FIRST_GPU:-0}; first=$n  # the round-robin's start
 mkdir -p "$RUNS"
 QUEUE="$RUNS/.queue.$$"  # one command line per run, then a file per GPU: QUEUE.<gpu>
 run() {
@@ -212,13 +214,15 @@ SEED_MODELS=hybrid seeds stable_rot_revq $STABLE_FLAGS --rotate --reversible-pos
 # (bench/results/gnn_revq1800_s01.json: seeds 0 and 1 finished on 2026-11-25, their last 207 s on an nvidia-h200-x2 (the
 # kind that came): 1.114e-2 / 3.648e-2 / 5.419e-2 on L5, -0.2 / +0.1 / -1.9 % against the recipe's three seeds, inside
 # their spread: a tie; +2.4 / +1.1 / -5.9 % against vanilla at 140e. Seed 2 trained 1263 s of its 1800, alone on GPU 0;
-# its last.pt is in the ignored .devruns/runs30 with the other two runs, which are finished: resume with the same line and
-# '^hybrid_p5_stable_rot_revq_s2$', ~540 s more.) Next, beside it on the other GPU: two more seeds of the velocity
-# take-back at 1800 s, '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s[12]$', whose seed 0 reads 9.615e-3 / 3.731e-2 /
-# 5.212e-2 (gnn_smooth_vel1800_h100.json); each takes two sessions, resumed from .devruns as above
+# its last.pt is alone in the ignored .devruns/runs30 (seeds 0 and 1 are in bench/results/gnn_revq1800_s01_runs): ~540 s
+# more.) Next, with it: two more seeds of the velocity take-back at 1800 s, whose seed 0 reads 9.615e-3 / 3.731e-2 /
+# 5.212e-2 (gnn_smooth_vel1800_h100.json); each takes two sessions, resumed from .devruns as above. On nvidia-h100-x2,
+# in one call: ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s1$' (GPU 0), then FIRST_GPU=1 ... 1800
+# '^hybrid_p5_stable_rot_revq_s2$' (GPU 1); once revq_s2 is done, CUDA_VISIBLE_DEVICES=1 bench/wait_runs.sh RUNS S ''
+# DATA evaluates it on GPU 1, and FIRST_GPU=1 ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s2$' follows it there
 # (M on the stress alone, --reversible-velocities too, is not queued: at toy scale it was worse than --reversible-positions
 # alone in all six L5 figures, bench/results/reversible_velocities_cpu_proxy.json. Nor is --mirror: the 30-minute networks
 # score a mirrored L5 only 0.4-4.3 % worse on q than a quarter-turned one (rotation_probe_mirror_cpu.json), and at toy scale
 # it read +2.4 / +1.5 / +1.3 %, no measurable gain: bench/results/mirror_cpu_proxy.json)
 dispatch
-echo "queued $n runs on $GPUS GPU(s), $PER_GPU at a time on each"
+echo "queued $((n - first)) runs on $GPUS GPU(s), $PER_GPU at a time on each"

@@ -70,6 +70,22 @@ def test_queue_runs_each_selected_run_once_at_most_per_gpu_at_a_time(tmp_path, p
         assert "graphs failed" in text and f"trained {runs / name} with" in text and "--compile" in text
 
 
+def test_first_gpu_starts_the_round_robin(tmp_path):
+    """FIRST_GPU=1 on two GPUs: the first selected run goes to GPU 1, the next to GPU 0 (each GPU's queue
+    runs under its own CUDA_VISIBLE_DEVICES)."""
+    log = tmp_path / "gpus.log"
+    stub = f"""#!/bin/sh
+out=$(echo "$@" | sed 's/.*--out \\([^ ]*\\).*/\\1/')
+echo "$CUDA_VISIBLE_DEVICES $(basename $out)" >> {log}
+"""
+    proc, _ = start_train_paper(tmp_path, stub, "^hybrid_p5_stable_s[01]$", PER_GPU="1", GPUS="2", FIRST_GPU="1")
+    assert "queued 2 runs on 2 GPU(s)" in proc.stdout
+    deadline = time.time() + 60
+    while time.time() < deadline and len(log.read_text().splitlines() if log.exists() else []) < 2:
+        time.sleep(0.2)
+    assert sorted(log.read_text().splitlines()) == ["0 hybrid_p5_stable_s1", "1 hybrid_p5_stable_s0"]
+
+
 EVAL_STUB = """#!/bin/sh
 echo "$@" >> {log}
 out=$(echo "$@" | sed 's/.*--out \\([^ ]*\\).*/\\1/')
