@@ -11,7 +11,7 @@ shaped like its own error). With --ema, each run also keeps exponential moving a
         --json OUT.json --device "..."
 
 Batches of 8 snapshots, noise n_q 3e-3 and n_v 1e-2 (as the GPU runs), Adam with the rate decayed
-exponentially from 1e-3 to 1e-5 over the steps. A proxy: it says which way a change points at toy
+exponentially from 1e-3 to 1e-5 over the steps (--lr, --lr-final). A proxy: it says which way a change points at toy
 scale, not what the paper-size run reaches.
 """
 
@@ -33,18 +33,19 @@ from warpgnn.model import ModelConfig, TIGNN
 
 def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1.0), noise_smooth: float = 0.0,
         noise_smooth_gamma: float = 1.0, reversible_positions: bool = False, reversible_velocities: bool = False,
-        rotate: bool = False, mirror: bool = False, noise_v_add: float = 0.0, ema=()) -> dict:
+        rotate: bool = False, mirror: bool = False, noise_v_add: float = 0.0, ema=(), lr: float = 1e-3,
+        lr_final: float = 1e-5) -> dict:
     torch.manual_seed(seed)
     model = TIGNN(ModelConfig(kind="hybrid", passes=2, latent=32, rate_weights=rate_weights,
                               reversible_positions=reversible_positions, reversible_velocities=reversible_velocities))
     training.fit_normalizer(model, train, rotate=rotate, mirror=mirror)
-    opt = torch.optim.Adam(model.parameters(), 1e-3)
+    opt = torch.optim.Adam(model.parameters(), lr)
     averages = {d: AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(d)) for d in ema}
     samples, rng, gen = all_samples(train), np.random.default_rng(seed), torch.Generator().manual_seed(seed)
     t0 = time.time()
     for k in range(steps):
         for group in opt.param_groups:
-            group["lr"] = 1e-3 * 1e-2 ** (k / steps)
+            group["lr"] = lr * (lr_final / lr) ** (k / steps)
         chunk = [samples[i] for i in rng.choice(len(samples), 8, replace=False)]
         opt.zero_grad()
         training.train_step(model, make_batch(train, chunk, 3e-3, 1e-2, gen, lead=lead, noise_smooth=noise_smooth,
@@ -56,7 +57,7 @@ def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1
     out = {"pushforward": lead, "rate_weights": list(rate_weights), "noise_smooth": noise_smooth,
            "noise_smooth_gamma": noise_smooth_gamma, "reversible_positions": reversible_positions,
            "reversible_velocities": reversible_velocities, "rotate": rotate, "mirror": mirror, "noise_v_add": noise_v_add,
-           "seed": seed, "steps": steps, "seconds": time.time() - t0}
+           "lr": lr, "lr_final": lr_final, "seed": seed, "steps": steps, "seconds": time.time() - t0}
     for name, sims in (("train", train), ("test", test)):
         out[name] = training.validate(model, sims)["rrmse"]
     out["ema"] = {str(d): {name: training.validate(average.module, sims)["rrmse"]
@@ -86,6 +87,8 @@ def main():
     ap.add_argument("--noise-v-add", type=float, default=0.0, help="additive velocity noise (see warpgnn train)")
     ap.add_argument("--ema", type=float, nargs="*", default=[], metavar="DECAY",
                     help="also score exponential moving averages of the weights with these decays per step")
+    ap.add_argument("--lr", type=float, default=1e-3, help="the learning rate at the first step")
+    ap.add_argument("--lr-final", type=float, default=1e-5, help="the learning rate at the last step")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
@@ -99,7 +102,7 @@ def main():
                     runs.append(run(train, test, lead, seed, a.steps, tuple(a.rate_weights), smooth, gamma,
                                     reversible_positions=a.reversible_positions,
                                     reversible_velocities=a.reversible_velocities, rotate=a.rotate, mirror=a.mirror,
-                                    noise_v_add=a.noise_v_add, ema=a.ema))
+                                    noise_v_add=a.noise_v_add, ema=a.ema, lr=a.lr, lr_final=a.lr_final))
                     print(json.dumps(runs[-1]), flush=True)
     json.dump(provenance.record(a) | {"train": a.train, "test": a.test, "runs": runs}, open(a.json, "w"), indent=1)
 
