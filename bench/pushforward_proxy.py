@@ -5,7 +5,8 @@ same seed, on a few paper-preset simulations made on the CPU, then rolled out on
 on the unseen one also restarted from displaced states at the ramp's end
 (bench/perturbation_recovery.py: how much of a displacement it keeps after the hold, per node and
 shaped like its own error). With --ema, each run also keeps exponential moving averages of its weights
-(torch.optim.swa_utils.AveragedModel), scored beside the trained weights: a paired comparison, free of seed noise.
+(torch.optim.swa_utils.AveragedModel), scored beside the trained weights: paired, one run, so no run-to-run noise
+between the two (the difference itself still varies with the seed).
 
     python bench/pushforward_proxy.py TRAIN.h5 TEST.h5 --pushforward 0 2 --seeds 0 1 --steps 800 \\
         --json OUT.json --device "..."
@@ -88,7 +89,7 @@ def main():
     ap.add_argument("--ema", type=float, nargs="*", default=[], metavar="DECAY",
                     help="also score exponential moving averages of the weights with these decays per step")
     ap.add_argument("--lr", type=float, default=1e-3, help="the learning rate at the first step")
-    ap.add_argument("--lr-final", type=float, default=1e-5, help="the learning rate at the last step")
+    ap.add_argument("--lr-final", type=float, default=1e-5, help="the learning rate the decay reaches at the end")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()

@@ -12,8 +12,9 @@
 #   them continues with FALLBACK instead, e.g. --compile, default none); NOISE, the noise study's flags (default 30x the paper's q noise,
 #   10x its v/sigma noise); PUSHFORWARD, the pushforward arms' lead-in steps (default 2);
 #   NOISE_V_ADD, the stable arms' additive velocity noise (default 1e-2: bench/results/gnn_stable1800_h100.json);
-#   GPUS, how many GPUs to queue on (default all); FIRST_GPU, the GPU the first selected run goes to (default 0): a
-#   later invocation can then put its run on a GPU that an earlier invocation's queue has left free
+#   GPUS, how many GPUs to queue on (default all; no more than the machine has: a run queued on a GPU that does not
+#   exist would see none; the dataset's shards follow it too); FIRST_GPU, the GPU the first selected run goes to
+#   (default 0): a later invocation can then put its run on a GPU that an earlier invocation's queue has left free
 # Generates the paper dataset first if DATA lacks it. Then: bench/wait_runs.sh RUNS SECONDS.
 # To stop everything: kill $(cat RUNS/.queue.*.pid) (the dispatchers), then pkill -f 'warpgnn train'.
 set -euo pipefail
@@ -22,6 +23,7 @@ NOISE=${NOISE:---noise-q 3e-3 --noise-v 1e-2}; NOISE_V_ADD=${NOISE_V_ADD:-1e-2}
 PUSHFORWARD_FLAGS="$NOISE --pushforward ${PUSHFORWARD:-2}"  # the pushforward recipe, shared by its arms
 STABLE_FLAGS="$PUSHFORWARD_FLAGS --noise-v-add $NOISE_V_ADD"  # the stable recipe, likewise
 GPUS=${GPUS:-$(python3 -c 'import torch; print(max(1, torch.cuda.device_count()))')}
+[[ ${FIRST_GPU:-0} =~ ^[0-9]+$ ]] || { echo "train_paper.sh: FIRST_GPU must be a GPU number >= 0, got '$FIRST_GPU'" >&2; exit 2; }
 if [ ! -f "$DATA/manifest.json" ] && [ ! -f "$DATA/manifest.0-of-$GPUS.json" ]; then  # one shard of the sets per GPU
   for g in $(seq 0 $((GPUS - 1))); do
     warpgnn generate --preset paper --out "$DATA" --device cuda:$g --shard $g/$GPUS > "$DATA.generate.$g.log" 2>&1 &
@@ -218,8 +220,10 @@ SEED_MODELS=hybrid seeds stable_rot_revq $STABLE_FLAGS --rotate --reversible-pos
 # more.) Next, with it: two more seeds of the velocity take-back at 1800 s, whose seed 0 reads 9.615e-3 / 3.731e-2 /
 # 5.212e-2 (gnn_smooth_vel1800_h100.json); each takes two sessions, resumed from .devruns as above. On nvidia-h100-x2,
 # in one call: ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s1$' (GPU 0), then FIRST_GPU=1 ... 1800
-# '^hybrid_p5_stable_rot_revq_s2$' (GPU 1); once revq_s2 is done, CUDA_VISIBLE_DEVICES=1 bench/wait_runs.sh RUNS S ''
-# DATA evaluates it on GPU 1, and FIRST_GPU=1 ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s2$' follows it there
+# '^hybrid_p5_stable_rot_revq_s2$' (GPU 1); once revq_s2 is done (bench/wait_runs.sh would not return then: it waits
+# while any run trains), in one later call: CUDA_VISIBLE_DEVICES=1 bench/eval_paper.sh DATA RUNS RUNS/.eval
+# hybrid_p5_stable_rot_revq_s2 && FIRST_GPU=1 ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s2$', then
+# bench/wait_runs.sh RUNS S OUT to pack every run's last.pt into the call's archive before the session ends
 # (M on the stress alone, --reversible-velocities too, is not queued: at toy scale it was worse than --reversible-positions
 # alone in all six L5 figures, bench/results/reversible_velocities_cpu_proxy.json. Nor is --mirror: the 30-minute networks
 # score a mirrored L5 only 0.4-4.3 % worse on q than a quarter-turned one (rotation_probe_mirror_cpu.json), and at toy scale

@@ -83,7 +83,16 @@ echo "$CUDA_VISIBLE_DEVICES $(basename $out)" >> {log}
     deadline = time.time() + 60
     while time.time() < deadline and len(log.read_text().splitlines() if log.exists() else []) < 2:
         time.sleep(0.2)
+    assert log.exists(), "no run started"
     assert sorted(log.read_text().splitlines()) == ["0 hybrid_p5_stable_s1", "1 hybrid_p5_stable_s0"]
+
+
+def test_a_negative_first_gpu_is_refused_before_anything_starts(tmp_path):
+    proc = subprocess.run(["bash", str(BENCH / "train_paper.sh"), str(tmp_path / "data"), str(tmp_path / "runs"), "2e", "x"],
+                          capture_output=True, text=True, timeout=60, check=False,
+                          env=os.environ | {"FIRST_GPU": "-1", "GPUS": "2"})
+    assert proc.returncode == 2 and "FIRST_GPU must be a GPU number >= 0, got '-1'" in proc.stderr
+    assert not any(tmp_path.iterdir())  # no data generated, no runs queued
 
 
 EVAL_STUB = """#!/bin/sh
