@@ -41,12 +41,13 @@ def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1
                               reversible_positions=reversible_positions, reversible_velocities=reversible_velocities))
     training.fit_normalizer(model, train, rotate=rotate, mirror=mirror)
     opt = torch.optim.Adam(model.parameters(), lr)
+    schedule = training.TrainConfig(lr=lr, lr_final=lr_final, lr_schedule="exponential", epochs=steps)  # a step an "epoch"
     averages = {d: AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(d)) for d in ema}
     samples, rng, gen = all_samples(train), np.random.default_rng(seed), torch.Generator().manual_seed(seed)
     t0 = time.time()
     for k in range(steps):
         for group in opt.param_groups:
-            group["lr"] = lr * (lr_final / lr) ** (k / steps)
+            group["lr"] = training.scheduled_lr(schedule, 0.0, k)
         chunk = [samples[i] for i in rng.choice(len(samples), 8, replace=False)]
         opt.zero_grad()
         training.train_step(model, make_batch(train, chunk, 3e-3, 1e-2, gen, lead=lead, noise_smooth=noise_smooth,
@@ -59,10 +60,12 @@ def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1
            "noise_smooth_gamma": noise_smooth_gamma, "reversible_positions": reversible_positions,
            "reversible_velocities": reversible_velocities, "rotate": rotate, "mirror": mirror, "noise_v_add": noise_v_add,
            "lr": lr, "lr_final": lr_final, "seed": seed, "steps": steps, "seconds": time.time() - t0}
-    for name, sims in (("train", train), ("test", test)):
-        out[name] = training.validate(model, sims)["rrmse"]
-    out["ema"] = {str(d): {name: training.validate(average.module, sims)["rrmse"]
-                           for name, sims in (("train", train), ("test", test))} for d, average in averages.items()}
+
+    def scores(net) -> dict:
+        return {name: training.validate(net, sims)["rrmse"] for name, sims in (("train", train), ("test", test))}
+
+    out |= scores(model)
+    out["ema"] = {str(d): scores(average.module) for d, average in averages.items()}
     displaced = probe(model, test, ramp_steps(test[0]), [100.0, 400.0])["displaced"]
     out["test_retained_after_hold"] = {k: v["retained"][-1] for k, v in displaced.items()}
     return out

@@ -23,7 +23,8 @@ NOISE=${NOISE:---noise-q 3e-3 --noise-v 1e-2}; NOISE_V_ADD=${NOISE_V_ADD:-1e-2}
 PUSHFORWARD_FLAGS="$NOISE --pushforward ${PUSHFORWARD:-2}"  # the pushforward recipe, shared by its arms
 STABLE_FLAGS="$PUSHFORWARD_FLAGS --noise-v-add $NOISE_V_ADD"  # the stable recipe, likewise
 GPUS=${GPUS:-$(python3 -c 'import torch; print(max(1, torch.cuda.device_count()))')}
-[[ ${FIRST_GPU:-0} =~ ^[0-9]+$ ]] || { echo "train_paper.sh: FIRST_GPU must be a GPU number >= 0, got '$FIRST_GPU'" >&2; exit 2; }
+FIRST_GPU=${FIRST_GPU:-0}
+[[ $FIRST_GPU =~ ^[0-9]+$ ]] || { echo "train_paper.sh: FIRST_GPU must be a GPU number >= 0, got '$FIRST_GPU'" >&2; exit 2; }
 if [ ! -f "$DATA/manifest.json" ] && [ ! -f "$DATA/manifest.0-of-$GPUS.json" ]; then  # one shard of the sets per GPU
   for g in $(seq 0 $((GPUS - 1))); do
     warpgnn generate --preset paper --out "$DATA" --device cuda:$g --shard $g/$GPUS > "$DATA.generate.$g.log" 2>&1 &
@@ -32,7 +33,7 @@ if [ ! -f "$DATA/manifest.json" ] && [ ! -f "$DATA/manifest.0-of-$GPUS.json" ]; 
 fi
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}  # many processes share the host's cores
 if [[ $BUDGET == *e ]]; then LENGTH="--epochs ${BUDGET%e}"; else LENGTH="--time-budget $BUDGET"; fi
-n=${FIRST_GPU:-0}; first=$n  # the round-robin's start
+n=$FIRST_GPU  # the round-robin's start
 mkdir -p "$RUNS"
 QUEUE="$RUNS/.queue.$$"  # one command line per run, then a file per GPU: QUEUE.<gpu>
 run() {
@@ -229,4 +230,4 @@ SEED_MODELS=hybrid seeds stable_rot_revq $STABLE_FLAGS --rotate --reversible-pos
 # score a mirrored L5 only 0.4-4.3 % worse on q than a quarter-turned one (rotation_probe_mirror_cpu.json), and at toy scale
 # it read +2.4 / +1.5 / +1.3 %, no measurable gain: bench/results/mirror_cpu_proxy.json)
 dispatch
-echo "queued $((n - first)) runs on $GPUS GPU(s), $PER_GPU at a time on each"
+echo "queued $((n - FIRST_GPU)) runs on $GPUS GPU(s), $PER_GPU at a time on each"
