@@ -1,6 +1,7 @@
 """A CPU-sized probe of training options: the same small hybrid (2 passes, F = 32) trained for
 the same number of steps with --pushforward 0 and K (and optionally --rate-weights, --reversible-positions,
---rotate, --mirror, --noise-v-add, or each of several --noise-smooth values, each with each --noise-smooth-gamma), from the
+--rotate, --mirror, --noise-v-add, or each of several --noise-smooth values, each with each --noise-smooth-gamma, with
+--noise-smooth-velocity its take-back also in the target's velocity), from the
 same seed, on a few paper-preset simulations made on the CPU, then rolled out on its training anatomy and an unseen one;
 on the unseen one also restarted from displaced states at the ramp's end
 (bench/perturbation_recovery.py: how much of a displacement it keeps after the hold, per node and
@@ -35,13 +36,16 @@ from warpgnn.model import ModelConfig, TIGNN
 def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1.0), noise_smooth: float = 0.0,
         noise_smooth_gamma: float = 1.0, reversible_positions: bool = False, reversible_velocities: bool = False,
         rotate: bool = False, mirror: bool = False, noise_v_add: float = 0.0, ema=(), lr: float = 1e-3,
-        lr_final: float = 1e-5) -> dict:
+        lr_final: float = 1e-5, noise_smooth_velocity: float = 0.0) -> dict:
     torch.manual_seed(seed)
     model = TIGNN(ModelConfig(kind="hybrid", passes=2, latent=32, rate_weights=rate_weights,
                               reversible_positions=reversible_positions, reversible_velocities=reversible_velocities))
     training.fit_normalizer(model, train, rotate=rotate, mirror=mirror)
     opt = torch.optim.Adam(model.parameters(), lr)
-    schedule = training.TrainConfig(lr=lr, lr_final=lr_final, lr_schedule="exponential", epochs=steps)  # a step an "epoch"
+    # a step an "epoch"; TrainConfig also refuses the noise settings warpgnn train would
+    schedule = training.TrainConfig(lr=lr, lr_final=lr_final, lr_schedule="exponential", epochs=steps,
+                                    noise_smooth=noise_smooth, noise_smooth_gamma=noise_smooth_gamma,
+                                    noise_smooth_velocity=noise_smooth_velocity)
     averages = {d: AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(d)) for d in ema}
     samples, rng, gen = all_samples(train), np.random.default_rng(seed), torch.Generator().manual_seed(seed)
     t0 = time.time()
@@ -52,13 +56,14 @@ def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1
         opt.zero_grad()
         training.train_step(model, make_batch(train, chunk, 3e-3, 1e-2, gen, lead=lead, noise_smooth=noise_smooth,
                                               noise_smooth_gamma=noise_smooth_gamma, rotate=rotate, mirror=mirror,
-                                              noise_v_add=noise_v_add))
+                                              noise_v_add=noise_v_add, noise_smooth_velocity=noise_smooth_velocity))
         opt.step()
         for average in averages.values():
             average.update_parameters(model)
     out = {"pushforward": lead, "rate_weights": list(rate_weights), "noise_smooth": noise_smooth,
            "noise_smooth_gamma": noise_smooth_gamma, "reversible_positions": reversible_positions,
            "reversible_velocities": reversible_velocities, "rotate": rotate, "mirror": mirror, "noise_v_add": noise_v_add,
+           "noise_smooth_velocity": noise_smooth_velocity,
            "lr": lr, "lr_final": lr_final, "seed": seed, "steps": steps, "seconds": time.time() - t0}
 
     def scores(net) -> dict:
@@ -89,6 +94,8 @@ def main():
     ap.add_argument("--rotate", action="store_true", help="every run's samples turned about z (see warpgnn train)")
     ap.add_argument("--mirror", action="store_true", help="every run's samples reflected, half of them (see warpgnn train)")
     ap.add_argument("--noise-v-add", type=float, default=0.0, help="additive velocity noise (see warpgnn train)")
+    ap.add_argument("--noise-smooth-velocity", type=float, nargs="?", const=1.0, default=0.0, metavar="SHARE",
+                    help="the smooth noise's take-back also in the target's velocity (see warpgnn train)")
     ap.add_argument("--ema", type=float, nargs="*", default=[], metavar="DECAY",
                     help="also score exponential moving averages of the weights with these decays per step")
     ap.add_argument("--lr", type=float, default=1e-3, help="the learning rate at the first step")
@@ -106,7 +113,8 @@ def main():
                     runs.append(run(train, test, lead, seed, a.steps, tuple(a.rate_weights), smooth, gamma,
                                     reversible_positions=a.reversible_positions,
                                     reversible_velocities=a.reversible_velocities, rotate=a.rotate, mirror=a.mirror,
-                                    noise_v_add=a.noise_v_add, ema=a.ema, lr=a.lr, lr_final=a.lr_final))
+                                    noise_v_add=a.noise_v_add, ema=a.ema, lr=a.lr, lr_final=a.lr_final,
+                                    noise_smooth_velocity=a.noise_smooth_velocity if smooth else 0.0))
                     print(json.dumps(runs[-1]), flush=True)
     json.dump(provenance.record(a) | {"train": a.train, "test": a.test, "runs": runs}, open(a.json, "w"), indent=1)
 

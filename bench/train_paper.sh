@@ -216,15 +216,21 @@ SEED_MODELS=hybrid seeds stable_rot_revq $STABLE_FLAGS --rotate --reversible-pos
 # so that the evaluations do not slow seed 2's timed epochs.)
 # (bench/results/gnn_revq1800_s01.json: seeds 0 and 1 finished on 2026-11-25, their last 207 s on an nvidia-h200-x2 (the
 # kind that came): 1.114e-2 / 3.648e-2 / 5.419e-2 on L5, -0.2 / +0.1 / -1.9 % against the recipe's three seeds, inside
-# their spread: a tie; +2.4 / +1.1 / -5.9 % against vanilla at 140e. Seed 2 trained 1263 s of its 1800, alone on GPU 0;
-# its last.pt is alone in the ignored .devruns/runs30 (seeds 0 and 1 are in bench/results/gnn_revq1800_s01_runs): ~540 s
-# more.) Next, with it: two more seeds of the velocity take-back at 1800 s, whose seed 0 reads 9.615e-3 / 3.731e-2 /
-# 5.212e-2 (gnn_smooth_vel1800_h100.json); each takes two sessions, resumed from .devruns as above. On nvidia-h100-x2,
-# in one call: ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s1$' (GPU 0), then FIRST_GPU=1 ... 1800
-# '^hybrid_p5_stable_rot_revq_s2$' (GPU 1); once revq_s2 is done (bench/wait_runs.sh would not return then: it waits
-# while any run trains), in one later call: CUDA_VISIBLE_DEVICES=1 bench/eval_paper.sh DATA RUNS RUNS/.eval
-# hybrid_p5_stable_rot_revq_s2 && FIRST_GPU=1 ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s2$', then
-# bench/wait_runs.sh RUNS S OUT to pack every run's last.pt into the call's archive before the session ends
+# their spread: a tie; +2.4 / +1.1 / -5.9 % against vanilla at 140e. gnn_revq1800_s2_h200.json: seed 2, all 1800 s on H200s
+# (178 epochs), finished on 2026-11-26 with FIRST_GPU=1 ... 1800 '^hybrid_p5_stable_rot_revq_s2$' and
+# CUDA_VISIBLE_DEVICES=1 bench/eval_paper.sh DATA RUNS RUNS/.eval hybrid_p5_stable_rot_revq_s2: 1.054e-2 / 3.489e-2 /
+# 5.169e-2; three-seed mean -2.0 / -1.4 / -3.4 % against the recipe, 1.0-1.8 standard errors, not established; +0.6 / -0.3 /
+# -7.3 % against vanilla at 140e.) Beside it, on 2026-11-26: two more seeds of the velocity take-back at 1800 s, whose seed 0
+# reads 9.615e-3 / 3.731e-2 / 5.212e-2 (gnn_smooth_vel1800_h100.json): ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s1$'
+# on GPU 0 and, once revq_s2 was done, FIRST_GPU=1 ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s2$' on GPU 1 (both on
+# an nvidia-h200-x2). Seed 1 reached 1589 s (epochs 0-136), seed 2 925 s (epochs 0-85); their last.pt, best.pt and logs
+# are in the ignored .devruns/runs30 (carry it). Next session, on a two-GPU machine (~20 min of device time with the data,
+# the warm-ups and the evaluations): in one call, copy them to RUNS, then ... 1800
+# '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s1$' (GPU 0) && FIRST_GPU=1 ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s2$'
+# (GPU 1) && bench/wait_runs.sh RUNS 480 OUT DATA (seed 1 finishes and is evaluated); in the next call, on the same warm
+# machine (the runs outlive the call), bench/wait_runs.sh RUNS S OUT DATA until seed 2 (875 s left) is done and evaluated.
+# Report with the take-back's seed 0 (gnn_smooth_vel1800_h100.json) as peer; the record says which card ran what (seed 0
+# all on an H100, seeds 1 and 2 their first 1589 / 925 s on H200s).
 # (M on the stress alone, --reversible-velocities too, is not queued: at toy scale it was worse than --reversible-positions
 # alone in all six L5 figures, bench/results/reversible_velocities_cpu_proxy.json. Nor is --mirror: the 30-minute networks
 # score a mirrored L5 only 0.4-4.3 % worse on q than a quarter-turned one (rotation_probe_mirror_cpu.json), and at toy scale
