@@ -1,0 +1,74 @@
+"""Probe of the ground truth: how fast do the FEM's free nodes move once the tools stop? The explicit
+solver has no damping at high frequency (Prony relaxation is elastic there), so a few nodes under a
+stretched tool tip can keep ringing through the hold. The snapshots, 0.05 s apart, sample that
+vibration aliased: the stored velocity is then far from the position rate between snapshots, and
+it differs between CPU and GPU runs of the same simulation (rounding decides the phase). Such a
+simulation's largest |v|, the per-rollout RRMSE v normaliser, can be the ringing itself.
+
+Per simulation: the largest free-node speed during the ramp and during the hold, their ratio, the
+free nodes whose hold speed ever exceeds --node-share times the ramp's largest, and the worst node's
+largest hold speed against its largest position rate |q(t+1) - q(t)| / dt there. A simulation whose
+ratio exceeds --ratio is listed as ringing.
+
+    python bench/hold_ringing.py DATA.h5 [...] --json OUT.json --device "..." --command "..."
+"""
+
+import argparse
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+import provenance  # bench/, beside this script
+
+
+def sim_ringing(q: np.ndarray, v: np.ndarray, free: np.ndarray, ramp_end: int, dt: float, node_share: float) -> dict:
+    """q, v: (S+1, N, 3) snapshots; free: (N,) bool; ramp_end: the snapshot where the tools stop."""
+    speed = np.linalg.norm(v[:, free], axis=-1)  # (S+1, free)
+    ramp, hold = speed[: ramp_end + 1].max(), speed[ramp_end + 1:].max(axis=0)
+    worst = int(hold.argmax())
+    rate = np.linalg.norm(np.diff(q[ramp_end:, free], axis=0), axis=-1) / dt  # position rate over the hold
+    return {"ramp_max_speed": float(ramp), "hold_max_speed": float(hold.max()),
+            "hold_over_ramp": float(hold.max() / max(ramp, 1e-30)),
+            "ringing_nodes": np.flatnonzero(free)[hold > node_share * ramp].tolist(),
+            "worst_node": int(np.flatnonzero(free)[worst]),
+            "worst_node_max_position_rate": float(rate[:, worst].max())}
+
+
+def file_ringing(path: str, node_share: float, ratio: float) -> dict:
+    with h5py.File(path, "r") as f:
+        fixed, dt = f["mesh/fixed"][:].astype(bool), float(f.attrs["dt"])
+        sims = {}
+        for name, sim in f["sims"].items():
+            free = ~fixed
+            free[sim["footprint_nodes"][:]] = False  # the tools' tips move as imposed
+            ramp_end = round(float(sim.attrs["ramp_fraction"]) * (sim["q"].shape[0] - 1))
+            sims[name] = sim_ringing(sim["q"][:], sim["v"][:], free, ramp_end, dt, node_share)
+    return {"simulations": sims, "ringing": [n for n, s in sims.items() if s["hold_over_ramp"] > ratio]}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("data", nargs="+")
+    ap.add_argument("--node-share", type=float, default=0.1,
+                    help="a node rings if its hold speed exceeds this share of the ramp's largest (default 0.1)")
+    ap.add_argument("--ratio", type=float, default=0.25,
+                    help="a simulation rings if its hold's largest speed exceeds this share of the ramp's (default 0.25)")
+    ap.add_argument("--json", required=True)
+    provenance.add_arguments(ap)
+    a = ap.parse_args()
+    for path in a.data:
+        if not Path(path).is_file():
+            ap.error(f"no data file {path}")
+    files = {path: file_ringing(path, a.node_share, a.ratio) for path in a.data}
+    for path, r in files.items():
+        print(f"{path}: {len(r['ringing'])} of {len(r['simulations'])} simulations ring: " + ", ".join(
+            f"{n} (hold {r['simulations'][n]['hold_max_speed']:.3f} m/s, {r['simulations'][n]['hold_over_ramp']:.2f}x the ramp's, "
+            f"{len(r['simulations'][n]['ringing_nodes'])} nodes)" for n in r["ringing"]))
+    record = provenance.record(a) | {"node_share": a.node_share, "ratio": a.ratio, "files": files}
+    with open(a.json, "w") as out:
+        json.dump(record, out, indent=1)
+
+
+if __name__ == "__main__":
+    main()
