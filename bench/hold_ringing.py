@@ -1,9 +1,10 @@
 """Probe of the ground truth: how fast do the FEM's free nodes move once the tools stop? The explicit
-solver has no damping at high frequency (Prony relaxation is elastic there), so a few nodes under a
+solver has almost no damping at high frequency (Prony relaxation is elastic there), so a few nodes under a
 stretched tool tip can keep ringing through the hold. The snapshots, 0.05 s apart, sample that
 vibration aliased: the stored velocity is then far from the position rate between snapshots, and
-it differs between CPU and GPU runs of the same simulation (rounding decides the phase). Such a
-simulation's largest |v|, the per-rollout RRMSE v normaliser, can be the ringing itself.
+it differs between generations of the same simulation (CPU against GPU, and one GPU run against
+another: the force sums' rounding differs). Such a simulation's largest |v| component, the
+per-rollout RRMSE v normaliser, can be the ringing itself.
 
 Per simulation: the largest free-node speed during the ramp and during the hold, their ratio, the
 free nodes whose hold speed ever exceeds --node-share times the ramp's largest, and the worst node's
@@ -24,6 +25,8 @@ import provenance  # bench/, beside this script
 
 def sim_ringing(q: np.ndarray, v: np.ndarray, free: np.ndarray, ramp_end: int, dt: float, node_share: float) -> dict:
     """q, v: (S+1, N, 3) snapshots; free: (N,) bool; ramp_end: the snapshot where the tools stop."""
+    if not 0 < ramp_end < len(q) - 1 or not free.any():
+        raise ValueError(f"no hold after snapshot {ramp_end} of {len(q) - 1}, or no free node")
     speed = np.linalg.norm(v[:, free], axis=-1)  # (S+1, free)
     ramp, hold = speed[: ramp_end + 1].max(), speed[ramp_end + 1:].max(axis=0)
     worst = int(hold.argmax())

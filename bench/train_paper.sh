@@ -231,6 +231,10 @@ SEED_MODELS=hybrid seeds stable_rot_revq $STABLE_FLAGS --rotate --reversible-pos
 # machine (the runs outlive the call), bench/wait_runs.sh RUNS S OUT DATA until seed 2 (875 s left) is done and evaluated.
 # Report with the take-back's seed 0 (gnn_smooth_vel1800_h100.json) as peer; the record says which card ran what (seed 0
 # all on an H100, seeds 1 and 2 their first 1589 / 925 s on H200s).
+# In the first call, after generating, also python bench/hold_ringing.py DATA/L1.h5 ... DATA/L5.h5 DATA/extra.h5
+# DATA/extra_star.h5 --json $OUT/hold_ringing.json ... (seconds): every session generates the data afresh, and the
+# simulations whose hold velocity rings store a different vibration each time, so the v figures of records from
+# different sessions compare different references there (bench/results/hold_ringing_cpu.json).
 # (M on the stress alone, --reversible-velocities too, is not queued: at toy scale it was worse than --reversible-positions
 # alone in all six L5 figures, bench/results/reversible_velocities_cpu_proxy.json. Nor is --mirror: the 30-minute networks
 # score a mirrored L5 only 0.4-4.3 % worse on q than a quarter-turned one (rotation_probe_mirror_cpu.json), and at toy scale
