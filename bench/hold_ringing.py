@@ -1,9 +1,9 @@
 """Probe of the ground truth: how fast do the FEM's free nodes move once the tools stop? The explicit
-solver has almost no damping at high frequency (Prony relaxation is elastic there), so a few nodes under a
-stretched tool tip can keep ringing through the hold. The snapshots, 0.05 s apart, sample that
+solver has almost no damping at high frequency (Prony relaxation is elastic there), so a few free
+nodes near the tool tips can keep ringing through the hold. The snapshots, 0.05 s apart, sample that
 vibration aliased: the stored velocity is then far from the position rate between snapshots, and
 it differs between generations of the same simulation (CPU against GPU, and one GPU run against
-another: the force sums' rounding differs). Such a simulation's largest |v| component, the
+another: likely the force sums' rounding order). Such a simulation's largest |v| component, the
 per-rollout RRMSE v normaliser, can be the ringing itself.
 
 Per simulation: the largest free-node speed during the ramp and during the hold, their ratio, the

@@ -27,7 +27,7 @@ def snapshots(ring: float) -> tuple[np.ndarray, np.ndarray]:
     v = np.where((t <= 10 * DT)[:, None, None], speed[None, :, None] * direction, 0.0)
     v = np.broadcast_to(v, q.shape).copy()
     v[11:, :2] = 5.0  # the fixed node and the tool tip: never counted
-    q[11:, 2] += 1e-4 * np.arange(1, STEPS - 9)[:, None]  # node 2 creeps at 2 mm/s, its stored velocity 0
+    q[11:, 2, 0] += 1e-4 * np.arange(1, STEPS - 9)  # node 2 creeps at 2 mm/s, its stored velocity 0
     if ring:
         v[11:, 3] = ring * (-1.0) ** np.arange(STEPS - 10)[:, None] * np.array([0.0, 0.0, 1.0])
     return q, v
