@@ -16,37 +16,38 @@ ratio exceeds --ratio is listed as ringing.
 
 import argparse
 import json
-from pathlib import Path
 
-import h5py
 import numpy as np
 import provenance  # bench/, beside this script
+from error_breakdown import ramp_steps  # likewise
+
+from warpgnn.data import load_file
+from warpgnn.errors import InputError
+from warpgnn.graphs import GROUPS, NODE_FREE
 
 
 def sim_ringing(q: np.ndarray, v: np.ndarray, free: np.ndarray, ramp_end: int, dt: float, node_share: float) -> dict:
     """q, v: (S+1, N, 3) snapshots; free: (N,) bool; ramp_end: the snapshot where the tools stop."""
     if not 0 < ramp_end < len(q) - 1 or not free.any():
         raise ValueError(f"no hold after snapshot {ramp_end} of {len(q) - 1}, or no free node")
-    speed = np.linalg.norm(v[:, free], axis=-1)  # (S+1, free)
+    nodes = np.flatnonzero(free)
+    speed = np.linalg.norm(v[:, nodes], axis=-1)  # (S+1, free nodes)
     ramp, hold = speed[: ramp_end + 1].max(), speed[ramp_end + 1:].max(axis=0)
     worst = int(hold.argmax())
-    rate = np.linalg.norm(np.diff(q[ramp_end:, free], axis=0), axis=-1) / dt  # position rate over the hold
-    return {"ramp_max_speed": float(ramp), "hold_max_speed": float(hold.max()),
-            "hold_over_ramp": float(hold.max() / max(ramp, 1e-30)),
-            "ringing_nodes": np.flatnonzero(free)[hold > node_share * ramp].tolist(),
-            "worst_node": int(np.flatnonzero(free)[worst]),
+    rate = np.linalg.norm(np.diff(q[ramp_end:, nodes], axis=0), axis=-1) / dt  # position rate over the hold
+    return {"ramp_max_speed": float(ramp), "hold_max_speed": float(hold[worst]),
+            "hold_over_ramp": float(hold[worst] / max(ramp, 1e-30)),
+            "ringing_nodes": nodes[hold > node_share * ramp].tolist(), "worst_node": int(nodes[worst]),
             "worst_node_max_position_rate": float(rate[:, worst].max())}
 
 
 def file_ringing(path: str, node_share: float, ratio: float) -> dict:
-    with h5py.File(path, "r") as f:
-        fixed, dt = f["mesh/fixed"][:].astype(bool), float(f.attrs["dt"])
-        sims = {}
-        for name, sim in f["sims"].items():
-            free = ~fixed
-            free[sim["footprint_nodes"][:]] = False  # the tools' tips move as imposed
-            ramp_end = round(float(sim.attrs["ramp_fraction"]) * (sim["q"].shape[0] - 1))
-            sims[name] = sim_ringing(sim["q"][:], sim["v"][:], free, ramp_end, dt, node_share)
+    sims = {}
+    for sim in load_file(path):
+        z = sim.z.numpy()
+        free = (sim.topology.node_type == NODE_FREE).numpy()  # neither the fixed face nor the tools' imposed tips
+        sims[sim.name.split("/", 1)[1]] = sim_ringing(z[..., GROUPS["q"]], z[..., GROUPS["v"]], free, ramp_steps(sim),
+                                                      sim.dt, node_share)
     return {"simulations": sims, "ringing": [n for n, s in sims.items() if s["hold_over_ramp"] > ratio]}
 
 
@@ -60,10 +61,10 @@ def main():
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
-    for path in a.data:
-        if not Path(path).is_file():
-            ap.error(f"no data file {path}")
-    files = {path: file_ringing(path, a.node_share, a.ratio) for path in a.data}
+    try:
+        files = {path: file_ringing(path, a.node_share, a.ratio) for path in a.data}
+    except InputError as exc:  # a missing file or field: one line
+        ap.error(str(exc))
     for path, r in files.items():
         print(f"{path}: {len(r['ringing'])} of {len(r['simulations'])} simulations ring: " + ", ".join(
             f"{n} (hold {r['simulations'][n]['hold_max_speed']:.3f} m/s, {r['simulations'][n]['hold_over_ramp']:.2f}x the ramp's, "

@@ -1,69 +1,66 @@
-"""bench/hold_ringing.py against hand-made snapshots: nodes that stop with the tools, and one that keeps
-vibrating in place (its stored velocity large, its position still) while a tool-tip node, whose motion
-is imposed, is ignored whatever its velocity."""
+"""bench/hold_ringing.py against hand-made snapshots on a small box mesh (a dataset file in the DESIGN.md
+schema, read by warpgnn.data.load_file): free nodes that stop with the tools, one that creeps, and one
+that keeps vibrating in place (its stored velocity large, its position still), while the fixed face and
+the tool's tip, whose motion is imposed, are ignored whatever their velocity."""
 
 import sys
 from pathlib import Path
 
-import h5py
 import numpy as np
 import pytest
+from synthetic import box, write_file
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from hold_ringing import file_ringing, sim_ringing
 
-STEPS, DT = 20, 0.05  # 21 snapshots, the tools stop at snapshot 10 (ramp_fraction 0.5)
+STEPS, DT = 20, 0.05  # 21 snapshots; the paper preset's ramp stops the tools at snapshot 10
+MESH = box()
+TIP = int(np.flatnonzero(MESH.nodes[:, 2] == MESH.nodes[:, 2].max())[0])  # the tool's loaded node
+FREE = np.flatnonzero(~MESH.fixed & (np.arange(len(MESH.nodes)) != TIP))
+FAST, CREEP, RING = FREE[:3]  # FAST moves twice as fast in the ramp, CREEP creeps, RING rings in the hold
 
 
-def snapshots(ring: float) -> tuple[np.ndarray, np.ndarray]:
-    """5 nodes: 0 fixed, 1 a tool tip, 2-4 free. The free nodes move at 0.02 m/s (node 4 at 0.04) until
-    snapshot 10 and stop (node 2 then creeps, its stored velocity 0); with ring > 0, node 3 then vibrates
-    in place at +-ring m/s."""
-    t = np.arange(STEPS + 1) * DT
-    speed = np.array([0.0, 0.03, 0.02, 0.02, 0.04])
-    direction = np.array([1.0, 0.0, 0.0])
-    moving = np.minimum(t, 10 * DT)[:, None, None] * speed[None, :, None] * direction
-    q = np.zeros((STEPS + 1, 5, 3)) + moving
-    v = np.where((t <= 10 * DT)[:, None, None], speed[None, :, None] * direction, 0.0)
-    v = np.broadcast_to(v, q.shape).copy()
-    v[11:, :2] = 5.0  # the fixed node and the tool tip: never counted
-    q[11:, 2, 0] += 1e-4 * np.arange(1, STEPS - 9)  # node 2 creeps at 2 mm/s, its stored velocity 0
+def snapshots(ring: float) -> dict:
+    """Every free node moves along x at 0.02 m/s (FAST at 0.04) until snapshot 10 and stops; then CREEP
+    creeps at 2 mm/s (its stored velocity 0) and, with ring > 0, RING vibrates in place at +-ring m/s."""
+    n, t = len(MESH.nodes), np.arange(STEPS + 1) * DT
+    speed = np.where(np.isin(np.arange(n), FREE), 0.02, 0.0)
+    speed[FAST] = 0.04
+    q = MESH.nodes[None] + (np.minimum(t, 10 * DT)[:, None] * speed[None])[..., None] * [1.0, 0.0, 0.0]
+    v = np.where((t <= 10 * DT)[:, None], speed[None], 0.0)[..., None] * [1.0, 0.0, 0.0]
+    v[11:, MESH.fixed] = v[11:, TIP] = 5.0  # imposed nodes: never counted
+    q[11:, CREEP, 0] += 1e-4 * np.arange(1, STEPS - 9)
     if ring:
-        v[11:, 3] = ring * (-1.0) ** np.arange(STEPS - 10)[:, None] * np.array([0.0, 0.0, 1.0])
-    return q, v
+        v[11:, RING, 2] = ring * (-1.0) ** np.arange(STEPS - 10)
+    return {"q": q.astype(np.float32), "v": v.astype(np.float32), "sigma": np.zeros((STEPS + 1, n, 6), np.float32),
+            "loaded": np.array([TIP], np.int32), "u": np.zeros((STEPS + 1, 1, 3), np.float32)}
 
 
-def write(path: Path, ring: float) -> None:
-    with h5py.File(path, "w") as f:
-        f["mesh/fixed"] = np.array([True, False, False, False, False])
-        f.attrs["dt"] = DT
-        for name, r in (("calm", 0.0), ("ringing", ring)):
-            q, v = snapshots(r)
-            sim = f.create_group(f"sims/{name}")
-            sim["q"], sim["v"], sim["footprint_nodes"] = q, v, np.array([1])
-            sim.attrs["ramp_fraction"] = 0.5
+def write(path: Path, ring: float) -> str:
+    write_file(path, MESH, {"calm": snapshots(0.0), "ringing": snapshots(ring)}, dt=DT)
+    return str(path)
 
 
 def test_a_node_vibrating_in_place_is_found_and_a_calm_hold_is_not(tmp_path):
-    write(tmp_path / "d.h5", ring=0.02)
-    r = file_ringing(str(tmp_path / "d.h5"), node_share=0.1, ratio=0.25)
+    r = file_ringing(write(tmp_path / "d.h5", ring=0.02), node_share=0.1, ratio=0.25)
     calm, ringing = r["simulations"]["calm"], r["simulations"]["ringing"]
     assert r["ringing"] == ["ringing"]
-    assert calm["ramp_max_speed"] == pytest.approx(0.04)  # node 4; the fixed node's and tool tip's 5 m/s not counted
+    assert calm["ramp_max_speed"] == pytest.approx(0.04)  # FAST; the fixed nodes' and the tip's 5 m/s not counted
     assert calm["hold_max_speed"] == 0.0 and calm["ringing_nodes"] == []
     assert ringing["hold_over_ramp"] == pytest.approx(0.02 / 0.04)
-    assert ringing["ringing_nodes"] == [3] and ringing["worst_node"] == 3
-    assert ringing["worst_node_max_position_rate"] == 0.0  # it vibrates in place; node 2's creep is not its
+    assert ringing["ringing_nodes"] == [RING] and ringing["worst_node"] == RING
+    assert ringing["worst_node_max_position_rate"] == 0.0  # it vibrates in place; CREEP's creep is not its
 
 
 def test_the_thresholds_decide(tmp_path):
-    write(tmp_path / "d.h5", ring=0.008)  # 0.2 of the ramp's largest speed
-    assert file_ringing(str(tmp_path / "d.h5"), node_share=0.1, ratio=0.25)["ringing"] == []
-    r = file_ringing(str(tmp_path / "d.h5"), node_share=0.3, ratio=0.1)
+    path = write(tmp_path / "d.h5", ring=0.008)  # 0.2 of the ramp's largest speed
+    assert file_ringing(path, node_share=0.1, ratio=0.25)["ringing"] == []
+    r = file_ringing(path, node_share=0.3, ratio=0.1)
     assert r["ringing"] == ["ringing"] and r["simulations"]["ringing"]["ringing_nodes"] == []
 
 
 def test_a_simulation_without_a_hold_is_refused():
-    q, v = snapshots(0.0)
+    s = snapshots(0.0)
+    free = np.isin(np.arange(len(MESH.nodes)), FREE)
     with pytest.raises(ValueError, match="no hold"):
-        sim_ringing(q, v, np.array([False, False, True, True, True]), STEPS, DT, 0.1)
+        sim_ringing(s["q"], s["v"], free, STEPS, DT, 0.1)
