@@ -223,18 +223,24 @@ SEED_MODELS=hybrid seeds stable_rot_revq $STABLE_FLAGS --rotate --reversible-pos
 # -7.3 % against vanilla at 140e.) Beside it, on 2026-11-26: two more seeds of the velocity take-back at 1800 s, whose seed 0
 # reads 9.615e-3 / 3.731e-2 / 5.212e-2 (gnn_smooth_vel1800_h100.json): ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s1$'
 # on GPU 0 and, once revq_s2 was done, FIRST_GPU=1 ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s2$' on GPU 1 (both on
-# an nvidia-h200-x2). Seed 1 reached 1589 s (epochs 0-136), seed 2 925 s (epochs 0-85); their last.pt, best.pt and logs
-# are in the ignored .devruns/runs30 (carry it). Next session, on a two-GPU machine (~20 min of device time with the data,
-# the warm-ups and the evaluations): in one call, copy them to RUNS, then ... 1800
-# '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s1$' (GPU 0) && FIRST_GPU=1 ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s2$'
-# (GPU 1) && bench/wait_runs.sh RUNS 480 OUT DATA (seed 1 finishes and is evaluated); in the next call, on the same warm
-# machine (the runs outlive the call), bench/wait_runs.sh RUNS S OUT DATA until seed 2 (875 s left) is done and evaluated.
-# Report with the take-back's seed 0 (gnn_smooth_vel1800_h100.json) as peer; the record says which card ran what (seed 0
-# all on an H100, seeds 1 and 2 their first 1589 / 925 s on H200s).
-# In the first call, after generating, also python bench/hold_ringing.py DATA/L1.h5 ... DATA/L5.h5 DATA/extra.h5
-# DATA/extra_star.h5 --json $OUT/hold_ringing.json ... (seconds): every session generates the data afresh, and the
-# simulations whose hold velocity rings store a different vibration each time, so the v figures of records from
-# different sessions compare different references there (bench/results/hold_ringing_cpu.json).
+# an nvidia-h200-x2). Seed 1 reached 1589 s (epochs 0-136), seed 2 925 s (epochs 0-85), and both were resumed from their
+# last.pt (kept in the ignored .devruns/runs30) on 2026-11-26, side by side on a fresh nvidia-h200-x2 with the same lines.
+# (bench/results/gnn_smooth_vel1800_s12_h200.json: seeds 1 and 2, 156 / 167 epochs, 9.323e-3 / 3.587e-2 / 5.046e-2 and
+# 9.872e-3 / 3.669e-2 / 5.061e-2; the three seeds' mean 9.603e-3 / 3.663e-2 / 5.106e-2, -13.9 / +0.5 / -7.6 % against the
+# recipe's three seeds (7.7 and 3.7 standard errors on q and sigma), clean holds (long_hold_vel1800_s12_cpu.json): the take-back
+# is the recipe now, and its seed 1 the shipped network. Against _vel's vanilla peer at 139e (one seed) +7.0 / +8.5 / -5.7 %.
+# The data of that session rang in 28 of 993 simulations, none of L5's above the ramp's peak: hold_ringing_gpu_h200.json.)
+# After each generation, python bench/hold_ringing.py DATA/L1.h5 ... DATA/L5.h5 DATA/extra.h5 DATA/extra_star.h5 --json
+# $OUT/hold_ringing.json ... (seconds): every session generates the data afresh, and the simulations whose hold velocity
+# rings store a different vibration each time, so the v figures of records from different sessions compare different
+# references there.
+# The 12-pass target under the current recipe (the take-back): 12 passes, F = 128, the take-back's flags, three seeds,
+# against the take-back's 5-pass three-seed mean. At the stable recipe 50 epochs took 35-37 min alone on an H100; a 12-pass
+# last.pt is 30 MB, so a session can carry back and resume one such run at a time (bench/device_setup.sh's split carry).
+for s in 0 1 2; do
+  run hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS --rotate \
+    --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity
+done
 # (M on the stress alone, --reversible-velocities too, is not queued: at toy scale it was worse than --reversible-positions
 # alone in all six L5 figures, bench/results/reversible_velocities_cpu_proxy.json. Nor is --mirror: the 30-minute networks
 # score a mirrored L5 only 0.4-4.3 % worse on q than a quarter-turned one (rotation_probe_mirror_cpu.json), and at toy scale

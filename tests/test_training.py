@@ -893,10 +893,11 @@ def test_shipped_network_is_the_recorded_run_and_evaluates(data, tmp_path):
     of the record it names, has that record's size, and runs through `warpgnn eval` from its
     installed path, producing no negative entropy (M = B B^T makes dS . M dS >= 0)."""
     root = Path(__file__).resolve().parents[1] / "bench" / "results"
-    recorded = root / "gnn_rotate1800_bcast_s2_h100_runs" / "hybrid_p5_stable_rot_bcast_s2" / "best.pt"
+    name = "hybrid_p5_stable_rot_smooth2e1_g3e1_vel1800_s1"
+    recorded = root / "gnn_smooth_vel1800_s12_h200_runs" / name / "best.pt"
     assert checkpoint.PRETRAINED_HYBRID.read_bytes() == recorded.read_bytes()
     model, _ = checkpoint.load_model(checkpoint.PRETRAINED_HYBRID)
-    run = json.loads((root / "gnn_rotate1800_bcast_s2_h100.json").read_text())["runs"]["hybrid_p5_stable_rot_bcast_s2"]
+    run = json.loads((root / "gnn_smooth_vel1800_s12_h200.json").read_text())["runs"][name]
     assert (model.config.kind, model.config.passes, model.config.latent) == ("hybrid", 5, 64)
     assert sum(p.numel() for p in model.parameters()) == run["parameters"]
     proc = run_cli("eval", "--checkpoint", checkpoint.PRETRAINED_HYBRID, "--data", data / "L5.h5",

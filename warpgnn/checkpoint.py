@@ -13,8 +13,9 @@ from .errors import InputError
 from .model import TIGNN, ModelConfig
 
 # The network shipped with the package: the 5-pass hybrid of our best recipe (pushforward, additive
-# velocity noise, --rotate), 30 minutes on one H100; seed 2 of bench/results/gnn_rotate1800_bcast_s2_h100.json
-PRETRAINED_HYBRID = Path(__file__).with_name("weights") / "hybrid_p5_rotate.pt"
+# velocity noise, --rotate, the velocity take-back of smooth displacements), 30 minutes on H200s; seed 1,
+# the best validation of three, of bench/results/gnn_smooth_vel1800_s12_h200.json
+PRETRAINED_HYBRID = Path(__file__).with_name("weights") / "hybrid_p5_takeback.pt"
 
 
 def save_atomically(payload: dict, path) -> None:

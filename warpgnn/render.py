@@ -14,6 +14,11 @@ from .mesh import TetMesh
 COLOURS = ("#d95f02", "#1b9e77", "#7570b3", "#e7298a", "#66a61e", "#e6ab02", "#a6761d")
 WINDOW = (1600, 900)
 VIEW = (0.35, -1.0, 0.55)  # camera direction from the anatomy
+# a horizontal colour bar low in its panel, labelled at its two ends only (VTK sets the title in the labels' row,
+# over any label in the middle), and a camera far enough (ZOOM) that the liver, turned to face its tools (wider
+# from some sides), stays clear of it
+SCALAR_BAR = dict(color="black", vertical=False, position_x=0.2, position_y=0.03, width=0.6, height=0.07, n_labels=2)
+ZOOM = 0.9
 
 
 def render_anatomies(meshes: dict[str, TetMesh], out_png) -> None:
@@ -118,11 +123,11 @@ def render_simulation(mesh: TetMesh, sim: dict, out_png, title: str = "") -> Non
             surface.point_data[label] = values[s]
             plotter.add_mesh(rest, style="wireframe", color="#bbbbbb", line_width=0.5)
             plotter.add_mesh(surface, scalars=label, cmap="viridis", clim=limits, smooth_shading=True,
-                             scalar_bar_args=dict(color="black", title=label, vertical=False))
+                             scalar_bar_args=dict(SCALAR_BAR, title=label))
             plotter.add_points(q[s][sim["loaded"]].astype(np.float64), color="red", point_size=14,
                                render_points_as_spheres=True)
             plotter.add_text(f"{title}  snapshot {s}", font_size=10, color="black")
-            _view(plotter, centre, zoom=1.2, towards=q[-1][sim["loaded"]].mean(axis=0))
+            _view(plotter, centre, zoom=ZOOM, towards=q[-1][sim["loaded"]].mean(axis=0))
     _screenshot(plotter, out_png)
 
 
@@ -151,8 +156,8 @@ def render_comparison(mesh: TetMesh, ref: np.ndarray, pred: np.ndarray, loaded, 
             surface.point_data[label] = value(z)
             plotter.add_mesh(rest, style="wireframe", color="#bbbbbb", line_width=0.5)
             plotter.add_mesh(surface, scalars=label, cmap=cmap, clim=limits, smooth_shading=True,
-                             scalar_bar_args=dict(color="black", title=label, vertical=False))
+                             scalar_bar_args=dict(SCALAR_BAR, title=label))
             plotter.add_points(z[loaded, :3], color="red", point_size=14, render_points_as_spheres=True)
             plotter.add_text(f"{name}  {title}  final step", font_size=10, color="black")
-            _view(plotter, mesh.nodes.mean(axis=0), zoom=1.2, towards=last["FEM"][loaded, :3].mean(axis=0))
+            _view(plotter, mesh.nodes.mean(axis=0), zoom=ZOOM, towards=last["FEM"][loaded, :3].mean(axis=0))
     _screenshot(plotter, out_png)
