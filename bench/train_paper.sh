@@ -234,6 +234,12 @@ SEED_MODELS=hybrid seeds stable_rot_revq $STABLE_FLAGS --rotate --reversible-pos
 # $OUT/hold_ringing.json ... (seconds): every session generates the data afresh, and the simulations whose hold velocity
 # rings store a different vibration each time, so the v figures of records from different sessions compare different
 # references there.
+# The velocity take-back with positions moved by L dE alone (--reversible-positions), the pair the CPU toy could not screen
+# (bench/results/takeback_revq_cpu_proxy.json): 1800 s, three seeds, against the take-back's three (9.603e-3 / 3.663e-2 /
+# 5.106e-2) and vanilla with the take-back's flags at 139e. Under the recipe's noise --reversible-positions brought the hybrid
+# level with vanilla on q and v (+0.6 / -0.3 %, the recipe +2.6 / +1.1 %); with the take-back the gap is +7.0 / +8.5 %.
+SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 \
+  --noise-smooth-velocity --reversible-positions
 # The 12-pass target under the current recipe (the take-back): 12 passes, F = 128, the take-back's flags, three seeds,
 # against the take-back's 5-pass three-seed mean. At the stable recipe 50 epochs took 35-37 min alone on an H100; a 12-pass
 # last.pt is 30 MB, so a session can carry back and resume one such run at a time (bench/device_setup.sh's split carry).
