@@ -240,6 +240,12 @@ SEED_MODELS=hybrid seeds stable_rot_revq $STABLE_FLAGS --rotate --reversible-pos
 # level with vanilla on q and v (+0.6 / -0.3 %, the recipe +2.6 / +1.1 %); with the take-back the gap is +7.0 / +8.5 %.
 SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 \
   --noise-smooth-velocity --reversible-positions
+# (2026-11-26, nvidia-h200-x2, the session's last 569 s: seeds 0 and 1 started side by side, PER_GPU=1 OMP_NUM_THREADS=8
+# EXTRA=--cuda-graphs FALLBACK=--compile ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_revq_s[01]$', and reached epoch 33,
+# 442 s of their 1800 (the first warm-up, ~93 s, counted in); last.pt, best.pt and logs in the ignored .devruns/runs30.
+# Next session, on a two-GPU machine: copy them to RUNS, the same line resumes both, bench/wait_runs.sh RUNS S OUT DATA in
+# calls of ~570 s until both are done and evaluated (~1360 s of training left each, ~1550 s held with the data and the
+# warm-ups); seed 2 after. Report against gnn_smooth_vel1800_h100.json and gnn_smooth_vel1800_s12_h200.json.)
 # The 12-pass target under the current recipe (the take-back): 12 passes, F = 128, the take-back's flags, three seeds,
 # against the take-back's 5-pass three-seed mean. At the stable recipe 50 epochs took 35-37 min alone on an H100; a 12-pass
 # last.pt is 30 MB, so a session can carry back and resume one such run at a time (bench/device_setup.sh's split carry).
