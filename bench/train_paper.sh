@@ -236,19 +236,25 @@ SEED_MODELS=hybrid seeds stable_rot_revq $STABLE_FLAGS --rotate --reversible-pos
 # references there.
 # The velocity take-back with positions moved by L dE alone (--reversible-positions), the pair the CPU toy could not screen
 # (bench/results/takeback_revq_cpu_proxy.json): 1800 s, three seeds, against the take-back's three (9.603e-3 / 3.663e-2 /
-# 5.106e-2) and vanilla with the take-back's flags at 139e. Under the recipe's noise --reversible-positions brought the hybrid
-# level with vanilla on q and v (+0.6 / -0.3 %, the recipe +2.6 / +1.1 %); with the take-back the gap is +7.0 / +8.5 %.
+# 5.106e-2) and vanilla with the take-back's flags at 139e. Under the noise of the --rotate recipe before the take-back,
+# --reversible-positions brought the hybrid level with vanilla on q and v (+0.6 / -0.3 %, that recipe +2.6 / +1.1 %); with
+# the take-back the gap is +7.0 / +8.5 %.
 SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 \
   --noise-smooth-velocity --reversible-positions
 # (2026-11-26, nvidia-h200-x2, the session's last 569 s: seeds 0 and 1 started side by side, PER_GPU=1 OMP_NUM_THREADS=8
 # EXTRA=--cuda-graphs FALLBACK=--compile ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_revq_s[01]$', and reached epoch 33,
 # 442 s of their 1800 (the first warm-up, ~93 s, counted in); last.pt, best.pt and logs in the ignored .devruns/runs30.
-# Next session, on a two-GPU machine: copy them to RUNS, the same line resumes both, bench/wait_runs.sh RUNS S OUT DATA in
-# calls of ~570 s until both are done and evaluated (~1360 s of training left each, ~1550 s held with the data and the
-# warm-ups); seed 2 after. Report against gnn_smooth_vel1800_h100.json and gnn_smooth_vel1800_s12_h200.json.)
+# Next session, on a two-GPU machine: carry .devruns/runs30 (~10 MB) with .devwheels/b and .devdata, cp -r it into RUNS,
+# and the same line resumes both; EVAL_SECONDS=90 bench/wait_runs.sh RUNS 480 OUT DATA in the first call (setup and data
+# come first), then EVAL_SECONDS=90 bench/wait_runs.sh RUNS 570 OUT DATA in calls on the same warm machine until both are
+# done and evaluated: ~1360 s of training left each, ~1700 s of the 1800 held with the machine's start, the carry call, the
+# data, the warm-ups (~100 s) and the evaluations. Seed 2 (1800 s) needs a session of its own, or start it with them as
+# s[012] on a four-GPU machine (held time counts per machine, not per GPU) and resume it later. Report against
+# gnn_smooth_vel1800_h100.json and gnn_smooth_vel1800_s12_h200.json.)
 # The 12-pass target under the current recipe (the take-back): 12 passes, F = 128, the take-back's flags, three seeds,
 # against the take-back's 5-pass three-seed mean. At the stable recipe 50 epochs took 35-37 min alone on an H100; a 12-pass
 # last.pt is 30 MB, so a session can carry back and resume one such run at a time (bench/device_setup.sh's split carry).
+# As the earlier 12-pass record, 50 epochs: ... bench/train_paper.sh DATA RUNS 50e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s0$'
 for s in 0 1 2; do
   run hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS --rotate \
     --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity
