@@ -8,10 +8,16 @@ pytest.importorskip("tetgen")
 pytest.importorskip("pymeshfix")
 
 from warpgnn.anatomy import (  # noqa: E402
-    LIVERS, _improve, _surface_euler, find_fixed_face, mesh_from_surface, mesh_quality, procedural_liver)
+    LIVERS,
+    find_fixed_face,
+    mesh_from_surface,
+    mesh_quality,
+    procedural_liver,
+)
 from warpgnn.errors import InputError  # noqa: E402
 from warpgnn.mesh import TetMesh, box_tet_mesh, signed_volumes  # noqa: E402
 from warpgnn.render import anatomy_table  # noqa: E402
+from warpgnn.tet_improve import improve, surface_euler  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -42,16 +48,16 @@ def test_liver_counts_volume_and_quality(livers, name):
 @pytest.mark.parametrize("name", list(LIVERS))
 def test_liver_shortest_altitude(livers, name):
     """The shortest altitude sets the explicit time step: TetGen alone gives 0.6-0.9 mm (a
-    fifth of the median), the improvement pass (_improve) over 1.75 mm."""
+    fifth of the median), the improvement pass (improve) over 1.75 mm."""
     mesh = livers[name]
     altitude = mesh.min_altitude()
     assert altitude.min() >= 1.5e-3
     assert altitude.min() >= 0.3 * np.median(altitude)
-    assert _surface_euler(mesh) == 2  # flips and collapses left a manifold with a closed surface
+    assert surface_euler(mesh) == 2  # flips and collapses left a manifold with a closed surface
 
 
 def test_improve_untangles_a_perturbed_box():
-    """Interior nodes jittered into flat tets: _improve restores the altitude without moving
+    """Interior nodes jittered into flat tets: improve restores the altitude without moving
     the surface (no reference given) or the flat face off z = 0, and keeps the volume."""
     box = box_tet_mesh(4, 4, 4, size=(0.04, 0.04, 0.04))
     nodes = box.nodes.copy()
@@ -60,10 +66,10 @@ def test_improve_untangles_a_perturbed_box():
     assert (signed_volumes(nodes, box.tets) > 0).all()
     jittered = TetMesh(nodes, box.tets)
     assert jittered.min_altitude().min() < 0.5e-3
-    better = _improve(jittered)
+    better = improve(jittered)
     assert better.min_altitude().min() > 3e-3
     assert (better.volumes > 0).all() and better.volume == pytest.approx(0.04**3, rel=1e-12)
-    assert _surface_euler(better) == 2
+    assert surface_euler(better) == 2
     surface = better.nodes[better.surface_nodes()]
     assert np.isin(surface, [0.0, 0.04]).any(axis=1).all()  # the surface stays on the box's faces...
 
