@@ -251,6 +251,9 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # data, the warm-ups (~100 s) and the evaluations. Seed 2 (1800 s) needs a session of its own, or start it with them as
 # s[012] on a four-GPU machine (held time counts per machine, not per GPU) and resume it later. Report against
 # gnn_smooth_vel1800_h100.json and gnn_smooth_vel1800_s12_h200.json.)
+# (A first look at their best.pt after 442 s, bench/results/generic_parts_pair_partial_cpu.json: without M's position rows the
+# hold's far-field position rate is as far off from L dE alone (0.24-0.35) as the take-back's was from both parts (0.26-0.29
+# at 24 epochs): no sign yet that the pair helps; weigh that before spending a session on it.)
 # The 12-pass target under the current recipe (the take-back): 12 passes, F = 128, the take-back's flags, three seeds,
 # against the take-back's 5-pass three-seed mean. At the stable recipe 50 epochs took 35-37 min alone on an H100; a 12-pass
 # last.pt is 30 MB, so a session can carry back and resume one such run at a time (bench/device_setup.sh's split carry).
