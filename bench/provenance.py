@@ -40,10 +40,10 @@ def parse_checkpoints_then_data(ap: argparse.ArgumentParser, need_checkpoint: bo
     return a, checkpoints, data
 
 
-def run_hybrid_probe(probe: str, measure, **fields) -> None:
+def run_hybrid_probe(probe: str, measure, vanilla_too: bool = False, **fields) -> None:
     """The main of a probe of trained hybrids on one data file (DATA CHECKPOINT [...] --json OUT): each network's
-    entry is {"checkpoint": ...} | measure(name, model, sims); a vanilla network is refused in one line. ``fields``
-    join the record's top level."""
+    entry is {"checkpoint": ...} | measure(name, model, sims); a vanilla network is refused in one line unless
+    ``vanilla_too`` (``measure`` then handles it). ``fields`` join the record's top level."""
     import torch  # the report scripts that use only the above need no torch
 
     from warpgnn.checkpoint import load_model
@@ -57,7 +57,7 @@ def run_hybrid_probe(probe: str, measure, **fields) -> None:
     out = record(a) | {"data": a.data, "simulations": len(sims)} | fields | {"networks": {}}
     for checkpoint in a.checkpoints:
         model, _ = load_model(checkpoint)
-        if model.config.kind != "hybrid":
+        if model.config.kind != "hybrid" and not vanilla_too:
             raise SystemExit(f"{probe}: {checkpoint} is a {model.config.kind} network, without L and M")
         name = f"{Path(checkpoint).parent.name}/{Path(checkpoint).stem}"
         out["networks"][name] = {"checkpoint": checkpoint} | measure(name, model, sims)

@@ -253,7 +253,8 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # gnn_smooth_vel1800_h100.json and gnn_smooth_vel1800_s12_h200.json.)
 # (A first look at their best.pt after 442 s, bench/results/generic_parts_pair_partial_cpu.json: without M's position rows the
 # hold's far-field position rate is as far off from L dE alone (0.24-0.35) as the take-back's was from both parts (0.26-0.29
-# at 24 epochs): no sign yet that the pair helps; weigh that before spending a session on it.)
+# at 24 epochs), against 0.191 for vanilla with the take-back's flags (generic_parts_vanilla_peers_cpu.json): no sign yet that
+# the pair helps, though one-step terms bear only weakly on the rollout gap; weigh that before spending a session on it.)
 # The 12-pass target under the current recipe (the take-back): 12 passes, F = 128, the take-back's flags, three seeds,
 # against the take-back's 5-pass three-seed mean. At the stable recipe 50 epochs took 35-37 min alone on an H100; a 12-pass
 # last.pt is 30 MB, so a session can carry back and resume one such run at a time (bench/device_setup.sh's split carry).

@@ -1,5 +1,6 @@
 """bench/generic_parts.py: its cells partition every node of every snapshot once, its error terms add up to the
-network's own one-step error, and a hybrid without dissipation (B = 0) has no irreversible part."""
+network's own one-step error, and a hybrid without dissipation (B = 0) has no irreversible part; a vanilla network gets
+the same cells, its target and error only."""
 
 import sys
 from pathlib import Path
@@ -74,3 +75,25 @@ def test_without_dissipation_the_rate_is_all_reversible(sims):
                 assert cell[group]["irreversible"] == 0.0
                 assert cell[group]["error"] == pytest.approx(cell[group]["error_reversible_only"], rel=1e-6)
                 assert cell[group]["reversible"] > 0.0
+
+
+def test_a_vanilla_network_gets_target_and_error_in_the_same_cells(sims):
+    torch.manual_seed(0)
+    vanilla = TIGNN(ModelConfig(kind="vanilla", passes=1, latent=8))
+    fit_normalizer(vanilla, sims)
+    table, reference = rms_table(vanilla, sims), rms_table(tiny_hybrid(sims), sims)
+    errors = []
+    for sim in sims:
+        b = make_batch([sim], [(0, t) for t in range(sim.steps)])
+        with torch.no_grad():
+            errors.append((vanilla(b.topology, b.z, b.u_now, b.u_next).zdot_standardized
+                           - b.zdot / vanilla.normalizer.zdot_scale).numpy())
+    for group, cols in GROUPS.items():
+        mean_square, _ = whole(table, group, "error")
+        assert mean_square == pytest.approx(np.square(np.concatenate(errors)[:, cols]).mean(), rel=1e-5)
+    for name, cls in table.items():
+        for ph, cell in cls.items():
+            assert cell["rows"] == reference[name][ph]["rows"]
+            for group in GROUPS:
+                assert set(cell[group]) == {"target", "error"}
+                assert cell[group]["target"] == pytest.approx(reference[name][ph][group]["target"], rel=1e-6)
