@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .mesh import TetMesh
+from .mesh import LOCAL_FACES, TetMesh
 from .tet_improve import improve
 
 
@@ -323,9 +323,8 @@ def _peel_surface_slivers(mesh: TetMesh, rounds: int = 10) -> TetMesh:
     which are slivers (a dihedral angle over SLIVER_DIHEDRAL). TetGen leaves them where four
     surface points are almost co-circular; removing one only swaps the surface diagonal,
     losing a negligible volume (restored by the final scaling)."""
-    local = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])  # outward for a positive tet
     for _ in range(rounds):
-        faces = mesh.tets[:, local]  # (T, 4, 3)
+        faces = mesh.tets[:, LOCAL_FACES]  # (T, 4, 3)
         _, inverse, counts = np.unique(np.sort(faces.reshape(-1, 3), axis=1), axis=0,
                                        return_inverse=True, return_counts=True)
         on_surface = (counts[inverse.ravel()] == 1).reshape(-1, 4)

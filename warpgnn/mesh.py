@@ -18,6 +18,9 @@ import numpy as np
 
 from .errors import InputError
 
+# the faces of a tetrahedron opposite its vertices 0..3, each ordered so its normal points outward for a positive tet
+LOCAL_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
+
 
 def signed_volumes(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Signed volume of each tetrahedron (positive when (x1-x0, x2-x0, x3-x0) is right-handed)."""
@@ -90,9 +93,7 @@ class TetMesh:
 
     def boundary_faces(self) -> np.ndarray:
         """Boundary triangles (F, 3), ordered so their normal points outward."""
-        # faces opposite vertex 0..3, each ordered outward for a positive tet
-        local = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
-        faces = self.tets[:, local].reshape(-1, 3)
+        faces = self.tets[:, LOCAL_FACES].reshape(-1, 3)
         key = np.sort(faces, axis=1)
         _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
         return faces[counts[inverse.ravel()] == 1]

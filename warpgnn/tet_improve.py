@@ -9,14 +9,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from .mesh import TetMesh, signed_volumes
+from .mesh import LOCAL_FACES, TetMesh, signed_volumes
 
 # TetGen leaves a few flat tetrahedra, mostly where a Steiner point sits close to the
 # surface or two edges nearly cross; their altitude, an eighth of the median, sets the
 # explicit time step. ``improve`` raises the shortest altitude by node smoothing plus a few flips
 # and edge collapses on the worst tetrahedra only.
 INTERIOR, FLAT, CURVED, RIM, FIXED = range(5)  # how a node may move (_node_kinds)
-LOCAL_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])  # outward for a positive tet
 IMPROVE_ROUNDS = 4  # smoothing + topology rounds
 SMOOTH_SWEEPS = 40
 SMOOTH_QUANTILE = 3.0  # [%] each sweep moves the nodes of the worst tets...
