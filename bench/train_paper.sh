@@ -242,23 +242,29 @@ SEED_MODELS=hybrid seeds stable_rot_revq $STABLE_FLAGS --rotate --reversible-pos
 SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 \
   --noise-smooth-velocity --reversible-positions
 # (2026-11-26, nvidia-h200-x2, the session's last 569 s: seeds 0 and 1 started side by side, PER_GPU=1 OMP_NUM_THREADS=8
-# EXTRA=--cuda-graphs FALLBACK=--compile ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_revq_s[01]$', and reached epoch 33,
-# 442 s of their 1800 (the first warm-up, ~93 s, counted in); last.pt, best.pt and logs in the ignored .devruns/runs30.
-# Next session, on a two-GPU machine: carry .devruns/runs30 (~10 MB) with .devwheels/b and .devdata, cp -r it into RUNS,
-# and the same line resumes both; EVAL_SECONDS=90 bench/wait_runs.sh RUNS 480 OUT DATA in the first call (setup and data
-# come first), then EVAL_SECONDS=90 bench/wait_runs.sh RUNS 570 OUT DATA in calls on the same warm machine until both are
-# done and evaluated: ~1360 s of training left each, ~1700 s of the 1800 held with the machine's start, the carry call, the
-# data, the warm-ups (~100 s) and the evaluations. Seed 2 (1800 s) needs a session of its own, or start it with them as
-# s[012] on a four-GPU machine (held time counts per machine, not per GPU) and resume it later. Report against
-# gnn_smooth_vel1800_h100.json and gnn_smooth_vel1800_s12_h200.json.)
-# (A first look at their best.pt after 442 s, bench/results/generic_parts_pair_partial_cpu.json: without M's position rows the
+# EXTRA=--cuda-graphs FALLBACK=--compile ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_revq_s[01]$', reaching epoch 33.
+# A first look at their best.pt then, bench/results/generic_parts_pair_partial_cpu.json: without M's position rows the
 # hold's far-field position rate is as far off from L dE alone (0.24-0.35) as the take-back's was from both parts (0.26-0.29
-# at 24 epochs), against 0.191 for vanilla with the take-back's flags (generic_parts_vanilla_peers_cpu.json): no sign yet that
-# the pair helps, though one-step terms bear only weakly on the rollout gap; weigh that before spending a session on it.)
+# at 24 epochs), against 0.191 for vanilla with the take-back's flags (generic_parts_vanilla_peers_cpu.json).
+# 2026-11-26, on an nvidia-h200-x4 (one run a GPU, the whole session's 1800 s held): seeds 0 and 1 resumed from .devruns/runs30
+# and finished (157 / 159 epochs, best validation mean 3.285e-2 / 3.375e-2 at epochs 151 / 145; the take-back's three
+# 3.431e-2 / 3.296e-2 / 3.326e-2), seed 2 started and reached 1653 s (epoch 144), beside 12-pass seed 0 below, with
+# ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_revq_s[012]$' and FIRST_GPU=3 ... 50e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s0$'.
+# The wait calls did not source bench/device_setup.sh, so their evaluations found no warpgnn (wait_runs.sh now refuses at
+# once): seeds 0 and 1 are trained but not evaluated on the GPU's data.)
 # The 12-pass target under the current recipe (the take-back): 12 passes, F = 128, the take-back's flags, three seeds,
 # against the take-back's 5-pass three-seed mean. At the stable recipe 50 epochs took 35-37 min alone on an H100; a 12-pass
 # last.pt is 30 MB, so a session can carry back and resume one such run at a time (bench/device_setup.sh's split carry).
 # As the earlier 12-pass record, 50 epochs: ... bench/train_paper.sh DATA RUNS 50e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s0$'
+# (seed 0 started on 2026-11-26 beside the pair above: epochs 0-43 of 50 in 1651 s, 34 s an epoch on an H200 and 192 s the first, with its compilation.
+# Next session, ~12 min of device time: call 1 carries .devwheels/a and .devruns/next1 (its best.pt and logs) and runs
+# mkdir -p /opt/dw /opt/runs30 && cp .devwheels/a/* /opt/dw/ && cp -r .devruns/next1/runs30/. /opt/runs30/; call 2 carries
+# .devruns/next2 (its last.pt) and copies it the same way; call 3 carries .devwheels/b, .devdata and .devruns/next3 (the pair's
+# three runs), copies them, and runs source bench/device_setup.sh && PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs
+# FALLBACK=--compile bench/train_paper.sh /opt/data /opt/runs30 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_revq_s2$' &&
+# the same with FIRST_GPU=1 ... 50e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s0$'; then EVAL_SECONDS=90 CUDA_VISIBLE_DEVICES=1
+# bench/wait_runs.sh /opt/runs30 S $OUT /opt/data (on the GPU whose run is timed in epochs, not seconds) evaluates the pair's finished seeds 0 and 1 at once and the other two as they finish
+# (~150 s and 7 epochs left, after warm-ups of ~100 and ~190 s). Every later call also starts with source bench/device_setup.sh.)
 for s in 0 1 2; do
   run hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS --rotate \
     --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity

@@ -10,6 +10,10 @@
 #   usage: bench/wait_runs.sh RUNS SECONDS [OUT [DATA]]
 RUNS=$1; LIMIT=$2; OUT=${3:-}; DATA=${4:-}; EVAL_SECONDS=${EVAL_SECONDS:-240}; t0=$SECONDS
 BENCH=$(dirname "$0")
+# without warpgnn every evaluation fails, silently, until the call ends: on the device machine each call must
+# start with `source bench/device_setup.sh`, which puts it on PATH (a machine's calls share no environment)
+[ -z "$DATA" ] || command -v warpgnn > /dev/null ||
+  { echo "wait_runs.sh: warpgnn is not on PATH, so nothing could be evaluated (source bench/device_setup.sh first)" >&2; exit 2; }
 evaluate_finished() {  # each finished run once, while there is time for it; those finished together side by side
   [ -n "$DATA" ] || return 0
   local d names=() left

@@ -4,6 +4,7 @@ bench/wait_runs.sh evaluates each finished run once and packs it. `warpgnn` is r
 that logs when each run starts and ends (or what it evaluates)."""
 
 import os
+import shutil
 import subprocess
 import time
 from pathlib import Path
@@ -154,3 +155,19 @@ def test_wait_runs_evaluates_each_finished_run_once_and_packs_it(tmp_path):
     assert ".eval/done_run/L5/metrics.json" in archive.split()
     assert "busy_run/best.pt" in archive.split() and "done_run/stdout.txt" in archive.split()
     assert ".eval/cut_run/L5/metrics.json" in archive.split() and ".eval/cut_run/L5/rollouts.h5" not in archive.split()
+
+
+def test_wait_runs_refuses_to_wait_when_it_could_not_evaluate(tmp_path):
+    """Given DATA but no `warpgnn` on PATH (a device call that did not source bench/device_setup.sh), every
+    evaluation would fail until the call ends: bench/wait_runs.sh says so in one line at once instead."""
+    bare = "/usr/bin:/bin"
+    if shutil.which("warpgnn", path=bare):
+        pytest.skip("warpgnn is installed system-wide here")
+    runs = tmp_path / "runs"
+    (runs / "a_run").mkdir(parents=True)
+    proc = subprocess.run(["bash", str(BENCH / "wait_runs.sh"), str(runs), "600", str(tmp_path), str(tmp_path)],
+                          capture_output=True, text=True, timeout=30, env=os.environ | {"PATH": bare},
+                          check=False)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [
+        "wait_runs.sh: warpgnn is not on PATH, so nothing could be evaluated (source bench/device_setup.sh first)"]

@@ -29,6 +29,16 @@ def signed_volumes(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", d[:, 0], np.cross(d[:, 1], d[:, 2])) / 6.0
 
 
+def signed_altitudes(x: np.ndarray) -> np.ndarray:
+    """Signed shortest altitude (3 V / largest face area) of tetrahedra with vertices x (..., 4, 3),
+    negative for an inverted one: the length that sets an element's explicit stable time step."""
+    d = x[..., 1:, :] - x[..., :1, :]
+    volume = np.einsum("...i,...i->...", d[..., 0, :], np.cross(d[..., 1, :], d[..., 2, :])) / 6.0
+    f = x[..., LOCAL_FACES, :]
+    area = 0.5 * np.linalg.norm(np.cross(f[..., 1, :] - f[..., 0, :], f[..., 2, :] - f[..., 0, :]), axis=-1)
+    return 3.0 * volume / area.max(axis=-1)
+
+
 @dataclass
 class TetMesh:
     nodes: np.ndarray  # (N, 3) float64 rest positions [m]
@@ -115,11 +125,7 @@ class TetMesh:
     def min_altitude(self) -> np.ndarray:
         """Shortest altitude of each tetrahedron (3 V / largest face area): the length that
         sets its explicit stable time step."""
-        x = self.nodes[self.tets]
-        local = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
-        f = x[:, local]  # (T, 4, 3, 3)
-        area = 0.5 * np.linalg.norm(np.cross(f[:, :, 1] - f[:, :, 0], f[:, :, 2] - f[:, :, 0]), axis=-1)
-        return 3.0 * np.abs(self.volumes) / area.max(axis=1)
+        return np.abs(signed_altitudes(self.nodes[self.tets]))
 
     # --------------------------------------------------------------------- io
     def save(self, path: str | os.PathLike) -> None:

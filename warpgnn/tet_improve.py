@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .mesh import LOCAL_FACES, TetMesh, signed_volumes
+from .mesh import LOCAL_FACES, TetMesh, signed_altitudes, signed_volumes
 
 # TetGen leaves a few flat tetrahedra, mostly where a Steiner point sits close to the
 # surface or two edges nearly cross; their altitude, an eighth of the median, sets the
@@ -24,16 +24,6 @@ TOPOLOGY_TARGET = 0.4  # flips and collapses act on tets below this x the median
 FEATURE_ANGLE = 30.0  # [deg] a surface node with a boundary face this far off its normal stays put
 COLLAPSE_TURN = 25.0  # [deg] a surface collapse may turn a boundary triangle at most this much
 MAX_COLLAPSED = 0.015  # improve removes at most this fraction of the nodes
-
-
-def _altitudes(x: np.ndarray) -> np.ndarray:
-    """Signed shortest altitude (3 V / largest face area) of tets with vertices x (..., 4, 3):
-    negative for an inverted tet."""
-    d = x[..., 1:, :] - x[..., :1, :]
-    volume = np.einsum("...i,...i->...", d[..., 0, :], np.cross(d[..., 1, :], d[..., 2, :])) / 6.0
-    f = x[..., LOCAL_FACES, :]
-    area = 0.5 * np.linalg.norm(np.cross(f[..., 1, :] - f[..., 0, :], f[..., 2, :] - f[..., 0, :]), axis=-1)
-    return 3.0 * volume / area.max(axis=-1)
 
 
 def _face_keys(faces: np.ndarray) -> np.ndarray:
@@ -113,7 +103,7 @@ def _smooth(nodes, tets, kind, surface=None, loop=None) -> np.ndarray:
         return p
 
     for _ in range(SMOOTH_SWEEPS):
-        alt = _altitudes(nodes[tets])
+        alt = signed_altitudes(nodes[tets])
         worst = np.flatnonzero(alt <= np.percentile(alt, SMOOTH_QUANTILE))
         candidates = tets[worst[np.argsort(alt[worst])]].ravel()
         candidates = candidates[kind[candidates] != FIXED]
@@ -135,7 +125,7 @@ def _smooth(nodes, tets, kind, surface=None, loop=None) -> np.ndarray:
         moving = (np.arange(4) == corner_of[slot][:, None, :, None])[..., None]
 
         def worst_altitude(p):  # (P, C, 3) trial positions -> smallest incident altitude (P, C)
-            a = _altitudes(np.where(moving, p[:, :, None, None, :], star[:, None]))
+            a = signed_altitudes(np.where(moving, p[:, :, None, None, :], star[:, None]))
             return np.where(valid[:, None, :], a, np.inf).min(axis=2)
 
         current = worst_altitude(x0[:, None])[:, 0]
@@ -228,7 +218,7 @@ def _topology_pass(nodes, tets, kind, target, max_collapses: int, max_ops: int =
     removed = np.zeros(len(nodes), dtype=bool)
     hopeless, ops = set(), 0
     while ops < max_ops:
-        alt = _altitudes(nodes[tets])
+        alt = signed_altitudes(nodes[tets])
         order = np.argsort(tets.ravel(), kind="stable")
         start = np.searchsorted(tets.ravel()[order], np.arange(len(nodes) + 1))
 
@@ -245,7 +235,7 @@ def _topology_pass(nodes, tets, kind, target, max_collapses: int, max_ops: int =
                                                      removed.sum() < max_collapses):
                 new = _change_ok(nodes, tets, faces, old, new, collapse, kind)
                 if new is not None:
-                    gain = _altitudes(nodes[new]).min() - alt[old].min()
+                    gain = signed_altitudes(nodes[new]).min() - alt[old].min()
                     if gain > 0 and (best is None or gain > best[0]):
                         best = (gain, old, new, collapse)
             if best is not None:
@@ -292,7 +282,7 @@ def improve(mesh: TetMesh, surface=None, loop=None) -> TetMesh:
         nodes = _smooth(nodes, tets, kind, surface, loop)
         if round_ == IMPROVE_ROUNDS - 1:
             break
-        target = TOPOLOGY_TARGET * np.median(_altitudes(nodes[tets]))
+        target = TOPOLOGY_TARGET * np.median(signed_altitudes(nodes[tets]))
         tets, removed, ops = _topology_pass(nodes, tets, kind, target, collapses)
         collapses -= int(removed.sum())
         if removed.any():
@@ -302,7 +292,7 @@ def improve(mesh: TetMesh, surface=None, loop=None) -> TetMesh:
         if not ops:
             break
     better = TetMesh(nodes, tets)
-    if (_altitudes(nodes[tets]).min() <= _altitudes(mesh.nodes[mesh.tets]).min()
+    if (signed_altitudes(nodes[tets]).min() <= signed_altitudes(mesh.nodes[mesh.tets]).min()
             or surface_euler(better) is None or surface_euler(better) != surface_euler(mesh)):
         return mesh
     return better
