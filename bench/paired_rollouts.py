@@ -4,7 +4,7 @@ a few bad rollouts can carry it; this says, for each peer, on what share of the 
 candidate is lower, the median of its per-rollout ratio, and the change of the pooled mean square
 split between the peer's worst tenth of rollouts and the rest (each as a share of the peer's).
 
-    python bench/paired_rollouts.py EVAL CANDIDATE PEER [...] --set L5 --json OUT.json --device "..." --command "..."
+    python bench/paired_rollouts.py EVAL CANDIDATE PEER [...] --set L5 --json OUT.json [--boxplot OUT.png] --device "..." --command "..."
 
 EVAL/<run>/<set>/metrics.json as `warpgnn eval` (bench/eval_paper.sh) writes them.
 """
@@ -18,6 +18,7 @@ import numpy as np
 import provenance  # bench/, beside this script
 from warpgnn.graphs import GROUPS
 from warpgnn.metrics import set_metrics
+from warpgnn.plots import rrmse_boxplot
 
 WORST_SHARE = 0.1
 
@@ -67,21 +68,27 @@ def main():
     ap.add_argument("peers", nargs="+")
     ap.add_argument("--set", default="L5")
     ap.add_argument("--json", required=True)
+    ap.add_argument("--boxplot", help="also a PNG of the per-rollout RRMSE of the candidate and each peer")
     provenance.add_arguments(ap)
     a = ap.parse_args()
     ev = Path(a.eval)
     cand = per_rollout_rrmse(ev / a.candidate / a.set / "metrics.json")
+    boxes = {a.candidate: cand}
     record = provenance.record(a) | {"set": a.set, "candidate": a.candidate, "worst_share": WORST_SHARE, "peers": {}}
     print(f"{a.candidate} against each peer on {a.set}: set RRMSE change, share of rollouts lower, median "
           f"ratio; mean-square change from the peer's worst {WORST_SHARE:.0%} of rollouts + from the rest")
     for peer in a.peers:
-        c = compare(cand, per_rollout_rrmse(ev / peer / a.set / "metrics.json"))
+        boxes[peer] = per_rollout_rrmse(ev / peer / a.set / "metrics.json")
+        c = compare(cand, boxes[peer])
         record["peers"][peer] = c
         print(f"{peer}: " + "; ".join(
             f"{g} {100 * (c[g]['candidate'] / c[g]['peer'] - 1):+.1f} %, lower on {c[g]['candidate_lower_share']:.0%}, "
             f"median x{c[g]['median_ratio']:.3f}, MS {100 * c[g]['ms_change_peer_worst_tenth']:+.1f} "
             f"{100 * c[g]['ms_change_rest']:+.1f} %" for g in GROUPS))
     Path(a.json).write_text(json.dumps(record, indent=1))
+    if a.boxplot:
+        rrmse_boxplot({k: [{"rrmse": r} for r in v.values()] for k, v in boxes.items()}, a.boxplot,
+                      f"per-rollout RRMSE on {a.set} ({len(cand)} rollouts)")
 
 
 if __name__ == "__main__":

@@ -251,7 +251,10 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # 3.431e-2 / 3.296e-2 / 3.326e-2), seed 2 started and reached 1653 s (epoch 144), beside 12-pass seed 0 below, with
 # ... 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_revq_s[012]$' and FIRST_GPU=3 ... 50e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s0$'.
 # The wait calls did not source bench/device_setup.sh, so their evaluations found no warpgnn (wait_runs.sh now refuses at
-# once): seeds 0 and 1 are trained but not evaluated on the GPU's data.)
+# once): seeds 0 and 1 are trained but not evaluated on the GPU's data. On the CPU, rollout by rollout on 40 CPU-generated L5
+# simulations (paired_takeback_revq_s0_cpu.json, paired_takeback_revq_s1_cpu.json): +2.0 / -1.5 / +1.1 % against the
+# take-back's three seeds, a tie, and +8.1 / +7.0 / -5.3 % against its vanilla peer at 139e, the take-back's own gap: the
+# pair does not close it. Seed 2 and the GPU evaluation of all three finish the record, ~5 min of the next session's time.)
 # The 12-pass target under the current recipe (the take-back): 12 passes, F = 128, the take-back's flags, three seeds,
 # against the take-back's 5-pass three-seed mean. At the stable recipe 50 epochs took 35-37 min alone on an H100; a 12-pass
 # last.pt is 30 MB, so a session can carry back and resume one such run at a time (bench/device_setup.sh's split carry).

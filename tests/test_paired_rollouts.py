@@ -26,10 +26,10 @@ def write_eval(root: Path, run: str, rrmse_by_rollout: list[float], set_value: f
                                                 "per_rollout": per}))
 
 
-def paired(tmp_path, *runs):
+def paired(tmp_path, *runs, extra=()):
     out = tmp_path / "paired.json"
     proc = subprocess.run([sys.executable, str(BENCH / "paired_rollouts.py"), str(tmp_path / "eval"), *runs,
-                           "--json", str(out), "--device", "cpu", "--command", "t"],
+                           "--json", str(out), "--device", "cpu", "--command", "t", *extra],
                           capture_output=True, text=True, timeout=120)
     return proc, out
 
@@ -59,3 +59,14 @@ def test_bad_input_ends_in_one_line(tmp_path, case, message):
     proc, out = paired(tmp_path, "cand", "peer")
     assert proc.returncode != 0 and not out.exists()
     assert message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_boxplot_of_the_candidate_and_its_peers(tmp_path):
+    write_eval(tmp_path / "eval", "cand", [1, 2, 3])
+    write_eval(tmp_path / "eval", "peer", [2, 2, 2])
+    write_eval(tmp_path / "eval", "peer2", [1, 1, 4])
+    png = tmp_path / "box.png"
+    proc, out = paired(tmp_path, "cand", "peer", "peer2", extra=("--boxplot", str(png)))
+    assert proc.returncode == 0, proc.stderr
+    assert set(json.loads(out.read_text())["peers"]) == {"peer", "peer2"}
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
