@@ -254,12 +254,14 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # once): seeds 0 and 1 are trained but not evaluated on the GPU's data. On the CPU, rollout by rollout on 40 CPU-generated L5
 # simulations (paired_takeback_revq_s0_cpu.json, paired_takeback_revq_s1_cpu.json): +2.0 / -1.5 / +1.1 % against the
 # take-back's three seeds, a tie, and +8.1 / +7.0 / -5.3 % against its vanilla peer at 139e, the take-back's own gap: the
-# pair does not close it. Seed 2 and the GPU evaluation of all three finish the record, ~5 min of the next session's time.)
+# pair does not close it. Seed 2 and the GPU evaluation of all three finish the record, in the next session's plan below.)
 # The 12-pass target under the current recipe (the take-back): 12 passes, F = 128, the take-back's flags, three seeds,
 # against the take-back's 5-pass three-seed mean. At the stable recipe 50 epochs took 35-37 min alone on an H100; a 12-pass
 # last.pt is 30 MB, so a session can carry back and resume one such run at a time (bench/device_setup.sh's split carry).
 # As the earlier 12-pass record, 50 epochs: ... bench/train_paper.sh DATA RUNS 50e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s0$'
 # (seed 0 started on 2026-11-26 beside the pair above: epochs 0-43 of 50 in 1651 s, 34 s an epoch on an H200 and 192 s the first, with its compilation.
+# Its best.pt at epoch 39 reads +7.5 / +4.1 / +9.3 % against the 5-pass take-back's three seeds on 40 CPU-generated L5
+# simulations (paired_p12_takeback_e39_cpu.json): if the finished run stays behind, 50 epochs are too few for this recipe.
 # Next session, ~12 min of device time: call 1 carries .devwheels/a and .devruns/next1 (its best.pt and logs) and runs
 # mkdir -p /opt/dw /opt/runs30 && cp .devwheels/a/* /opt/dw/ && cp -r .devruns/next1/runs30/. /opt/runs30/; call 2 carries
 # .devruns/next2 (its last.pt) and copies it the same way; call 3 carries .devwheels/b, .devdata and .devruns/next3 (the pair's
@@ -267,7 +269,7 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # FALLBACK=--compile bench/train_paper.sh /opt/data /opt/runs30 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_revq_s2$' &&
 # the same with FIRST_GPU=1 ... 50e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s0$'; then EVAL_SECONDS=90 CUDA_VISIBLE_DEVICES=1
 # bench/wait_runs.sh /opt/runs30 S $OUT /opt/data (on the GPU whose run is timed in epochs, not seconds) evaluates the pair's finished seeds 0 and 1 at once and the other two as they finish
-# (~150 s and 7 epochs left, after warm-ups of ~100 and ~190 s). Every later call also starts with source bench/device_setup.sh.)
+# (~150 s and 6 epochs left, after warm-ups of ~100 and ~190 s). Every later call also starts with source bench/device_setup.sh.)
 for s in 0 1 2; do
   run hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS --rotate \
     --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity

@@ -159,15 +159,21 @@ def test_wait_runs_evaluates_each_finished_run_once_and_packs_it(tmp_path):
 
 def test_wait_runs_refuses_to_wait_when_it_could_not_evaluate(tmp_path):
     """Given DATA but no `warpgnn` on PATH (a device call that did not source bench/device_setup.sh), every
-    evaluation would fail until the call ends: bench/wait_runs.sh says so in one line at once instead."""
+    evaluation would fail until the call ends: bench/wait_runs.sh says so in one line at once instead, still
+    packing the runs into OUT."""
     bare = "/usr/bin:/bin"
     if shutil.which("warpgnn", path=bare):
         pytest.skip("warpgnn is installed system-wide here")
     runs = tmp_path / "runs"
     (runs / "a_run").mkdir(parents=True)
-    proc = subprocess.run(["bash", str(BENCH / "wait_runs.sh"), str(runs), "600", str(tmp_path), str(tmp_path)],
+    (runs / "a_run" / "last.pt").write_text("weights")
+    out = tmp_path / "out"
+    out.mkdir()
+    proc = subprocess.run(["bash", str(BENCH / "wait_runs.sh"), str(runs), "600", str(out), str(tmp_path)],
                           capture_output=True, text=True, timeout=30, env=os.environ | {"PATH": bare},
                           check=False)
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == [
         "wait_runs.sh: warpgnn is not on PATH, so nothing could be evaluated (source bench/device_setup.sh first)"]
+    archive = subprocess.run(f"cat {out}/runs.tar.* | tar -t", shell=True, capture_output=True, text=True).stdout
+    assert "a_run/last.pt" in archive.split()
