@@ -103,6 +103,12 @@ mkdir -p "$out" && echo '{{"rrmse": {{}}}}' > "$out/metrics.json"
 """
 
 
+def packed_names(out: Path) -> list[str]:
+    """The paths in bench/wait_runs.sh's archive OUT/runs.tar.NN."""
+    return subprocess.run(f"cat {out}/runs.tar.* | tar -t", shell=True, capture_output=True, text=True,
+                          check=True).stdout.split()
+
+
 def test_wait_runs_evaluates_each_finished_run_once_and_packs_it(tmp_path):
     """bench/wait_runs.sh RUNS SECONDS OUT DATA: a run whose stdout ends with warpgnn train's summary is
     evaluated (bench/eval_paper.sh: four sets from its best.pt) once, and again only if that did not
@@ -151,10 +157,10 @@ def test_wait_runs_evaluates_each_finished_run_once_and_packs_it(tmp_path):
     calls = log.read_text().splitlines()
     assert len(calls) == 12 and all("/.eval/done_run/" in c for c in calls[8:])
     assert (runs / ".eval" / "done_run" / ".done").exists()
-    archive = subprocess.run(f"cat {out}/runs.tar.* | tar -t", shell=True, capture_output=True, text=True).stdout
-    assert ".eval/done_run/L5/metrics.json" in archive.split()
-    assert "busy_run/best.pt" in archive.split() and "done_run/stdout.txt" in archive.split()
-    assert ".eval/cut_run/L5/metrics.json" in archive.split() and ".eval/cut_run/L5/rollouts.h5" not in archive.split()
+    archive = packed_names(out)
+    assert ".eval/done_run/L5/metrics.json" in archive
+    assert "busy_run/best.pt" in archive and "done_run/stdout.txt" in archive
+    assert ".eval/cut_run/L5/metrics.json" in archive and ".eval/cut_run/L5/rollouts.h5" not in archive
 
 
 def test_wait_runs_refuses_to_wait_when_it_could_not_evaluate(tmp_path):
@@ -175,5 +181,5 @@ def test_wait_runs_refuses_to_wait_when_it_could_not_evaluate(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == [
         "wait_runs.sh: warpgnn is not on PATH, so nothing could be evaluated (source bench/device_setup.sh first)"]
-    archive = subprocess.run(f"cat {out}/runs.tar.* | tar -t", shell=True, capture_output=True, text=True).stdout
-    assert "a_run/last.pt" in archive.split()
+    archive = packed_names(out)
+    assert "a_run/last.pt" in archive
