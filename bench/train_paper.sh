@@ -261,7 +261,7 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # As the earlier 12-pass record, 50 epochs: ... bench/train_paper.sh DATA RUNS 50e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s0$'
 # (seed 0 started on 2026-11-26 beside the pair above: epochs 0-43 of 50 in 1651 s, 34 s an epoch on an H200 and 192 s the first, with its compilation.
 # Its best.pt at epoch 39 reads +7.5 / +4.1 / +9.3 % against the 5-pass take-back's three seeds on 40 CPU-generated L5
-# simulations (paired_p12_takeback_e39_cpu.json): if the finished run stays behind, 50 epochs are too few for this recipe.
+# simulations (paired_p12_takeback_e39_cpu.json): if the finished run stays behind, this recipe may need more than 50 epochs.
 # Next session, ~12 min of device time: call 1 carries .devwheels/a and .devruns/next1 (its best.pt and logs) and runs
 # mkdir -p /opt/dw /opt/runs30 && cp .devwheels/a/* /opt/dw/ && cp -r .devruns/next1/runs30/. /opt/runs30/; call 2 carries
 # .devruns/next2 (its last.pt) and copies it the same way; call 3 carries .devwheels/b, .devdata and .devruns/next3 (the pair's

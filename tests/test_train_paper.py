@@ -175,9 +175,15 @@ def test_wait_runs_refuses_to_wait_when_it_could_not_evaluate(tmp_path):
     (runs / "a_run" / "last.pt").write_text("weights")
     out = tmp_path / "out"
     out.mkdir()
-    proc = subprocess.run(["bash", str(BENCH / "wait_runs.sh"), str(runs), "600", str(out), str(tmp_path)],
-                          capture_output=True, text=True, timeout=30, env=os.environ | {"PATH": bare},
-                          check=False)
+    # a training process it would otherwise wait up to 600 s for (the timeout below would fail the test)
+    training = subprocess.Popen(["bash", "-c", 'exec -a "warpgnn train stand-in" sleep 60'])
+    try:
+        proc = subprocess.run(["bash", str(BENCH / "wait_runs.sh"), str(runs), "600", str(out), str(tmp_path)],
+                              capture_output=True, text=True, timeout=30, env=os.environ | {"PATH": bare},
+                              check=False)
+    finally:
+        training.kill()
+        training.wait()
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == [
         "wait_runs.sh: warpgnn is not on PATH, so nothing could be evaluated (source bench/device_setup.sh first)"]
