@@ -15,7 +15,7 @@ from warpgnn.anatomy import (  # noqa: E402
     procedural_liver,
 )
 from warpgnn.errors import InputError  # noqa: E402
-from warpgnn.mesh import TetMesh, box_tet_mesh, signed_volumes  # noqa: E402
+from warpgnn.mesh import TetMesh, box_tet_mesh, face_keys, signed_volumes  # noqa: E402
 from warpgnn.render import anatomy_table  # noqa: E402
 from warpgnn.tet_improve import improve, surface_euler  # noqa: E402
 
@@ -216,3 +216,12 @@ def test_a_mirrored_copy_is_reoriented_without_touching_the_original():
     assert (signed_volumes(mesh.nodes, mesh.tets) > 0).all()
     assert (signed_volumes(mirrored.nodes, mirrored.tets) > 0).all()
     np.testing.assert_array_equal(mirrored.tets, before[:, [0, 2, 1, 3]])  # the same tets, each re-oriented
+
+
+@pytest.mark.parametrize("offset", [0, 3_000_000])  # 3M nodes: arithmetic keys would overflow int64
+def test_face_keys_match_triangles_in_any_corner_order(offset):
+    faces = np.array([[0, 1, 2], [2, 0, 1], [1, 2, 3], [3, 2, 1], [0, 1, 3], [1, 0, 2]]) + offset
+    keys = face_keys(faces)
+    same = keys[:, None] == keys[None, :]
+    corners = [frozenset(f) for f in faces.tolist()]
+    assert (same == np.array([[a == b for b in corners] for a in corners])).all()

@@ -39,6 +39,22 @@ def signed_altitudes(x: np.ndarray) -> np.ndarray:
     return 3.0 * volume / area.max(axis=-1)
 
 
+def face_keys(faces: np.ndarray) -> np.ndarray:
+    """One integer per triangle (..., 3), the same for any order of its corners."""
+    f = np.sort(faces, axis=-1).astype(np.int64)
+    n = int(f.max()) + 1 if f.size else 1
+    if n**3 < 2**63:  # arithmetic keys, fast; beyond ~2M nodes they would overflow
+        return (f[..., 0] * n + f[..., 1]) * n + f[..., 2]
+    return np.unique(f.reshape(-1, 3), axis=0, return_inverse=True)[1].reshape(f.shape[:-1])
+
+
+def boundary_faces(tets: np.ndarray) -> np.ndarray:
+    """Boundary triangles (F, 3) of a tet list, the faces of one tet only, ordered so their normal points outward."""
+    faces = tets[:, LOCAL_FACES].reshape(-1, 3)
+    _, inverse, counts = np.unique(face_keys(faces), return_inverse=True, return_counts=True)
+    return faces[counts[inverse] == 1]
+
+
 @dataclass
 class TetMesh:
     nodes: np.ndarray  # (N, 3) float64 rest positions [m]
@@ -103,10 +119,7 @@ class TetMesh:
 
     def boundary_faces(self) -> np.ndarray:
         """Boundary triangles (F, 3), ordered so their normal points outward."""
-        faces = self.tets[:, LOCAL_FACES].reshape(-1, 3)
-        key = np.sort(faces, axis=1)
-        _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-        return faces[counts[inverse.ravel()] == 1]
+        return boundary_faces(self.tets)
 
     def surface_nodes(self) -> np.ndarray:
         return np.unique(self.boundary_faces())

@@ -9,7 +9,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from .mesh import LOCAL_FACES, TetMesh, signed_altitudes, signed_volumes
+from .mesh import (
+    LOCAL_FACES,
+    TetMesh,
+    boundary_faces,
+    face_keys,
+    signed_altitudes,
+    signed_volumes,
+)
 
 # TetGen leaves a few flat tetrahedra, mostly where a Steiner point sits close to the
 # surface or two edges nearly cross; their altitude, an eighth of the median, sets the
@@ -26,20 +33,6 @@ COLLAPSE_TURN = 25.0  # [deg] a surface collapse may turn a boundary triangle at
 MAX_COLLAPSED = 0.015  # improve removes at most this fraction of the nodes
 
 
-def _face_keys(faces: np.ndarray) -> np.ndarray:
-    """One integer per triangle, the same for any order of its corners."""
-    f = np.sort(faces, axis=-1).astype(np.int64)
-    n = f.max() + 1
-    return (f[..., 0] * n + f[..., 1]) * n + f[..., 2]
-
-
-def _boundary(tets: np.ndarray) -> np.ndarray:
-    """Outward boundary triangles of a tet list."""
-    f = tets[:, LOCAL_FACES].reshape(-1, 3)
-    _, inverse, counts = np.unique(_face_keys(f), return_inverse=True, return_counts=True)
-    return f[counts[inverse] == 1]
-
-
 def _unit_normals(nodes, faces):
     x = nodes[faces]
     n = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
@@ -50,7 +43,7 @@ def _node_kinds(nodes, tets, surface, loop) -> np.ndarray:
     """INTERIOR nodes move freely; FLAT ones (only on boundary faces in the plane z = 0) within
     it; CURVED ones (other surface nodes) slide on ``surface``, RIM ones (on both) along
     ``loop``; without a reference, or on a sharp feature, a surface node is FIXED."""
-    faces = _boundary(tets)
+    faces = boundary_faces(tets)
     flat_face = (np.abs(nodes[faces, 2]) < 1e-12).all(axis=1)
     kind = np.full(len(nodes), INTERIOR)
     on_flat, on_curved = (np.zeros(len(nodes), dtype=bool) for _ in range(2))
@@ -225,7 +218,7 @@ def _topology_pass(nodes, tets, kind, target, max_collapses: int, max_ops: int =
         def around(v):
             return order[start[v]:start[v + 1]] // 4
 
-        faces = _boundary(tets)
+        faces = boundary_faces(tets)
         bad = np.flatnonzero(alt < target)
         best = None
         for t in bad[np.argsort(alt[bad])]:
@@ -257,10 +250,10 @@ def surface_euler(mesh: TetMesh):
     """Euler characteristic V - E + F of the boundary if the mesh is a manifold (every face
     in at most two tets, every boundary edge in two boundary triangles, every node in a
     tet), else None."""
-    faces = _boundary(mesh.tets)
+    faces = boundary_faces(mesh.tets)
     e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
     edges, edge_counts = np.unique(e, axis=0, return_counts=True)
-    if (np.unique(_face_keys(mesh.tets[:, LOCAL_FACES]), return_counts=True)[1].max() > 2
+    if (np.unique(face_keys(mesh.tets[:, LOCAL_FACES]), return_counts=True)[1].max() > 2
             or (edge_counts != 2).any()
             or len(np.unique(mesh.tets)) != len(mesh.nodes)):
         return None
