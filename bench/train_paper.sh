@@ -238,7 +238,7 @@ SEED_MODELS=hybrid seeds stable_rot_revq $STABLE_FLAGS --rotate --reversible-pos
 # (bench/results/takeback_revq_cpu_proxy.json): 1800 s, three seeds, against the take-back's three (9.603e-3 / 3.663e-2 /
 # 5.106e-2) and vanilla with the take-back's flags at 139e. Under the noise of the --rotate recipe before the take-back,
 # --reversible-positions brought the hybrid level with vanilla on q and v (+0.6 / -0.3 %, that recipe +2.6 / +1.1 %); with
-# the take-back the gap is +7.0 / +8.5 %.
+# the take-back the gap is +7.0 / +8.5 % (against vanilla's seed 0; +4.7 / +8.9 % against its three seeds since).
 SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 \
   --noise-smooth-velocity --reversible-positions
 # (2026-11-26, nvidia-h200-x2, the session's last 569 s: seeds 0 and 1 started side by side, PER_GPU=1 OMP_NUM_THREADS=8
@@ -254,22 +254,31 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # once): seeds 0 and 1 are trained but not evaluated on the GPU's data. On the CPU, rollout by rollout on 40 CPU-generated L5
 # simulations (paired_takeback_revq_s0_cpu.json, paired_takeback_revq_s1_cpu.json): +2.0 / -1.5 / +1.1 % against the
 # take-back's three seeds, a tie, and +8.1 / +7.0 / -5.3 % against its vanilla peer at 139e, the take-back's own gap: the
-# pair does not close it. Seed 2 and the GPU evaluation of all three finish the record, in the next session's plan below.)
+# pair does not close it. 2026-11-26, the next session (nvidia-h200-x4): seed 2 finished (158 epochs), and the GPU evaluation
+# of all three, bench/results/gnn_takeback_revq1800_h200.json: 9.836e-3 / 3.666e-2 / 5.206e-2, +2.4 / +0.1 / +2.0 % against
+# the take-back (1.0 / 0.1 / 1.7 standard errors), a tie: not taken into the recipe.)
+# The take-back's vanilla peer, seeds 1 and 2 at 139e as seed 0 (its 'seeds stable_rot_smooth2e1_g3e1_vel' line above):
+# PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs FALLBACK=--compile FIRST_GPU=2 bench/train_paper.sh DATA RUNS 139e
+# '^vanilla_p5_stable_rot_smooth2e1_g3e1_vel_s[12]$' (renamed _vel_e139_s[12]; 1356 / 1326 s on H200s). Record:
+# bench/results/gnn_vanilla_takeback_e139_s12_h200.json, vanilla's three seeds 9.169e-3 / 3.364e-2 / 5.401e-2, the take-back's
+# hybrid +4.7 / +8.9 / -5.5 % against them (2.3 / 6.9 / 4.9 standard errors): hybrid better than vanilla stays missed on q, v.
 # The 12-pass target under the current recipe (the take-back): 12 passes, F = 128, the take-back's flags, three seeds,
-# against the take-back's 5-pass three-seed mean. At the stable recipe 50 epochs took 35-37 min alone on an H100; a 12-pass
-# last.pt is 30 MB, so a session can carry back and resume one such run at a time (bench/device_setup.sh's split carry).
+# against the take-back's 5-pass three-seed mean. A 12-pass last.pt is 30 MB, so a session can carry back and resume one
+# such run at a time (bench/device_setup.sh's split carry).
 # As the earlier 12-pass record, 50 epochs: ... bench/train_paper.sh DATA RUNS 50e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s0$'
-# (seed 0 started on 2026-11-26 beside the pair above: epochs 0-43 of 50 in 1651 s, 34 s an epoch on an H200 and 192 s the first, with its compilation.
-# Its best.pt at epoch 39 reads +7.5 / +4.1 / +9.3 % against the 5-pass take-back's three seeds on 40 CPU-generated L5
-# simulations (paired_p12_takeback_e39_cpu.json): if the finished run stays behind, this recipe may need more than 50 epochs.
-# Next session, ~12 min of device time: call 1 carries .devwheels/a and .devruns/next1 (its best.pt and logs) and runs
-# mkdir -p /opt/dw /opt/runs30 && cp .devwheels/a/* /opt/dw/ && cp -r .devruns/next1/runs30/. /opt/runs30/; call 2 carries
-# .devruns/next2 (its last.pt) and copies it the same way; call 3 carries .devwheels/b, .devdata and .devruns/next3 (the pair's
-# three runs), copies them, and runs source bench/device_setup.sh && PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs
-# FALLBACK=--compile bench/train_paper.sh /opt/data /opt/runs30 1800 '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_revq_s2$' &&
-# the same with FIRST_GPU=1 ... 50e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s0$'; then EVAL_SECONDS=90 CUDA_VISIBLE_DEVICES=1
-# bench/wait_runs.sh /opt/runs30 S $OUT /opt/data (on the GPU whose run is timed in epochs, not seconds) evaluates the pair's finished seeds 0 and 1 at once and the other two as they finish
-# (~150 s and 6 epochs left, after warm-ups of ~100 and ~190 s). Every later call also starts with source bench/device_setup.sh.)
+# (seed 0, 2026-11-26, on H200s: 1858 s, 34 s an epoch. bench/results/gnn_p12_takeback_e50_h200.json: 1.022e-2 / 3.794e-2 /
+# 5.552e-2, +6.4 / +3.6 / +8.7 % against the 5-pass take-back, behind each of its seeds; its best epoch was its last and its
+# final training loss (1.03) the 5-pass runs' at epochs 67-76 of their 139-167: still falling when its schedule ended.)
+# So 100 epochs, in a RUNS folder of its own: ... bench/train_paper.sh DATA RUNS100 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s0$'
+# (seed 0 started 2026-11-26 on GPU 0 of the same nvidia-h200-x4, after the pair's seed 2: epochs 0-29 in 1028 s. Its best.pt
+# and logs are in the ignored .devruns/next1/runs100, its last.pt in .devruns/next2/runs100; about 70 epochs, ~2600 s, to go.)
+# Next session: call 1 carries .devwheels/a and .devruns/next1 and runs mkdir -p /opt/dw /opt/runs100 && cp .devwheels/a/*
+# /opt/dw/ && cp -r .devruns/next1/runs100/. /opt/runs100/; call 2 carries .devruns/next2 and copies it the same way; call 3
+# carries .devwheels/b and .devdata and runs source bench/device_setup.sh && PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs
+# FALLBACK=--compile bench/train_paper.sh /opt/data /opt/runs100 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s0$';
+# bench/wait_runs.sh /opt/runs100 $((570-SECONDS)) $OUT, and later calls (each starting with source bench/device_setup.sh) the
+# same wait. A wait packs last.pt (30 MB) and best.pt (10 MB): with nothing else in RUNS it fits a call's 64 MiB. Its other
+# GPUs can take 12-pass seeds 1 and 2 at 100e only if their checkpoints can be carried too (two calls a run, each session).
 for s in 0 1 2; do
   run hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS --rotate \
     --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity
