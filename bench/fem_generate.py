@@ -104,6 +104,8 @@ def main():
     p.add_argument("--preset", default="paper")
     p.add_argument("--json", required=True)
     p.add_argument("--anatomies", help="folder of L1..L5.vtu made beforehand (a GPU host without tetgen)")
+    p.add_argument("--deterministic", action="store_true", help="element sums in a fixed order (warpgnn generate "
+                   "--deterministic), to time what reproducible datasets cost")
     p.add_argument("--compare", metavar="NPZ", help="CPU half of the CPU-vs-CUDA check: run the CPU side here "
                    "against the CUDA trajectories NPZ (written beside --json on the GPU) and add it to --json")
     args = p.parse_args()
@@ -121,6 +123,9 @@ def main():
     wp.config.kernel_cache_dir = cache  # cold cache: compile time is part of the figure
     wp.init()
     from warpgnn.fem_ref.generate import anatomy_mesh, generate
+    from warpgnn.fem_ref.solver import set_deterministic_sums
+
+    set_deterministic_sums(args.deterministic)
 
     out_dir = Path(tempfile.mkdtemp(prefix="warpgnn-preset-"))
     if args.anatomies:
@@ -135,7 +140,7 @@ def main():
         "benchmark": "fem_generate", "device": str(wp.get_device(args.device)),
         "device_name": wp.get_device(args.device).name, "date": datetime.date.today().isoformat(),
         "command": " ".join(sys.argv), "warp": wp.config.version, "host": platform.node(),
-        "preset": args.preset, "simulations": sims, "wall_seconds_including_compile": wall,
+        "preset": args.preset, "deterministic_sums": args.deterministic, "simulations": sims, "wall_seconds_including_compile": wall,
         "simulation_seconds": sim_seconds, "simulations_per_second": sims / wall,
         "element_updates": updates, "element_updates_per_second": updates / sim_seconds,
         "resampled": sum(s["resampled"] for s in summary["sets"]), "sets": summary["sets"],

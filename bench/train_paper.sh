@@ -279,6 +279,11 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # bench/wait_runs.sh /opt/runs100 $((570-SECONDS)) $OUT, and later calls (each starting with source bench/device_setup.sh) the
 # same wait. A wait packs last.pt (30 MB) and best.pt (10 MB): with nothing else in RUNS it fits a call's 64 MiB. Its other
 # GPUs can take 12-pass seeds 1 and 2 at 100e only if their checkpoints can be carried too (two calls a run, each session).
+# The same call can measure, on GPU 1, whether the ground truth repeats bit for bit with and without `generate --deterministic`
+# (a few minutes): CUDA_VISIBLE_DEVICES=1 python3 bench/fem_determinism.py --anatomies /opt/data/anatomies --set L5 --device
+# cuda:0 --json $OUT/fem_determinism.json, and what it costs the paper preset: CUDA_VISIBLE_DEVICES=1 python3
+# bench/fem_generate.py --device cuda:0 --anatomies /opt/data/anatomies --deterministic --json $OUT/fem_generate_det.json,
+# then the same without --deterministic as its peer. If it repeats and costs little, train_paper.sh generates with it.
 for s in 0 1 2; do
   run hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS --rotate \
     --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity

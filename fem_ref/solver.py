@@ -33,6 +33,21 @@ from .material import MaterialParams, OgdenProny, ogden_split, sym_to_vec6, vec6
 NO_FAILURE = 2**63 - 1  # failure keys are step * n_elements + element, min-reduced
 
 
+def set_deterministic_sums(on: bool) -> None:
+    """Sum the element forces and stresses into the nodes in a fixed order on CUDA (Warp's deterministic
+    mode, RUN_TO_RUN: the same bits on every run on GPUs of one architecture), or in the order the float
+    atomics land (off, the default). Sums in another order round differently, and an undamped vibration
+    (the ringing some simulations keep once the tools stop) carries that rounding on, so two generations
+    of one dataset differ in those simulations' velocities. The CPU device sums in order either way.
+    Applies to every later launch of this module's kernels, which recompile once when it changes."""
+    mode = wp.DeterministicMode.RUN_TO_RUN if on else wp.DeterministicMode.NOT_GUARANTEED
+    wp.set_module_options({"deterministic": mode}, module=__name__)
+
+
+def deterministic_sums() -> bool:
+    return wp.get_module_options(module=__name__)["deterministic"] != wp.DeterministicMode.NOT_GUARANTEED
+
+
 @wp.func
 def ramp(t: float, t_ramp: float):
     if t_ramp <= 0.0:

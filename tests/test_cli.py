@@ -114,3 +114,22 @@ def test_inverting_load_is_reported_and_nothing_written(bar, tmp_path):
                    "--single-node", "--duration", 0.2, "--snapshots", 2, "--device", "cpu", "--out", out)
     assert_one_line_error(proc, "simulation failed", "element")
     assert not out.exists()
+
+
+def test_fem_deterministic_sums_change_nothing_on_the_cpu(bar, tmp_path):
+    """--deterministic reaches the solver (its kernels recompile in Warp's deterministic mode) and, as the CPU
+    already sums in element order, writes the same bits as the default; on CUDA it makes runs repeat
+    (tests/test_fem_physics.py)."""
+    _, path = bar
+    runs = {}
+    for flags in ((), ("--deterministic",)):
+        out = tmp_path / f"run{len(flags)}.h5"
+        proc = run_cli("fem", "--mesh", path, "--fixed", tmp_path / "fixed.txt", "--load", tmp_path / "load.txt",
+                       "--displacement", 0.0, 0.0, 0.003, "--duration", 0.1, "--snapshots", 4, "--device", "cpu",
+                       "--out", out, *flags)
+        assert proc.returncode == 0, proc.stderr
+        assert ("element sums in a fixed order" in proc.stdout) == bool(flags)
+        with h5py.File(out) as f:
+            runs[flags] = {k: f["sims/run"][k][()] for k in ("q", "v", "sigma")}
+    for k in ("q", "v", "sigma"):
+        assert np.array_equal(runs[()][k], runs[("--deterministic",)][k]), k

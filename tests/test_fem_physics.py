@@ -9,6 +9,7 @@ import warp as wp
 from ogden_reference import cauchy_fd, cauchy_principal, energy, relaxation, voigt
 from warpgnn.fem_ref import (BatchedExplicitSolver, OgdenProny, SolverConfig, elastic_nodal_stress, make_load_case,
                              stable_time_step)
+from warpgnn.fem_ref.solver import set_deterministic_sums
 from warpgnn.mesh import box_tet_mesh
 
 CUBE = 0.01  # m
@@ -176,6 +177,25 @@ def test_cpu_and_cuda_trajectories_agree():
     gpu = BatchedExplicitSolver(mesh, [case], config=cfg, device="cuda:0").run()
     assert np.abs(cpu.q - gpu.q).max() < 1e-5 * 0.04
     assert np.abs(cpu.sigma - gpu.sigma).max() < 1e-3 * np.abs(cpu.sigma).max()
+
+
+@pytest.mark.skipif(not wp.is_cuda_available(), reason="needs a CUDA device")
+def test_deterministic_sums_repeat_bit_for_bit_on_cuda():
+    """With the element sums in a fixed order (set_deterministic_sums) two CUDA runs of one batch write the
+    same bits, ringing included: a dataset generated twice is the same dataset."""
+    mesh = box_tet_mesh(6, 3, 3, (0.06, 0.03, 0.03))
+    mesh.fixed[:] = mesh.nodes[:, 0] < 1e-9
+    tip = np.flatnonzero(mesh.nodes[:, 0] > 0.06 - 1e-9)
+    cases = [make_load_case(mesh, tip, np.tile(d, (len(tip), 1)), spread=False)
+             for d in ([0.0, 0.006, 0.003], [0.004, -0.003, 0.0], [0.0, 0.0, -0.008])]
+    cfg = SolverConfig(duration=0.4, snapshots=8)
+    set_deterministic_sums(True)
+    try:
+        runs = [BatchedExplicitSolver(mesh, cases, config=cfg, device="cuda:0").run() for _ in range(2)]
+    finally:
+        set_deterministic_sums(False)
+    for k in ("q", "v", "sigma"):
+        assert np.array_equal(getattr(runs[0], k), getattr(runs[1], k)), k
 
 
 @pytest.mark.parametrize("reflected", [False, True], ids=["turned", "turned-and-mirrored"])

@@ -1,37 +1,24 @@
 """Dataset generation: schema, determinism, resume without rewriting, sharding, atomic writes."""
 
 import hashlib
+import json
 
 import h5py
 import numpy as np
 import pytest
 
 from warpgnn import dataset
-from warpgnn.fem_ref import SolverConfig, generate as gen
-from warpgnn.fem_ref.generate import Preset, SimulationSet, generate_set, parse_shard
-from warpgnn.mesh import box_tet_mesh
-
-
-def slab(_name=None):
-    """A small soft slab fixed on its bottom face: a stand-in anatomy that simulates in a second."""
-    mesh = box_tet_mesh(4, 4, 2, (0.08, 0.08, 0.03))
-    mesh.fixed[:] = mesh.nodes[:, 2] < 1e-9
-    return mesh
-
-
-@pytest.fixture
-def tiny(monkeypatch):
-    monkeypatch.setattr(gen, "build_anatomy", slab)
-    return Preset([SimulationSet("A", "L1", 3), SimulationSet("B", "L2", 2, n_loads=2)],
-                  SolverConfig(duration=0.2, snapshots=4))
+from warpgnn.fem_ref import generate as gen
+from warpgnn.fem_ref.generate import SimulationSet, generate_set, parse_shard
+from warpgnn.fem_ref.solver import deterministic_sums, set_deterministic_sums
 
 
 def digest(path):
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def test_set_follows_the_schema(tmp_path, tiny):
-    stats = generate_set(tmp_path, tiny.sets[0], 0, tiny, seed=3, device="cpu")
+def test_set_follows_the_schema(tmp_path, tiny_preset):
+    stats = generate_set(tmp_path, tiny_preset.sets[0], 0, tiny_preset, seed=3, device="cpu")
     assert stats["simulated"] == 3
     path = tmp_path / "A.h5"
     mesh = dataset.read_mesh(path)
@@ -53,26 +40,26 @@ def test_set_follows_the_schema(tmp_path, tiny):
     assert not list(tmp_path.glob("*.tmp"))
 
 
-def test_resume_skips_finished_simulations_and_never_rewrites(tmp_path, tiny):
-    spec = tiny.sets[0]
-    first = generate_set(tmp_path, SimulationSet(spec.name, spec.anatomy, 2), 0, tiny, seed=1, device="cpu")
+def test_resume_skips_finished_simulations_and_never_rewrites(tmp_path, tiny_preset):
+    spec = tiny_preset.sets[0]
+    first = generate_set(tmp_path, SimulationSet(spec.name, spec.anatomy, 2), 0, tiny_preset, seed=1, device="cpu")
     before = dataset.read_simulation(tmp_path / "A.h5", "sim_0001")
-    again = generate_set(tmp_path, SimulationSet(spec.name, spec.anatomy, 2), 0, tiny, seed=1, device="cpu")
+    again = generate_set(tmp_path, SimulationSet(spec.name, spec.anatomy, 2), 0, tiny_preset, seed=1, device="cpu")
     assert first["simulated"] == 2 and again["simulated"] == 0 and again["skipped_existing"] == 2
-    done = generate_set(tmp_path, spec, 0, tiny, seed=1, device="cpu")  # complete the set
+    done = generate_set(tmp_path, spec, 0, tiny_preset, seed=1, device="cpu")  # complete the set
     assert done["simulated"] == 1 and done["skipped_existing"] == 2
     after = dataset.read_simulation(tmp_path / "A.h5", "sim_0001")
     assert all(np.array_equal(before[k], after[k]) for k in dataset.REQUIRED_SIM_FIELDS)
     # the same seed draws the same case for the same simulation in a fresh directory
     fresh = tmp_path / "fresh"
-    generate_set(fresh, spec, 0, tiny, seed=1, device="cpu")
+    generate_set(fresh, spec, 0, tiny_preset, seed=1, device="cpu")
     assert np.array_equal(dataset.read_simulation(fresh / "A.h5", "sim_0002")["u"],
                           dataset.read_simulation(tmp_path / "A.h5", "sim_0002")["u"])
 
 
-def test_interrupted_write_leaves_the_file_untouched(tmp_path, tiny, monkeypatch):
-    spec = tiny.sets[0]
-    generate_set(tmp_path, SimulationSet(spec.name, spec.anatomy, 1), 0, tiny, seed=0, device="cpu")
+def test_interrupted_write_leaves_the_file_untouched(tmp_path, tiny_preset, monkeypatch):
+    spec = tiny_preset.sets[0]
+    generate_set(tmp_path, SimulationSet(spec.name, spec.anatomy, 1), 0, tiny_preset, seed=0, device="cpu")
     before = digest(tmp_path / "A.h5")
 
     def crash(*_):
@@ -80,23 +67,23 @@ def test_interrupted_write_leaves_the_file_untouched(tmp_path, tiny, monkeypatch
 
     monkeypatch.setattr(dataset, "write_simulation", crash)
     with pytest.raises(KeyboardInterrupt):
-        generate_set(tmp_path, spec, 0, tiny, seed=0, device="cpu")
+        generate_set(tmp_path, spec, 0, tiny_preset, seed=0, device="cpu")
     assert digest(tmp_path / "A.h5") == before
     assert not list(tmp_path.glob("*.tmp"))
 
 
-def test_shards_split_the_sets(tmp_path, tiny, monkeypatch):
-    monkeypatch.setitem(gen.PRESETS, "tiny", lambda: tiny)
-    gen.generate(tmp_path, "tiny", device="cpu", shard="1/2")
+def test_shards_split_the_sets(tmp_path, tiny_preset, monkeypatch):
+    monkeypatch.setitem(gen.PRESETS, "tiny_preset", lambda: tiny_preset)
+    gen.generate(tmp_path, "tiny_preset", device="cpu", shard="1/2")
     assert sorted(p.name for p in tmp_path.glob("*.h5")) == ["B.h5"]
-    gen.generate(tmp_path, "tiny", device="cpu", shard="0/2")
+    gen.generate(tmp_path, "tiny_preset", device="cpu", shard="0/2")
     assert sorted(p.name for p in tmp_path.glob("*.h5")) == ["A.h5", "B.h5"]
     for sim in ("sim_0000", "sim_0001"):
         assert len(dataset.read_simulation(tmp_path / "B.h5", sim)["loaded"]) == 2
     assert (tmp_path / "manifest.0-of-2.json").exists() and (tmp_path / "manifest.1-of-2.json").exists()
 
 
-def test_failed_simulations_are_redrawn(tmp_path, tiny, monkeypatch):
+def test_failed_simulations_are_redrawn(tmp_path, tiny_preset, monkeypatch):
     """A load case that inverts elements is reported and replaced by the next attempt."""
     real = gen.LoadSampler
 
@@ -110,7 +97,7 @@ def test_failed_simulations_are_redrawn(tmp_path, tiny, monkeypatch):
 
     monkeypatch.setattr(gen, "LoadSampler", FirstAttemptCrushes)
     messages = []
-    stats = generate_set(tmp_path, tiny.sets[0], 0, tiny, seed=0, device="cpu", log=messages.append)
+    stats = generate_set(tmp_path, tiny_preset.sets[0], 0, tiny_preset, seed=0, device="cpu", log=messages.append)
     assert stats["simulated"] == 3 and stats["resampled"] >= 1
     assert any("element" in m and "resampled" in m for m in messages)
     sim = dataset.read_simulation(tmp_path / "A.h5", "sim_0000")
@@ -122,3 +109,17 @@ def test_parse_shard():
     for bad in ("4/4", "x/2", "1"):
         with pytest.raises(ValueError):
             parse_shard(bad)
+
+
+def test_manifest_records_whether_the_sums_were_deterministic(tmp_path, tiny_preset, monkeypatch):
+    monkeypatch.setitem(gen.PRESETS, "tiny_preset", lambda: tiny_preset)
+    gen.generate(tmp_path / "default", "tiny_preset", device="cpu", shard="1/2")
+    set_deterministic_sums(True)
+    try:
+        gen.generate(tmp_path / "fixed", "tiny_preset", device="cpu", shard="1/2")
+    finally:
+        set_deterministic_sums(False)
+    assert not deterministic_sums()
+    read = {d: json.loads((tmp_path / d / "manifest.1-of-2.json").read_text()) for d in ("default", "fixed")}
+    assert read["default"]["deterministic_sums"] is False and read["fixed"]["deterministic_sums"] is True
+    assert digest(tmp_path / "default" / "B.h5") == digest(tmp_path / "fixed" / "B.h5")  # the CPU sums in order anyway

@@ -1,0 +1,94 @@
+"""Benchmark: does the ground truth repeat bit for bit? One set of the paper preset generated twice with
+the element sums in the order the float atomics land (the default) and twice in a fixed order
+(`warpgnn generate --deterministic`, Warp's deterministic mode), on one device. Per pair of generations:
+which simulations differ, by how much (largest |dq|, |dv|, |dsigma| and v's normaliser, the largest
+|v| component of the simulation, which the v RRMSE divides by), and each generation's seconds (the
+first of each mode includes its compile). Motivation: docs/gnn-experiments.md, "the hold's ringing".
+
+    python bench/fem_determinism.py --anatomies /opt/data/anatomies --set L5 --count 190 --device cuda:0 \
+        --json bench/results/fem_determinism_h200.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from warpgnn import dataset
+
+FIELDS = ("q", "v", "sigma")
+
+
+def differences(path_a: Path, path_b: Path) -> dict:
+    """Simulation by simulation, the largest absolute difference of each field between two files of one
+    set; a simulation present in one file only counts as differing (its loads were redrawn otherwise)."""
+    names_a, names_b = dataset.simulation_names(path_a), dataset.simulation_names(path_b)
+    per = {}
+    for name in sorted(names_a | names_b):
+        if name not in names_a or name not in names_b:
+            per[name] = {"only_in": "a" if name in names_a else "b"}
+            continue
+        a, b = dataset.read_simulation(path_a, name), dataset.read_simulation(path_b, name)
+        if a["q"].shape != b["q"].shape or not np.array_equal(a["loaded"], b["loaded"]):
+            per[name] = {"other_loads": True}
+            continue
+        d = {f: float(np.abs(a[f].astype(np.float64) - b[f]).max()) for f in FIELDS}
+        if any(d.values()):
+            per[name] = d | {"v_normaliser_a": float(np.abs(a["v"]).max()), "v_normaliser_b": float(np.abs(b["v"]).max())}
+    return {"simulations": len(names_a | names_b), "differing": len(per), "identical": not per, "per_simulation": per}
+
+
+def main():
+    p = argparse.ArgumentParser()
+    p.add_argument("--anatomies", help="folder of L1..L5.vtu made beforehand (a GPU host without tetgen)")
+    p.add_argument("--set", default="L5", help="a set of the paper preset")
+    p.add_argument("--count", type=int, default=190, help="its first COUNT simulations")
+    p.add_argument("--device", default="cuda:0")
+    p.add_argument("--json", required=True)
+    args = p.parse_args()
+    from warpgnn.cli import init_warp
+
+    init_warp()
+    import warp as wp
+    from warpgnn.fem_ref.generate import PRESETS, generate_set
+    from warpgnn.fem_ref.solver import set_deterministic_sums
+
+    preset = PRESETS["paper"]()
+    index = [s.name for s in preset.sets].index(args.set)
+    spec = replace(preset.sets[index], count=min(args.count, preset.sets[index].count))
+    work = Path(tempfile.mkdtemp(prefix="warpgnn-determinism-"))
+    record = {"benchmark": "fem_determinism", "device": str(wp.get_device(args.device)),
+              "device_name": wp.get_device(args.device).name, "date": datetime.date.today().isoformat(),
+              "command": " ".join(sys.argv), "warp": wp.config.version, "set": args.set, "simulations": spec.count,
+              "modes": {}}
+    try:
+        for mode in ("atomic_order", "fixed_order"):
+            set_deterministic_sums(mode == "fixed_order")
+            paths, seconds = [], []
+            for run in range(2):
+                out = work / f"{mode}_{run}"
+                if args.anatomies:
+                    shutil.copytree(args.anatomies, out / "anatomies")
+                t0 = time.perf_counter()
+                generate_set(out, spec, index, preset, 0, args.device, log=lambda m: print(m, file=sys.stderr))
+                seconds.append(time.perf_counter() - t0)
+                paths.append(out / f"{spec.name}.h5")
+            record["modes"][mode] = {"seconds": seconds} | differences(*paths)
+            print(mode, {k: v for k, v in record["modes"][mode].items() if k != "per_simulation"})
+            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.json).write_text(json.dumps(record, indent=2))  # kept even if the second mode fails
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

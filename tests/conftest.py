@@ -1,0 +1,22 @@
+"""Fixtures shared by the test modules."""
+
+import pytest
+from warpgnn.fem_ref import SolverConfig
+from warpgnn.fem_ref import generate as gen
+from warpgnn.fem_ref.generate import Preset, SimulationSet
+
+from warpgnn.mesh import box_tet_mesh
+
+
+def slab(_name=None):
+    """A small soft slab fixed on its bottom face: a stand-in anatomy that simulates in a second."""
+    mesh = box_tet_mesh(4, 4, 2, (0.08, 0.08, 0.03))
+    mesh.fixed[:] = mesh.nodes[:, 2] < 1e-9
+    return mesh
+
+
+@pytest.fixture
+def tiny_preset(monkeypatch):
+    monkeypatch.setattr(gen, "build_anatomy", slab)
+    return Preset([SimulationSet("A", "L1", 3), SimulationSet("B", "L2", 2, n_loads=2)],
+                  SolverConfig(duration=0.2, snapshots=4))
