@@ -3,7 +3,10 @@ the element sums in the order the float atomics land (the default) and twice in 
 (`warpgnn generate --deterministic`, Warp's deterministic mode), on one device. Per pair of generations:
 which simulations differ, by how much (largest |dq|, |dv|, |dsigma| and v's normaliser, the largest
 |v| component of the simulation, which the v RRMSE divides by), and each generation's seconds (the
-first of each mode includes its compile). Motivation: docs/gnn-experiments.md, "the hold's ringing".
+first of each mode includes its compile unless Warp's kernel cache holds it). In deterministic mode the
+solver launches step by step (no captured interval): its seconds include that. All four generations
+simulate one mesh of the anatomy (--anatomies, or built once here). Motivation: docs/gnn-experiments.md,
+"the hold's ringing".
 
     python bench/fem_determinism.py --anatomies /opt/data/anatomies --set L5 --count 190 --device cuda:0 \
         --json bench/results/fem_determinism_h200.json
@@ -30,7 +33,8 @@ FIELDS = ("q", "v", "sigma")
 
 def differences(path_a: Path, path_b: Path) -> dict:
     """Simulation by simulation, the largest absolute difference of each field between two files of one
-    set; a simulation present in one file only counts as differing (its loads were redrawn otherwise)."""
+    set. A simulation whose kept load case differs (a failed attempt in one generation, redrawn, and not in the
+    other) is reported as such; one missing from a file (an interrupted generation) too."""
     names_a, names_b = dataset.simulation_names(path_a), dataset.simulation_names(path_b)
     per = {}
     for name in sorted(names_a | names_b):
@@ -38,7 +42,8 @@ def differences(path_a: Path, path_b: Path) -> dict:
             per[name] = {"only_in": "a" if name in names_a else "b"}
             continue
         a, b = dataset.read_simulation(path_a, name), dataset.read_simulation(path_b, name)
-        if a["q"].shape != b["q"].shape or not np.array_equal(a["loaded"], b["loaded"]):
+        if (a["q"].shape != b["q"].shape or not np.array_equal(a["loaded"], b["loaded"])
+                or not np.array_equal(a["u"], b["u"])):
             per[name] = {"other_loads": True}
             continue
         d = {f: float(np.abs(a[f].astype(np.float64) - b[f]).max()) for f in FIELDS}
@@ -59,13 +64,16 @@ def main():
 
     init_warp()
     import warp as wp
-    from warpgnn.fem_ref.generate import PRESETS, generate_set
+    from warpgnn.fem_ref.generate import PRESETS, anatomy_mesh, generate_set
     from warpgnn.fem_ref.solver import set_deterministic_sums
 
     preset = PRESETS["paper"]()
     index = [s.name for s in preset.sets].index(args.set)
     spec = replace(preset.sets[index], count=min(args.count, preset.sets[index].count))
     work = Path(tempfile.mkdtemp(prefix="warpgnn-determinism-"))
+    anatomies = Path(args.anatomies) if args.anatomies else work / "mesh" / "anatomies"
+    if not args.anatomies:
+        anatomy_mesh(work / "mesh", spec.anatomy)  # meshed once, outside the timings
     record = {"benchmark": "fem_determinism", "device": str(wp.get_device(args.device)),
               "device_name": wp.get_device(args.device).name, "date": datetime.date.today().isoformat(),
               "command": " ".join(sys.argv), "warp": wp.config.version, "set": args.set, "simulations": spec.count,
@@ -76,8 +84,7 @@ def main():
             paths, seconds = [], []
             for run in range(2):
                 out = work / f"{mode}_{run}"
-                if args.anatomies:
-                    shutil.copytree(args.anatomies, out / "anatomies")
+                shutil.copytree(anatomies, out / "anatomies")
                 t0 = time.perf_counter()
                 generate_set(out, spec, index, preset, 0, args.device, log=lambda m: print(m, file=sys.stderr))
                 seconds.append(time.perf_counter() - t0)

@@ -280,7 +280,7 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # same wait. A wait packs last.pt (30 MB) and best.pt (10 MB): with nothing else in RUNS it fits a call's 64 MiB. Its other
 # GPUs can take 12-pass seeds 1 and 2 at 100e only if their checkpoints can be carried too (two calls a run, each session).
 # The same call can measure, on GPU 1, whether the ground truth repeats bit for bit with and without `generate --deterministic`
-# (a few minutes): CUDA_VISIBLE_DEVICES=1 python3 bench/fem_determinism.py --anatomies /opt/data/anatomies --set L5 --device
+# (minutes, unmeasured: the deterministic mode launches step by step; give it a call of its own if the wait is short): CUDA_VISIBLE_DEVICES=1 python3 bench/fem_determinism.py --anatomies /opt/data/anatomies --set L5 --device
 # cuda:0 --json $OUT/fem_determinism.json, and what it costs the paper preset: CUDA_VISIBLE_DEVICES=1 python3
 # bench/fem_generate.py --device cuda:0 --anatomies /opt/data/anatomies --deterministic --json $OUT/fem_generate_det.json,
 # then the same without --deterministic as its peer. If it repeats and costs little, train_paper.sh generates with it.

@@ -34,12 +34,14 @@ NO_FAILURE = 2**63 - 1  # failure keys are step * n_elements + element, min-redu
 
 
 def set_deterministic_sums(on: bool) -> None:
-    """Sum the element forces and stresses into the nodes in a fixed order on CUDA (Warp's deterministic
-    mode, RUN_TO_RUN: the same bits on every run on GPUs of one architecture), or in the order the float
-    atomics land (off, the default). Sums in another order round differently, and an undamped vibration
+    """Sum the element forces and stresses into the nodes independently of the order the threads run in on
+    CUDA (Warp's deterministic mode, RUN_TO_RUN: sorted, order-independent sums, the same bits on every run
+    with one Warp version on GPUs of one architecture), or in the order the float atomics land (off, the
+    default). Sums in another order round differently, and an undamped vibration
     (the ringing some simulations keep once the tools stop) carries that rounding on, so two generations
     of one dataset differ in those simulations' velocities. The CPU device sums in order either way.
-    Applies to every later launch of this module's kernels, which recompile once when it changes."""
+    Applies to every later launch of this module's kernels, which recompile once when it changes; the solver
+    then launches step by step instead of replaying a captured interval (see BatchedExplicitSolver)."""
     mode = wp.DeterministicMode.RUN_TO_RUN if on else wp.DeterministicMode.NOT_GUARANTEED
     wp.set_module_options({"deterministic": mode}, module=__name__)
 
@@ -410,7 +412,9 @@ class BatchedExplicitSolver:
         wp.launch(start_half_step, (B, N), [self.v_half, self.forces, self.inv_mass, self.dt], device=d)
         self._record()
         self.graph = None
-        if d.is_cuda and capture_graph:
+        # Not in deterministic mode: each deterministic launch keeps its own sort buffers (~256 B per element and
+        # simulation) for the life of a graph, and an interval of ~1800 steps of 190 livers would hold ~190 GB
+        if d.is_cuda and capture_graph and not deterministic_sums():
             with wp.ScopedCapture(device=d) as capture:
                 self._interval()
             self.graph = capture.graph

@@ -40,3 +40,11 @@ def test_a_changed_velocity_and_a_missing_simulation_are_reported(two_generation
     assert one["q"] == 0.0 and one["sigma"] == 0.0 and one["v"] == pytest.approx(1e-3, rel=1e-3)
     assert one["v_normaliser_b"] == pytest.approx(float(np.abs(changed).max()))
     assert report["per_simulation"]["sim_0002"] == {"only_in": "a"}
+
+
+def test_another_kept_load_case_is_reported_as_such(two_generations):
+    a, b = two_generations
+    with h5py.File(b, "r+") as f:
+        u = f["sims/sim_0000/u"]
+        u[...] = u[()] * 1.5
+    assert differences(a, b)["per_simulation"] == {"sim_0000": {"other_loads": True}}

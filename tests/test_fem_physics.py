@@ -9,7 +9,7 @@ import warp as wp
 from ogden_reference import cauchy_fd, cauchy_principal, energy, relaxation, voigt
 from warpgnn.fem_ref import (BatchedExplicitSolver, OgdenProny, SolverConfig, elastic_nodal_stress, make_load_case,
                              stable_time_step)
-from warpgnn.fem_ref.solver import set_deterministic_sums
+from warpgnn.fem_ref.solver import element_forces
 from warpgnn.mesh import box_tet_mesh
 
 CUBE = 0.01  # m
@@ -179,21 +179,34 @@ def test_cpu_and_cuda_trajectories_agree():
     assert np.abs(cpu.sigma - gpu.sigma).max() < 1e-3 * np.abs(cpu.sigma).max()
 
 
-@pytest.mark.skipif(not wp.is_cuda_available(), reason="needs a CUDA device")
-def test_deterministic_sums_repeat_bit_for_bit_on_cuda():
-    """With the element sums in a fixed order (set_deterministic_sums) two CUDA runs of one batch write the
-    same bits, ringing included: a dataset generated twice is the same dataset."""
-    mesh = box_tet_mesh(6, 3, 3, (0.06, 0.03, 0.03))
+def bar_cases(n_elements_x=6):
+    """A bar fixed at one end, its other end pulled three ways: three simulations of one batch."""
+    mesh = box_tet_mesh(n_elements_x, 3, 3, (0.06, 0.03, 0.03))
     mesh.fixed[:] = mesh.nodes[:, 0] < 1e-9
     tip = np.flatnonzero(mesh.nodes[:, 0] > 0.06 - 1e-9)
-    cases = [make_load_case(mesh, tip, np.tile(d, (len(tip), 1)), spread=False)
-             for d in ([0.0, 0.006, 0.003], [0.004, -0.003, 0.0], [0.0, 0.0, -0.008])]
+    return mesh, [make_load_case(mesh, tip, np.tile(d, (len(tip), 1)), spread=False)
+                  for d in ([0.0, 0.006, 0.003], [0.004, -0.003, 0.0], [0.0, 0.0, -0.008])]
+
+
+def test_deterministic_sums_reach_the_element_kernels(deterministic_sums_on):
+    """set_deterministic_sums recompiles the solver's kernels in Warp's deterministic mode: the element forces are
+    then a sorted scatter (Warp's codegen metadata; on CUDA the launches use it, the CPU sums in order anyway)."""
+    mesh, cases = bar_cases(2)
+    BatchedExplicitSolver(mesh, cases[:1], config=SolverConfig(duration=0.01, snapshots=1), device="cpu").run()
+    meta = element_forces.adj.det_meta
+    assert meta is not None and any(t.array_var_label == "forces" and t.use_forward for t in meta.scatter_targets)
+
+
+@pytest.mark.skipif(not wp.is_cuda_available(), reason="needs a CUDA device")
+def test_deterministic_sums_repeat_bit_for_bit_on_cuda(deterministic_sums_on):
+    """With order-independent element sums two CUDA runs of one batch write the same bits, ringing included: a
+    dataset generated twice is the same dataset. The solver launches step by step then (no captured interval,
+    whose deterministic launches would each keep their own sort buffers)."""
+    mesh, cases = bar_cases()
     cfg = SolverConfig(duration=0.4, snapshots=8)
-    set_deterministic_sums(True)
-    try:
-        runs = [BatchedExplicitSolver(mesh, cases, config=cfg, device="cuda:0").run() for _ in range(2)]
-    finally:
-        set_deterministic_sums(False)
+    solvers = [BatchedExplicitSolver(mesh, cases, config=cfg, device="cuda:0") for _ in range(2)]
+    assert all(s.graph is None for s in solvers)
+    runs = [s.run() for s in solvers]
     for k in ("q", "v", "sigma"):
         assert np.array_equal(getattr(runs[0], k), getattr(runs[1], k)), k
 

@@ -10,7 +10,6 @@ import pytest
 from warpgnn import dataset
 from warpgnn.fem_ref import generate as gen
 from warpgnn.fem_ref.generate import SimulationSet, generate_set, parse_shard
-from warpgnn.fem_ref.solver import deterministic_sums, set_deterministic_sums
 
 
 def digest(path):
@@ -73,10 +72,10 @@ def test_interrupted_write_leaves_the_file_untouched(tmp_path, tiny_preset, monk
 
 
 def test_shards_split_the_sets(tmp_path, tiny_preset, monkeypatch):
-    monkeypatch.setitem(gen.PRESETS, "tiny_preset", lambda: tiny_preset)
-    gen.generate(tmp_path, "tiny_preset", device="cpu", shard="1/2")
+    monkeypatch.setitem(gen.PRESETS, "tiny", lambda: tiny_preset)
+    gen.generate(tmp_path, "tiny", device="cpu", shard="1/2")
     assert sorted(p.name for p in tmp_path.glob("*.h5")) == ["B.h5"]
-    gen.generate(tmp_path, "tiny_preset", device="cpu", shard="0/2")
+    gen.generate(tmp_path, "tiny", device="cpu", shard="0/2")
     assert sorted(p.name for p in tmp_path.glob("*.h5")) == ["A.h5", "B.h5"]
     for sim in ("sim_0000", "sim_0001"):
         assert len(dataset.read_simulation(tmp_path / "B.h5", sim)["loaded"]) == 2
@@ -111,15 +110,11 @@ def test_parse_shard():
             parse_shard(bad)
 
 
-def test_manifest_records_whether_the_sums_were_deterministic(tmp_path, tiny_preset, monkeypatch):
-    monkeypatch.setitem(gen.PRESETS, "tiny_preset", lambda: tiny_preset)
-    gen.generate(tmp_path / "default", "tiny_preset", device="cpu", shard="1/2")
-    set_deterministic_sums(True)
-    try:
-        gen.generate(tmp_path / "fixed", "tiny_preset", device="cpu", shard="1/2")
-    finally:
-        set_deterministic_sums(False)
-    assert not deterministic_sums()
+def test_manifest_records_whether_the_sums_were_deterministic(tmp_path, tiny_preset, monkeypatch, request):
+    monkeypatch.setitem(gen.PRESETS, "tiny", lambda: tiny_preset)
+    gen.generate(tmp_path / "default", "tiny", device="cpu", shard="1/2")
+    request.getfixturevalue("deterministic_sums_on")
+    gen.generate(tmp_path / "fixed", "tiny", device="cpu", shard="1/2")
     read = {d: json.loads((tmp_path / d / "manifest.1-of-2.json").read_text()) for d in ("default", "fixed")}
     assert read["default"]["deterministic_sums"] is False and read["fixed"]["deterministic_sums"] is True
     assert digest(tmp_path / "default" / "B.h5") == digest(tmp_path / "fixed" / "B.h5")  # the CPU sums in order anyway

@@ -34,8 +34,9 @@ def init_warp():
 
 
 WARP_COMMANDS = ("fem", "generate", "demo")  # the rest run on torch (and meshing) alone
-DETERMINISTIC_HELP = ("sum the element forces and stresses into the nodes in a fixed order on CUDA, so every run "
-                      "writes the same bits (Warp's deterministic mode; the CPU sums in order anyway)")
+DETERMINISTIC_HELP = ("sum the element forces and stresses into the nodes independently of the threads' order on "
+                      "CUDA, so every run (one Warp version, one GPU architecture) writes the same bits (Warp's "
+                      "deterministic mode, launched step by step; the CPU sums in order anyway)")
 
 
 def _device(name):
