@@ -328,6 +328,7 @@ class SimulationResult:
     failures: list = field(default_factory=list)  # per simulation: None or a one-line report
     dt: float = 0.0  # explicit step
     steps: int = 0  # explicit steps per simulation
+    deterministic_sums: bool = False  # the element sums ran order-independently (set_deterministic_sums)
 
 
 def stable_time_step(mesh: TetMesh, material: OgdenProny, config: SolverConfig) -> float:
@@ -344,6 +345,7 @@ class BatchedExplicitSolver:
         self.mesh, self.cases, self.config = mesh, cases, config
         self.material = material if config.viscosity else material.elastic()
         self.device = wp.get_device(device)
+        self.deterministic = deterministic_sums()  # the mode its kernels run in (set before it is made)
         B, N, T, S = len(cases), len(mesh.nodes), len(mesh.tets), config.snapshots
         if B == 0:
             raise ValueError("no load case to simulate")
@@ -414,7 +416,7 @@ class BatchedExplicitSolver:
         self.graph = None
         # Not in deterministic mode: each deterministic launch keeps its own sort buffers (~256 B per element and
         # simulation) for the life of a graph, and an interval of ~1800 steps of 190 livers would hold ~190 GB
-        if d.is_cuda and capture_graph and not deterministic_sums():
+        if d.is_cuda and capture_graph and not self.deterministic:
             with wp.ScopedCapture(device=d) as capture:
                 self._interval()
             self.graph = capture.graph
@@ -487,4 +489,5 @@ class BatchedExplicitSolver:
             q=self.q_out.numpy(), v=self.v_out.numpy(), sigma=self.sigma_out.numpy(),
             kinetic_energy=self.kinetic.numpy(), strain_energy=self.strain.numpy(),
             max_stretch=self.max_stretch.numpy(),
-            failures=self.failures(), dt=self.dt, steps=self.substeps * self.snapshots_done)
+            failures=self.failures(), dt=self.dt, steps=self.substeps * self.snapshots_done,
+            deterministic_sums=self.deterministic)
