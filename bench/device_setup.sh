@@ -17,6 +17,10 @@
 # finishes): a 30-minute run plus setup outlasts that, so time the last wait to start less than
 # 10 minutes before the run ends (e.g. a short wait in between); otherwise resume it from $OUT's
 # last.pt on a fresh machine (its recompilation is not charged to --time-budget).
+# To start a run once another has finished (a GPU freed mid-call), wait in a setsid'd shell on the training
+# process itself: pgrep -f 'warpgnn(.cli)? train.*NAME' with a bracket in NAME (e.g. revq_s[2]), so that the
+# waiting shell's own pattern does not match. Matching the run's name alone also matches the device call's own
+# command line (its train_paper.sh regex holds the name): on 2026-11-26 such a wait lasted until the call ended.
 # Resuming a 12-pass run (last.pt 30 MB, best.pt 10 MB) costs no extra call: put best.pt, log.csv and
 # stdout.txt under an ignored .devout_a/runs/<run>/ and last.pt under .devout_b/runs/<run>/, carry
 # .devout_a with a1 and .devout_b with a2, and cp -r each one's runs/* into the RUNS folder.
