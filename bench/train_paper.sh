@@ -284,6 +284,8 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # cuda:0 --json $OUT/fem_determinism.json, and what it costs the paper preset: CUDA_VISIBLE_DEVICES=1 python3
 # bench/fem_generate.py --device cuda:0 --anatomies /opt/data/anatomies --deterministic --json $OUT/fem_generate_det.json,
 # then the same without --deterministic as its peer. If it repeats and costs little, train_paper.sh generates with it.
+# The session's last call can also pack torch.compile's cache for the next (bench/device_setup.sh; its first epochs:
+# 192 s on a fresh machine against 48 s with a warm cache for the 12-pass run).
 for s in 0 1 2; do
   run hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS --rotate \
     --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity
