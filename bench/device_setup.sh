@@ -35,7 +35,10 @@ mkdir -p /opt/bin && printf '#!/bin/sh\nexec python3 -m warpgnn.cli "$@"\n' > /o
 export PATH=/opt/bin:$PATH
 mkdir -p /opt/data/anatomies && cp -n .devdata/anatomies/*.vtu /opt/data/anatomies/ 2>/dev/null || true
 # torch.compile's cache from an earlier session, if carried (ignored .devcache/inductor.tgz): a 12-pass run's first
-# epoch took 192 s on a fresh machine and 48 s where the cache was warm (2026-11-26). Pack it at a session's end with
+# epoch took 192 s on a fresh machine and 48 s on the machine that had compiled its twin (2026-11-26; what a carried
+# cache saves on a fresh machine is unmeasured). Pack it at a session's end with
 # tar -C /tmp -czf $OUT/inductor.tgz torchinductor_root (size unmeasured: carry it only if it fits beside the rest)
-if [ -f .devcache/inductor.tgz ] && [ ! -d /tmp/torchinductor_root ]; then tar -C /tmp -xzf .devcache/inductor.tgz; fi
+if [ -f .devcache/inductor.tgz ] && [ ! -d /tmp/torchinductor_root ]; then
+  tar -C /tmp -xzf .devcache/inductor.tgz || { echo "device_setup: inductor cache not unpacked" >&2; rm -rf /tmp/torchinductor_root; }
+fi
 set +e

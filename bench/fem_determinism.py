@@ -1,12 +1,12 @@
 """Benchmark: does the ground truth repeat bit for bit? One set of the paper preset generated twice with
-the element sums in the order the float atomics land (the default) and twice in a fixed order
+the element sums in the order the float atomics land (the default) and twice order-independently
 (`warpgnn generate --deterministic`, Warp's deterministic mode), on one device. Per pair of generations:
 which simulations differ, by how much (largest |dq|, |dv|, |dsigma| and v's normaliser, the largest
 |v| component of the simulation, which the v RRMSE divides by), and each generation's seconds (the
 first of each mode includes its compile unless Warp's kernel cache holds it). In deterministic mode the
 solver launches step by step (no captured interval): its seconds include that. All four generations
 simulate one mesh of the anatomy (--anatomies, or built once here). Motivation: docs/gnn-experiments.md,
-"the hold's ringing".
+"The ground truth's hold velocity rings in a few simulations".
 
     python bench/fem_determinism.py --anatomies /opt/data/anatomies --set L5 --count 190 --device cuda:0 \
         --json bench/results/fem_determinism_h200.json
@@ -79,8 +79,8 @@ def main():
               "command": " ".join(sys.argv), "warp": wp.config.version, "set": args.set, "simulations": spec.count,
               "modes": {}}
     try:
-        for mode in ("atomic_order", "fixed_order"):
-            set_deterministic_sums(mode == "fixed_order")
+        for mode in ("atomic_order", "order_independent"):
+            set_deterministic_sums(mode == "order_independent")
             paths, seconds = [], []
             for run in range(2):
                 out = work / f"{mode}_{run}"

@@ -104,8 +104,8 @@ def main():
     p.add_argument("--preset", default="paper")
     p.add_argument("--json", required=True)
     p.add_argument("--anatomies", help="folder of L1..L5.vtu made beforehand (a GPU host without tetgen)")
-    p.add_argument("--deterministic", action="store_true", help="element sums in a fixed order (warpgnn generate "
-                   "--deterministic), to time what reproducible datasets cost")
+    p.add_argument("--deterministic", action="store_true", help="order-independent element sums (warpgnn "
+                   "generate --deterministic), to time what reproducible datasets cost")
     p.add_argument("--compare", metavar="NPZ", help="CPU half of the CPU-vs-CUDA check: run the CPU side here "
                    "against the CUDA trajectories NPZ (written beside --json on the GPU) and add it to --json")
     args = p.parse_args()

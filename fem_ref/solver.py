@@ -10,7 +10,7 @@ grows like lb^16, so every element checks its own CFL condition at every step
 (dt * c(lb_e, J_e) <= h_e): larger elements may stretch further than the shortest one. On
 CUDA one snapshot interval (all its steps, the stress recovery and the snapshot write) is
 captured once as a CUDA graph and replayed, so a whole simulation costs one graph launch per
-snapshot and one copy back at the end.
+snapshot and one copy back at the end (step by step launches with set_deterministic_sums).
 
 A simulation whose element inverts (J <= 0), goes non-finite or breaks its CFL condition (the
 explicit scheme would go unstable there) is frozen and reported with the element and time of

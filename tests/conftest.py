@@ -1,9 +1,6 @@
-"""Fixtures shared by the test modules."""
+"""Fixtures shared by the test modules (Warp is imported inside them, so torch-only tests need no Warp)."""
 
 import pytest
-from warpgnn.fem_ref import SolverConfig
-from warpgnn.fem_ref import generate as gen
-from warpgnn.fem_ref.generate import Preset, SimulationSet
 
 from warpgnn.mesh import box_tet_mesh
 
@@ -17,7 +14,11 @@ def slab(_name=None):
 
 @pytest.fixture
 def tiny_preset(monkeypatch):
-    monkeypatch.setattr(gen, "build_anatomy", slab)
+    """A two-set preset of short simulations on the slab, its anatomies built as the slab."""
+    from warpgnn.fem_ref import SolverConfig, generate
+    from warpgnn.fem_ref.generate import Preset, SimulationSet
+
+    monkeypatch.setattr(generate, "build_anatomy", slab)
     return Preset([SimulationSet("A", "L1", 3), SimulationSet("B", "L2", 2, n_loads=2)],
                   SolverConfig(duration=0.2, snapshots=4))
 

@@ -192,8 +192,10 @@ def test_deterministic_sums_reach_the_element_kernels(deterministic_sums_on):
     """set_deterministic_sums recompiles the solver's kernels in Warp's deterministic mode: the element forces are
     then a sorted scatter (Warp's codegen metadata; on CUDA the launches use it, the CPU sums in order anyway)."""
     mesh, cases = bar_cases(2)
-    BatchedExplicitSolver(mesh, cases[:1], config=SolverConfig(duration=0.01, snapshots=1), device="cpu").run()
-    meta = element_forces.adj.det_meta
+    solver = BatchedExplicitSolver(mesh, cases[:1], config=SolverConfig(duration=0.01, snapshots=1), device="cpu")
+    assert solver.run().deterministic_sums and solver.deterministic
+    assert wp.get_module_options(module=element_forces.module.name)["deterministic"] == wp.DeterministicMode.RUN_TO_RUN
+    meta = element_forces.adj.det_meta  # (kept from any earlier deterministic build in the process too)
     assert meta is not None and any(t.array_var_label == "forces" and t.use_forward for t in meta.scatter_targets)
 
 

@@ -94,7 +94,7 @@ def cmd_fem(args):
     config = SolverConfig(duration=args.duration, snapshots=args.snapshots, viscosity=not args.no_viscosity)
     solver = BatchedExplicitSolver(mesh, [case], OgdenProny(), config, device=_device(args.device))
     print(f"explicit step {solver.dt:.3e} s, {solver.substeps * config.snapshots} steps on {solver.device}"
-          + (", element sums in a fixed order" if deterministic_sums() else ""))
+          + (", order-independent element sums" if deterministic_sums() else ""))
     res = solver.run()
     if res.failures[0] is not None:
         raise InputError(f"simulation failed: {res.failures[0]} (nothing written)")
