@@ -72,7 +72,7 @@ def cmd_anatomy(args):
 def cmd_fem(args):
     from . import dataset
     from .fem_ref import BatchedExplicitSolver, OgdenProny, SolverConfig, make_load_case
-    from .fem_ref.solver import deterministic_sums, set_deterministic_sums
+    from .fem_ref.solver import set_deterministic_sums
     from .mesh import TetMesh, read_ids
 
     if args.deterministic:
@@ -94,7 +94,7 @@ def cmd_fem(args):
     config = SolverConfig(duration=args.duration, snapshots=args.snapshots, viscosity=not args.no_viscosity)
     solver = BatchedExplicitSolver(mesh, [case], OgdenProny(), config, device=_device(args.device))
     print(f"explicit step {solver.dt:.3e} s, {solver.substeps * config.snapshots} steps on {solver.device}"
-          + (", order-independent element sums" if deterministic_sums() else ""))
+          + (", order-independent element sums" if solver.deterministic else ""))
     res = solver.run()
     if res.failures[0] is not None:
         raise InputError(f"simulation failed: {res.failures[0]} (nothing written)")
