@@ -1,15 +1,18 @@
-"""Benchmark: does the ground truth repeat bit for bit? One set of the paper preset generated twice with
-the element sums in the order the float atomics land (the default) and twice order-independently
-(`warpgnn generate --deterministic`, Warp's deterministic mode), on one device. Per pair of generations:
-which simulations differ, by how much (largest |dq|, |dv|, |dsigma| and v's normaliser, the largest
-|v| component of the simulation, which the v RRMSE divides by), and each generation's seconds (the
-first of each mode includes its compile unless Warp's kernel cache holds it). In deterministic mode the
-solver launches step by step (no captured interval): its seconds include that. All four generations
-simulate one mesh of the anatomy (--anatomies, or built once here). Motivation: docs/gnn-experiments.md,
-"The ground truth's hold velocity rings in a few simulations".
+"""Benchmark: does the ground truth repeat bit for bit? One set of the paper preset generated twice on one
+device, the second time in smaller batches (--second-batch), so that every simulation shares its launches with
+other simulations than the first time. Per pair: which simulations differ, by how much (largest |dq|, |dv|,
+|dsigma| and v's normaliser, the largest |v| component of the simulation, which the v RRMSE divides by), and each
+generation's seconds (the first includes the compile unless Warp's kernel cache holds it). Both generations
+simulate one mesh of the anatomy (--anatomies, or built once here).
+
+The solver sums into the nodes by gathers in a fixed order (fem_ref/solver.py), so nothing should differ. Until
+2026-11-26 it summed with float atomics, and two such generations of L5 on an H200 differed in all 190
+simulations (bench/results/fem_determinism_h200.json, keys atomic_order / order_independent: the latter Warp's
+deterministic mode, 12-14x slower, which the gathers replaced). Motivation: docs/gnn-experiments.md, "The ground
+truth's hold velocity rings in a few simulations".
 
     python bench/fem_determinism.py --anatomies /opt/data/anatomies --set L5 --count 190 --device cuda:0 \
-        --json bench/results/fem_determinism_h200.json
+        --json bench/results/fem_determinism_gather_h200.json
 """
 
 from __future__ import annotations
@@ -57,6 +60,8 @@ def main():
     p.add_argument("--anatomies", help="folder of L1..L5.vtu made beforehand (a GPU host without tetgen)")
     p.add_argument("--set", default="L5", help="a set of the paper preset")
     p.add_argument("--count", type=int, default=190, help="its first COUNT simulations")
+    p.add_argument("--second-batch", type=int, default=64, help="most simulations per launch in the second "
+                   "generation (the first: warpgnn generate's default, 256)")
     p.add_argument("--device", default="cuda:0")
     p.add_argument("--json", required=True)
     args = p.parse_args()
@@ -65,7 +70,6 @@ def main():
     init_warp()
     import warp as wp
     from warpgnn.fem_ref.generate import PRESETS, anatomy_mesh, generate_set
-    from warpgnn.fem_ref.solver import set_deterministic_sums
 
     preset = PRESETS["paper"]()
     index = [s.name for s in preset.sets].index(args.set)
@@ -76,23 +80,21 @@ def main():
         anatomy_mesh(work / "mesh", spec.anatomy)  # meshed once, outside the timings
     record = {"benchmark": "fem_determinism", "device": str(wp.get_device(args.device)),
               "device_name": wp.get_device(args.device).name, "date": datetime.date.today().isoformat(),
-              "command": " ".join(sys.argv), "warp": wp.config.version, "set": args.set, "simulations": spec.count,
-              "modes": {}}
+              "command": " ".join(sys.argv), "warp": wp.config.version, "set": args.set, "simulations": spec.count}
     try:
-        for mode in ("atomic_order", "order_independent"):
-            set_deterministic_sums(mode == "order_independent")
-            paths, seconds = [], []
-            for run in range(2):
-                out = work / f"{mode}_{run}"
-                shutil.copytree(anatomies, out / "anatomies")
-                t0 = time.perf_counter()
-                generate_set(out, spec, index, preset, 0, args.device, log=lambda m: print(m, file=sys.stderr))
-                seconds.append(time.perf_counter() - t0)
-                paths.append(out / f"{spec.name}.h5")
-            record["modes"][mode] = {"seconds": seconds} | differences(*paths)
-            print(mode, {k: v for k, v in record["modes"][mode].items() if k != "per_simulation"})
-            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-            Path(args.json).write_text(json.dumps(record, indent=2))  # kept even if the second mode fails
+        paths, seconds, batches = [], [], (256, args.second_batch)
+        for run, batch in enumerate(batches):
+            out = work / f"run_{run}"
+            shutil.copytree(anatomies, out / "anatomies")
+            t0 = time.perf_counter()
+            generate_set(out, spec, index, preset, 0, args.device, max_batch=batch,
+                         log=lambda m: print(m, file=sys.stderr))
+            seconds.append(time.perf_counter() - t0)
+            paths.append(out / f"{spec.name}.h5")
+        record |= {"max_batch": list(batches), "seconds": seconds} | differences(*paths)
+        print({k: v for k, v in record.items() if k != "per_simulation"})
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(record, indent=2))
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

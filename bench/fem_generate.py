@@ -32,9 +32,11 @@ import numpy as np
 import warp as wp
 
 # Minimal DRAM traffic of one element update: Prony state (S_iso_prev, H1, H2: 3 x 6 floats)
-# read and written = 144 B, plus the node arrays (x, v_half, forces: read+write) amortised over
-# ~3.3 elements per node = ~22 B. Mesh constants (tets, Dm_inv, V0) are shared by all simulations.
-BYTES_PER_ELEMENT_UPDATE = 166
+# read and written = 144 B, its four corner forces written and read back by the node sums = 96 B,
+# plus the node arrays (x, v_half: read+write) amortised over ~3.3 elements per node = ~15 B. Mesh
+# constants (tets, Dm_inv, V0, the node-corner lists) are shared by all simulations. (166 B until
+# 2026-11-26, when the node sums were float atomics into a node array.)
+BYTES_PER_ELEMENT_UPDATE = 255
 
 
 def measure_bandwidth(device) -> float:
@@ -104,8 +106,6 @@ def main():
     p.add_argument("--preset", default="paper")
     p.add_argument("--json", required=True)
     p.add_argument("--anatomies", help="folder of L1..L5.vtu made beforehand (a GPU host without tetgen)")
-    p.add_argument("--deterministic", action="store_true", help="order-independent element sums (warpgnn "
-                   "generate --deterministic), to time what reproducible datasets cost")
     p.add_argument("--compare", metavar="NPZ", help="CPU half of the CPU-vs-CUDA check: run the CPU side here "
                    "against the CUDA trajectories NPZ (written beside --json on the GPU) and add it to --json")
     args = p.parse_args()
@@ -123,9 +123,6 @@ def main():
     wp.config.kernel_cache_dir = cache  # cold cache: compile time is part of the figure
     wp.init()
     from warpgnn.fem_ref.generate import anatomy_mesh, generate
-    from warpgnn.fem_ref.solver import set_deterministic_sums
-
-    set_deterministic_sums(args.deterministic)
 
     out_dir = Path(tempfile.mkdtemp(prefix="warpgnn-preset-"))
     if args.anatomies:
@@ -140,7 +137,7 @@ def main():
         "benchmark": "fem_generate", "device": str(wp.get_device(args.device)),
         "device_name": wp.get_device(args.device).name, "date": datetime.date.today().isoformat(),
         "command": " ".join(sys.argv), "warp": wp.config.version, "host": platform.node(),
-        "preset": args.preset, "deterministic_sums": args.deterministic, "simulations": sims,
+        "preset": args.preset, "simulations": sims,
         "wall_seconds_including_compile": wall,
         "simulation_seconds": sim_seconds, "simulations_per_second": sims / wall,
         "element_updates": updates, "element_updates_per_second": updates / sim_seconds,

@@ -270,22 +270,31 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # 5.552e-2, +6.4 / +3.6 / +8.7 % against the 5-pass take-back, behind each of its seeds; its best epoch was its last and its
 # final training loss (1.03) the 5-pass runs' at epochs 67-76 of their 139-167: still falling when its schedule ended.)
 # So 100 epochs, in a RUNS folder of its own: ... bench/train_paper.sh DATA RUNS100 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s0$'
-# (seed 0 started 2026-11-26 on GPU 0 of the same nvidia-h200-x4, after the pair's seed 2: epochs 0-29 in 1028 s. Its best.pt
-# and logs are in the ignored .devruns/next1/runs100, its last.pt in .devruns/next2/runs100; about 70 epochs, ~2600 s, to go.)
+# (seed 0 started 2026-11-26 on GPU 0 of the same nvidia-h200-x4, after the pair's seed 2: epochs 0-29 in 1028 s; resumed the
+# next session on a fresh nvidia-h200-x4 to epoch 71 (2458 s in all; its best validation mean 3.386e-2 at epoch 64). Its best.pt
+# and logs are in the ignored .devruns/next1/runs100, its last.pt in .devruns/next2/runs100; 28 epochs, ~950 s, to go.)
+# Beside it since 2026-11-26, the one opening left for hybrid better than vanilla (their gap shrank with epochs under the noise
+# before the take-back): the take-back's hybrid and its vanilla peer, seed 0 each, at 300 epochs (the 'seeds
+# stable_rot_smooth2e1_g3e1_vel' line above) in a RUNS folder of their own: FIRST_GPU=2 ... /opt/data /opt/runs300 300e
+# '^(hybrid|vanilla)_p5_stable_rot_smooth2e1_g3e1_vel_s0$' (hybrid on GPU 2, vanilla on GPU 3). First session: epochs 0-135 and
+# 0-163 (best validation mean 3.282e-2 at 131 and 3.167e-2 at 162); all their files (9.6 MB) are in .devruns/next2/runs300.
 # Next session: call 1 carries .devwheels/a and .devruns/next1 and runs mkdir -p /opt/dw /opt/runs100 && cp .devwheels/a/*
-# /opt/dw/ && cp -r .devruns/next1/runs100/. /opt/runs100/; call 2 carries .devruns/next2 and copies it the same way; call 3
-# carries .devwheels/b and .devdata and runs source bench/device_setup.sh && PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs
-# FALLBACK=--compile bench/train_paper.sh /opt/data /opt/runs100 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s0$';
-# bench/wait_runs.sh /opt/runs100 $((570-SECONDS)) $OUT, and later calls (each starting with source bench/device_setup.sh) the
-# same wait. A wait packs last.pt (30 MB) and best.pt (10 MB): with nothing else in RUNS it fits a call's 64 MiB. Its other
-# GPUs can take 12-pass seeds 1 and 2 at 100e only if their checkpoints can be carried too (two calls a run, each session).
-# The same call can measure, on GPU 1, whether the ground truth repeats bit for bit with and without `generate --deterministic`
-# (minutes, unmeasured: the deterministic mode launches step by step; give it a call of its own if the wait is short): CUDA_VISIBLE_DEVICES=1 python3 bench/fem_determinism.py --anatomies /opt/data/anatomies --set L5 --device
-# cuda:0 --json $OUT/fem_determinism.json, and what it costs the paper preset: CUDA_VISIBLE_DEVICES=1 python3
-# bench/fem_generate.py --device cuda:0 --anatomies /opt/data/anatomies --deterministic --json $OUT/fem_generate_det.json,
-# then the same without --deterministic as its peer. If it repeats and costs little, train_paper.sh generates with it.
-# The session's last call can also pack torch.compile's cache for the next (bench/device_setup.sh; its first epochs:
-# 192 s on a fresh machine against 48 s with a warm cache for the 12-pass run).
+# /opt/dw/ && cp -r .devruns/next1/runs100/. /opt/runs100/; call 2 carries .devruns/next2 and runs mkdir -p /opt/runs300 && cp -r
+# .devruns/next2/runs100/. /opt/runs100/ && cp -r .devruns/next2/runs300/. /opt/runs300/; call 3 carries .devwheels/b and
+# .devdata and runs source bench/device_setup.sh && export PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs FALLBACK=--compile
+# && bench/train_paper.sh /opt/data /opt/runs100 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s0$' && FIRST_GPU=2
+# bench/train_paper.sh /opt/data /opt/runs300 300e '^(hybrid|vanilla)_p5_stable_rot_smooth2e1_g3e1_vel_s0$', then on GPU 1
+# (setsid, into /opt/det) the ground truth's new node sums (fixed-order gathers, no float atomics): CUDA_VISIBLE_DEVICES=1
+# python3 bench/fem_determinism.py --anatomies /opt/data/anatomies --set L5 --device cuda:0 --json /opt/det/fem_determinism.json
+# (two generations, the second in batches of 64: expected the same bits) and python3 bench/fem_generate.py --device cuda:0
+# --anatomies /opt/data/anatomies --json /opt/det/fem_generate.json (their cost against the atomics' 59.5 s,
+# bench/results/fem_generate_deterministic_h200.json's peer; its cuda_trajectories.npz comes back for the CPU half,
+# --compare); then bench/wait_runs.sh /opt/runs100 $((560-SECONDS)) $OUT /opt/data (DATA: the 12-pass run is evaluated once
+# done, EVAL_SECONDS before the call's end), mkdir -p $OUT/r300 && bench/wait_runs.sh /opt/runs300 0 $OUT/r300 and cp
+# /opt/det/*.json /opt/det/*.npz $OUT/ (a call returns at most 8 files: runs.tar.00-02, r300's one, three of /opt/det). Later
+# calls (each starting with source bench/device_setup.sh) the same waits. The 300e runs need ~1800 s (hybrid) and ~1250 s
+# (vanilla) more, so the session after carries runs300 again. Pack torch.compile's cache (bench/device_setup.sh) only in a
+# call with room for it.
 for s in 0 1 2; do
   run hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS --rotate \
     --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity

@@ -10,7 +10,15 @@ grows like lb^16, so every element checks its own CFL condition at every step
 (dt * c(lb_e, J_e) <= h_e): larger elements may stretch further than the shortest one. On
 CUDA one snapshot interval (all its steps, the stress recovery and the snapshot write) is
 captured once as a CUDA graph and replayed, so a whole simulation costs one graph launch per
-snapshot and one copy back at the end (step by step launches with set_deterministic_sums).
+snapshot and one copy back at the end.
+
+Every sum into a node is a gather in a fixed order, never a float atomic: the element kernels write
+each corner's force (and each element's weighted stress) to its own slot, and the node kernels add
+their corners up in element order (NodeCorners). Float atomics would add in whatever order the
+threads land, which rounds differently from run to run, and a simulation that keeps ringing once
+the tools stop carries that rounding on (on an H200, two generations of L5 differed in all 190
+simulations, bench/results/fem_determinism_h200.json). So a device writes the same bits on every
+run, whatever else shares the batch, and the CPU adds in the order its serial atomics did.
 
 A simulation whose element inverts (J <= 0), goes non-finite or breaks its CFL condition (the
 explicit scheme would go unstable there) is frozen and reported with the element and time of
@@ -31,23 +39,6 @@ from .loads import LoadCase
 from .material import MaterialParams, OgdenProny, ogden_split, sym_to_vec6, vec6, vec6_to_sym, wave_speed_sq
 
 NO_FAILURE = 2**63 - 1  # failure keys are step * n_elements + element, min-reduced
-
-
-def set_deterministic_sums(on: bool) -> None:
-    """Sum the element forces and stresses into the nodes independently of the order the threads run in on
-    CUDA (Warp's deterministic mode, RUN_TO_RUN: sorted, order-independent sums, the same bits on every run
-    with one Warp version on GPUs of one architecture), or in the order the float atomics land (off, the
-    default). Sums in another order round differently, and an undamped vibration
-    (the ringing some simulations keep once the tools stop) carries that rounding on, so two generations
-    of one dataset differ in those simulations' velocities. The CPU device sums in order either way.
-    Applies to every later launch of this module's kernels, which recompile once when it changes; the solver
-    then launches step by step instead of replaying a captured interval (see BatchedExplicitSolver)."""
-    mode = wp.DeterministicMode.RUN_TO_RUN if on else wp.DeterministicMode.NOT_GUARANTEED
-    wp.set_module_options({"deterministic": mode}, module=__name__)
-
-
-def deterministic_sums() -> bool:
-    return wp.get_module_options(module=__name__)["deterministic"] != wp.DeterministicMode.NOT_GUARANTEED
 
 
 @wp.func
@@ -87,6 +78,51 @@ def prescribed_position(X: wp.vec3, w: float, u: wp.vec3, t: float, t_ramp: floa
     return X + (w * ramp(t, t_ramp)) * u
 
 
+@wp.struct
+class NodeCorners:
+    """Which element corners each node is: node n is corners[first[n]:first[n + 1]], the slots 4 e + k
+    (corner k of element e), in element order."""
+    first: wp.array(dtype=int)
+    corners: wp.array(dtype=int)
+
+
+def node_corners(tets: np.ndarray, n_nodes: int, device) -> NodeCorners:
+    owner = np.asarray(tets).ravel()  # slot 4 e + k belongs to node tets[e, k]
+    adj = NodeCorners()
+    adj.first = wp.array(np.concatenate([[0], np.cumsum(np.bincount(owner, minlength=n_nodes))]).astype(np.int32),
+                         dtype=int, device=device)
+    adj.corners = wp.array(np.argsort(owner, kind="stable").astype(np.int32), dtype=int, device=device)  # stable: by e
+    return adj
+
+
+@wp.func
+def node_force(corner_forces: wp.array2d(dtype=wp.vec3), adj: NodeCorners, b: int, n: int):
+    """The internal force on node n: its corners' forces added in element order."""
+    f = wp.vec3(0.0)
+    for c in range(adj.first[n], adj.first[n + 1]):
+        f = f + corner_forces[b, adj.corners[c]]
+    return f
+
+
+@wp.func
+def node_stress(weighted_stress: wp.array2d(dtype=vec6), weight: wp.array2d(dtype=float), adj: NodeCorners,
+                b: int, n: int):
+    """Nodal stress: its elements' stresses averaged with their weights (current volumes), in element order."""
+    acc = vec6()
+    w = float(0.0)
+    for c in range(adj.first[n], adj.first[n + 1]):
+        e = adj.corners[c] // 4
+        acc = acc + weighted_stress[b, e]
+        w = w + weight[b, e]
+    return acc / w
+
+
+@wp.func
+def zero_corners(corner_forces: wp.array2d(dtype=wp.vec3), b: int, e: int):
+    for k in range(4):
+        corner_forces[b, 4 * e + k] = wp.vec3(0.0)
+
+
 @wp.kernel
 def element_forces(
     x: wp.array2d(dtype=wp.vec3),
@@ -102,14 +138,16 @@ def element_forces(
     step_base: wp.array(dtype=int),
     i: int,
     dt: float,
-    forces: wp.array2d(dtype=wp.vec3),
+    corner_forces: wp.array2d(dtype=wp.vec3),
     failure: wp.array(dtype=wp.int64),
     unstable: wp.array(dtype=wp.int64),
 ):
-    """Internal forces of every element at x_n, with the Prony update to step n."""
+    """Internal forces of every element at x_n, with the Prony update to step n: corner k of element e
+    in slot 4 e + k (zero where the element does no work)."""
     b, e = wp.tid()
     step_key = wp.int64(step_base[0] + i) * wp.int64(tets.shape[0])
     if frozen(failure, unstable, b, step_key):
+        zero_corners(corner_forces, b, e)
         return  # frozen at an earlier step: no work spent on a simulation that will be redrawn
     t = tets[e]
     Dinv = Dm_inv[e]
@@ -118,6 +156,7 @@ def element_forces(
     key = step_key + wp.int64(e)
     if not (J > 0.0 and wp.isfinite(J) and wp.isfinite(stretch)):
         wp.atomic_min(failure, b, key)
+        zero_corners(corner_forces, b, e)
         return
     h = altitude[e]
     if wave_speed_sq(mat, stretch, J) * dt * dt > h * h:
@@ -136,17 +175,18 @@ def element_forces(
     f1 = wp.vec3(Hf[0, 0], Hf[1, 0], Hf[2, 0])
     f2 = wp.vec3(Hf[0, 1], Hf[1, 1], Hf[2, 1])
     f3 = wp.vec3(Hf[0, 2], Hf[1, 2], Hf[2, 2])
-    wp.atomic_add(forces, b, t[0], -(f1 + f2 + f3))
-    wp.atomic_add(forces, b, t[1], f1)
-    wp.atomic_add(forces, b, t[2], f2)
-    wp.atomic_add(forces, b, t[3], f3)
+    corner_forces[b, 4 * e + 0] = -(f1 + f2 + f3)
+    corner_forces[b, 4 * e + 1] = f1
+    corner_forces[b, 4 * e + 2] = f2
+    corner_forces[b, 4 * e + 3] = f3
 
 
 @wp.kernel
 def advance_nodes(
     x: wp.array2d(dtype=wp.vec3),
     v_half: wp.array2d(dtype=wp.vec3),
-    forces: wp.array2d(dtype=wp.vec3),
+    corner_forces: wp.array2d(dtype=wp.vec3),
+    adj: NodeCorners,
     X: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     fixed: wp.array(dtype=wp.int32),
@@ -161,10 +201,8 @@ def advance_nodes(
     t_ramp: float,
     damping: float,
 ):
-    """Central-difference update to x_(n+1); consumes (and zeroes) the forces at x_n."""
+    """Central-difference update to x_(n+1) from the forces at x_n."""
     b, n = wp.tid()
-    f = forces[b, n]
-    forces[b, n] = wp.vec3(0.0)
     if frozen(failure, unstable, b, wp.int64(NO_FAILURE)):
         return  # any failure so far: this simulation is reported and resampled
     t = float(step_base[0] + i + 1) * dt
@@ -180,7 +218,7 @@ def advance_nodes(
         v_half[b, n] = (w * ramp_rate(t - 0.5 * dt, t_ramp)) * u
         return
     vh = v_half[b, n]
-    vh = vh + dt * (inv_mass[n] * f - damping * vh)
+    vh = vh + dt * (inv_mass[n] * node_force(corner_forces, adj, b, n) - damping * vh)
     v_half[b, n] = vh
     x[b, n] = x[b, n] + dt * vh
 
@@ -188,13 +226,14 @@ def advance_nodes(
 @wp.kernel
 def start_half_step(
     v_half: wp.array2d(dtype=wp.vec3),
-    forces: wp.array2d(dtype=wp.vec3),
+    corner_forces: wp.array2d(dtype=wp.vec3),
+    adj: NodeCorners,
     inv_mass: wp.array(dtype=float),
     dt: float,
 ):
     """v_(-1/2) = v_0 - dt/2 a_0, so the first leapfrog step lands on v_(1/2)."""
     b, n = wp.tid()
-    v_half[b, n] = v_half[b, n] - (0.5 * dt * inv_mass[n]) * forces[b, n]
+    v_half[b, n] = v_half[b, n] - (0.5 * dt * inv_mass[n]) * node_force(corner_forces, adj, b, n)
 
 
 @wp.kernel
@@ -207,25 +246,31 @@ def element_stress(
     H1: wp.array2d(dtype=vec6),
     H2: wp.array2d(dtype=vec6),
     snap: wp.array(dtype=int),
-    sigma_acc: wp.array2d(dtype=vec6),
-    weight_acc: wp.array2d(dtype=float),
-    strain_energy: wp.array2d(dtype=float),
+    weighted_stress: wp.array2d(dtype=vec6),
+    weight: wp.array2d(dtype=float),
+    elastic_energy: wp.array2d(dtype=float),
     max_stretch: wp.array2d(dtype=float),
 ):
-    """Element Cauchy stress, accumulated into nodes weighted by current element volume; the
-    largest deviatoric principal stretch of the snapshot (a diagnostic kept beside the data)."""
+    """Element Cauchy stress times its weight, the current element volume (node_stress averages them), and
+    its stored elastic energy; the largest deviatoric principal stretch of the snapshot (a diagnostic kept
+    beside the data; a max is the same in any order)."""
     b, e = wp.tid()
     t = tets[e]
     F = deformation_gradient(x, b, t, Dm_inv[e])
     S_iso, S_vol, J, stretch, W = ogden_split(F, mat)
     S = S_vol + mat.g_inf * S_iso + vec6_to_sym(H1[b, e]) + vec6_to_sym(H2[b, e])
-    sigma = sym_to_vec6(F * S * wp.transpose(F) / J)
     wv = J * vol0[e]
-    for k in range(4):
-        wp.atomic_add(sigma_acc, b, t[k], wv * sigma)
-        wp.atomic_add(weight_acc, b, t[k], wv)
-    wp.atomic_add(strain_energy, b, snap[0], vol0[e] * W)
+    weighted_stress[b, e] = wv * sym_to_vec6(F * S * wp.transpose(F) / J)
+    weight[b, e] = wv
+    elastic_energy[b, e] = vol0[e] * W
     wp.atomic_max(max_stretch, b, snap[0], stretch)
+
+
+@wp.kernel
+def gather_stress(weighted_stress: wp.array2d(dtype=vec6), weight: wp.array2d(dtype=float), adj: NodeCorners,
+                  sigma: wp.array2d(dtype=vec6)):
+    b, n = wp.tid()
+    sigma[b, n] = node_stress(weighted_stress, weight, adj, b, n)
 
 
 def rest_shape_inverse(mesh: TetMesh) -> np.ndarray:
@@ -248,21 +293,24 @@ def elastic_nodal_stress(mesh: TetMesh, positions: np.ndarray, material: OgdenPr
     B, N, T = positions.shape[0], len(mesh.nodes), len(mesh.tets)
     params = material.elastic().to_warp(1.0)  # no viscous branch: dt does not enter
     zeros6 = wp.zeros((B, T), dtype=vec6, device=d)  # no internal variables
-    acc, weight = wp.zeros((B, N), dtype=vec6, device=d), wp.zeros((B, N), dtype=float, device=d)
+    weighted, weight = wp.zeros((B, T), dtype=vec6, device=d), wp.zeros((B, T), dtype=float, device=d)
     wp.launch(element_stress, (B, T),
               [wp.array(positions, dtype=wp.vec3, device=d), wp.array(mesh.tets, dtype=wp.vec4i, device=d),
                wp.array(rest_shape_inverse(mesh), dtype=wp.mat33, device=d),
                wp.array(mesh.volumes.astype(np.float32), dtype=float, device=d), params, zeros6, zeros6,
-               wp.zeros(1, dtype=int, device=d), acc, weight, wp.zeros((B, 1), dtype=float, device=d),
+               wp.zeros(1, dtype=int, device=d), weighted, weight, wp.zeros((B, T), dtype=float, device=d),
                wp.zeros((B, 1), dtype=float, device=d)], device=d)
-    return acc.numpy() / weight.numpy()[..., None]
+    sigma = wp.zeros((B, N), dtype=vec6, device=d)
+    wp.launch(gather_stress, (B, N), [weighted, weight, node_corners(mesh.tets, N, d), sigma], device=d)
+    return sigma.numpy()
 
 
 @wp.kernel
 def record_snapshot(
     x: wp.array2d(dtype=wp.vec3),
     v_half: wp.array2d(dtype=wp.vec3),
-    forces: wp.array2d(dtype=wp.vec3),
+    corner_forces: wp.array2d(dtype=wp.vec3),
+    adj: NodeCorners,
     inv_mass: wp.array(dtype=float),
     fixed: wp.array(dtype=wp.int32),
     pres_load: wp.array2d(dtype=wp.int32),
@@ -272,28 +320,43 @@ def record_snapshot(
     snap: wp.array(dtype=int),
     dt: float,
     t_ramp: float,
-    sigma_acc: wp.array2d(dtype=vec6),
-    weight_acc: wp.array2d(dtype=float),
+    weighted_stress: wp.array2d(dtype=vec6),
+    weight: wp.array2d(dtype=float),
     q_out: wp.array3d(dtype=wp.vec3),
     v_out: wp.array3d(dtype=wp.vec3),
     sigma_out: wp.array3d(dtype=vec6),
-    kinetic_energy: wp.array2d(dtype=float),
+    node_kinetic: wp.array2d(dtype=float),
 ):
     """Writes (q_n, v_n, nodal sigma_n) of snapshot ``snap``; v_n = v_(n-1/2) + dt/2 a_n."""
     b, n = wp.tid()
     s = snap[0]
-    v = v_half[b, n] + (0.5 * dt * inv_mass[n]) * forces[b, n]
     k = pres_load[b, n]
-    if fixed[n] != 0:
-        v = wp.vec3(0.0)
-    elif k >= 0:
-        v = (pres_weight[b, n] * ramp_rate(float(step_base[0]) * dt, t_ramp)) * load_disp[b, k]
+    v = wp.vec3(0.0)  # a fixed node's
+    if fixed[n] == 0:
+        if k >= 0:
+            v = (pres_weight[b, n] * ramp_rate(float(step_base[0]) * dt, t_ramp)) * load_disp[b, k]
+        else:
+            v = v_half[b, n] + (0.5 * dt * inv_mass[n]) * node_force(corner_forces, adj, b, n)
     q_out[b, s, n] = x[b, n]
     v_out[b, s, n] = v
-    sigma_out[b, s, n] = sigma_acc[b, n] / weight_acc[b, n]
-    sigma_acc[b, n] = vec6()
-    weight_acc[b, n] = 0.0
-    wp.atomic_add(kinetic_energy, b, s, 0.5 / inv_mass[n] * wp.dot(v, v))
+    sigma_out[b, s, n] = node_stress(weighted_stress, weight, adj, b, n)
+    node_kinetic[b, n] = 0.5 / inv_mass[n] * wp.dot(v, v)
+
+
+@wp.kernel
+def record_energies(elastic_energy: wp.array2d(dtype=float), node_kinetic: wp.array2d(dtype=float),
+                    snap: wp.array(dtype=int), strain: wp.array2d(dtype=float), kinetic: wp.array2d(dtype=float)):
+    """Each simulation's stored elastic and kinetic energy of snapshot ``snap``, summed in element and node
+    order (one thread a simulation: once a snapshot, the order matters more than the speed)."""
+    b = wp.tid()
+    total = float(0.0)
+    for e in range(elastic_energy.shape[1]):
+        total = total + elastic_energy[b, e]
+    strain[b, snap[0]] = total
+    total = float(0.0)
+    for n in range(node_kinetic.shape[1]):
+        total = total + node_kinetic[b, n]
+    kinetic[b, snap[0]] = total
 
 
 @wp.kernel
@@ -328,7 +391,6 @@ class SimulationResult:
     failures: list = field(default_factory=list)  # per simulation: None or a one-line report
     dt: float = 0.0  # explicit step
     steps: int = 0  # explicit steps per simulation
-    deterministic_sums: bool = False  # the element sums ran order-independently (set_deterministic_sums)
 
 
 def stable_time_step(mesh: TetMesh, material: OgdenProny, config: SolverConfig) -> float:
@@ -345,7 +407,6 @@ class BatchedExplicitSolver:
         self.mesh, self.cases, self.config = mesh, cases, config
         self.material = material if config.viscosity else material.elastic()
         self.device = wp.get_device(device)
-        self.deterministic = deterministic_sums()  # the mode its kernels run in (set before it is made)
         B, N, T, S = len(cases), len(mesh.nodes), len(mesh.tets), config.snapshots
         if B == 0:
             raise ValueError("no load case to simulate")
@@ -392,12 +453,15 @@ class BatchedExplicitSolver:
         v0 = np.broadcast_to(0.0 if v0 is None else v0, (B, N, 3))
         self.x = arr(q0.astype(np.float32), wp.vec3)
         self.v_half = arr(v0.astype(np.float32), wp.vec3)
-        self.forces = wp.zeros((B, N), dtype=wp.vec3, device=d)
+        self.adj = node_corners(mesh.tets, N, d)
+        self.corner_forces = wp.zeros((B, 4 * T), dtype=wp.vec3, device=d)
         self.S_iso_prev = wp.zeros((B, T), dtype=vec6, device=d)
         self.H1 = wp.zeros((B, T), dtype=vec6, device=d)
         self.H2 = wp.zeros((B, T), dtype=vec6, device=d)
-        self.sigma_acc = wp.zeros((B, N), dtype=vec6, device=d)
-        self.weight_acc = wp.zeros((B, N), dtype=float, device=d)
+        self.weighted_stress = wp.zeros((B, T), dtype=vec6, device=d)
+        self.stress_weight = wp.zeros((B, T), dtype=float, device=d)
+        self.elastic_energy = wp.zeros((B, T), dtype=float, device=d)
+        self.node_kinetic = wp.zeros((B, N), dtype=float, device=d)
         self.failure = wp.full(B, NO_FAILURE, dtype=wp.int64, device=d)
         self.unstable = wp.full(B, NO_FAILURE, dtype=wp.int64, device=d)
         self.step_base = wp.zeros(1, dtype=int, device=d)
@@ -411,12 +475,11 @@ class BatchedExplicitSolver:
 
         self.snapshots_done = 0
         self._forces(i=0, first=1)
-        wp.launch(start_half_step, (B, N), [self.v_half, self.forces, self.inv_mass, self.dt], device=d)
+        wp.launch(start_half_step, (B, N), [self.v_half, self.corner_forces, self.adj, self.inv_mass, self.dt],
+                  device=d)
         self._record()
         self.graph = None
-        # Not in deterministic mode: each deterministic launch keeps its own sort buffers (~256 B per element and
-        # simulation) for the life of a graph, and an interval of ~1800 steps of 190 livers would hold ~190 GB
-        if d.is_cuda and capture_graph and not self.deterministic:
+        if d.is_cuda and capture_graph:
             with wp.ScopedCapture(device=d) as capture:
                 self._interval()
             self.graph = capture.graph
@@ -425,27 +488,29 @@ class BatchedExplicitSolver:
     def _forces(self, i: int, first: int = 0):
         wp.launch(element_forces, (self.B, self.T),
                   [self.x, self.tets, self.Dm_inv, self.vol0, self.altitude, self.params, self.S_iso_prev, self.H1,
-                   self.H2, first, self.step_base, i, self.dt, self.forces, self.failure, self.unstable],
+                   self.H2, first, self.step_base, i, self.dt, self.corner_forces, self.failure, self.unstable],
                   device=self.device)
 
     def _record(self):
         B, N, T = self.B, self.N, self.T
         wp.launch(element_stress, (B, T),
                   [self.x, self.tets, self.Dm_inv, self.vol0, self.params, self.H1, self.H2, self.snap,
-                   self.sigma_acc, self.weight_acc, self.strain, self.max_stretch], device=self.device)
+                   self.weighted_stress, self.stress_weight, self.elastic_energy, self.max_stretch], device=self.device)
         wp.launch(record_snapshot, (B, N),
-                  [self.x, self.v_half, self.forces, self.inv_mass, self.fixed, self.pres_load, self.pres_weight,
-                   self.load_disp, self.step_base, self.snap, self.dt, self.t_ramp, self.sigma_acc,
-                   self.weight_acc, self.q_out, self.v_out, self.sigma_out, self.kinetic], device=self.device)
+                  [self.x, self.v_half, self.corner_forces, self.adj, self.inv_mass, self.fixed, self.pres_load,
+                   self.pres_weight, self.load_disp, self.step_base, self.snap, self.dt, self.t_ramp,
+                   self.weighted_stress, self.stress_weight, self.q_out, self.v_out, self.sigma_out, self.node_kinetic],
+                  device=self.device)
+        wp.launch(record_energies, B, [self.elastic_energy, self.node_kinetic, self.snap, self.strain, self.kinetic],
+                  device=self.device)
 
     def _interval(self):
         """All explicit steps of one snapshot interval, then the snapshot itself."""
         for i in range(self.substeps):
             wp.launch(advance_nodes, (self.B, self.N),
-                      [self.x, self.v_half, self.forces, self.X, self.inv_mass, self.fixed, self.pres_load,
-                       self.pres_weight, self.load_disp, self.failure, self.unstable, self.step_base, i, self.dt,
-                       self.t_ramp,
-                       self.config.mass_damping], device=self.device)
+                      [self.x, self.v_half, self.corner_forces, self.adj, self.X, self.inv_mass, self.fixed,
+                       self.pres_load, self.pres_weight, self.load_disp, self.failure, self.unstable, self.step_base,
+                       i, self.dt, self.t_ramp, self.config.mass_damping], device=self.device)
             self._forces(i=i + 1)
         wp.launch(advance_counters, 1, [self.step_base, self.snap, self.substeps], device=self.device)
         self._record()
@@ -489,5 +554,4 @@ class BatchedExplicitSolver:
             q=self.q_out.numpy(), v=self.v_out.numpy(), sigma=self.sigma_out.numpy(),
             kinetic_energy=self.kinetic.numpy(), strain_energy=self.strain.numpy(),
             max_stretch=self.max_stretch.numpy(),
-            failures=self.failures(), dt=self.dt, steps=self.substeps * self.snapshots_done,
-            deterministic_sums=self.deterministic)
+            failures=self.failures(), dt=self.dt, steps=self.substeps * self.snapshots_done)

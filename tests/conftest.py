@@ -21,14 +21,3 @@ def tiny_preset(monkeypatch):
     monkeypatch.setattr(generate, "build_anatomy", slab)
     return Preset([SimulationSet("A", "L1", 3), SimulationSet("B", "L2", 2, n_loads=2)],
                   SolverConfig(duration=0.2, snapshots=4))
-
-
-@pytest.fixture
-def deterministic_sums_on():
-    """The FEM solver in Warp's deterministic mode for one test, then back to what it was."""
-    from warpgnn.fem_ref.solver import deterministic_sums, set_deterministic_sums
-
-    before = deterministic_sums()
-    set_deterministic_sums(True)
-    yield
-    set_deterministic_sums(before)

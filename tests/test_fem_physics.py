@@ -9,7 +9,8 @@ import warp as wp
 from ogden_reference import cauchy_fd, cauchy_principal, energy, relaxation, voigt
 from warpgnn.fem_ref import (BatchedExplicitSolver, OgdenProny, SolverConfig, elastic_nodal_stress, make_load_case,
                              stable_time_step)
-from warpgnn.fem_ref.solver import element_forces
+from warpgnn.fem_ref.material import vec6
+from warpgnn.fem_ref.solver import NO_FAILURE, NodeCorners, element_forces, node_corners, node_force, rest_shape_inverse
 from warpgnn.mesh import box_tet_mesh
 
 CUBE = 0.01  # m
@@ -188,29 +189,80 @@ def bar_cases(n_elements_x=6):
                   for d in ([0.0, 0.006, 0.003], [0.004, -0.003, 0.0], [0.0, 0.0, -0.008])]
 
 
-def test_deterministic_sums_reach_the_element_kernels(deterministic_sums_on):
-    """set_deterministic_sums recompiles the solver's kernels in Warp's deterministic mode: the element forces are
-    then a sorted scatter (Warp's codegen metadata; on CUDA the launches use it, the CPU sums in order anyway)."""
+@wp.kernel
+def gathered_forces(corner_forces: wp.array2d(dtype=wp.vec3), adj: NodeCorners, out: wp.array2d(dtype=wp.vec3)):
+    b, n = wp.tid()
+    out[b, n] = node_force(corner_forces, adj, b, n)
+
+
+def test_nodal_forces_are_minus_the_energy_gradient_added_in_element_order():
+    """element_forces' corner forces, gathered by node, are -dE/dx of the elastic energy (central differences of
+    the float64 reference), and each node adds its corners in element order, as np.add.at does (and as the CPU's
+    serial float atomics did before): the same bits."""
+    mesh = box_tet_mesh(2, 2, 1, (0.02, 0.02, 0.01))
+    N, T = len(mesh.nodes), len(mesh.tets)
+    x = mesh.nodes + 5e-4 * np.random.default_rng(0).standard_normal(mesh.nodes.shape)  # ~5 % of an edge
+    dev = "cpu"
+    arr = lambda a, dtype: wp.array(np.ascontiguousarray(a), dtype=dtype, device=dev)  # noqa: E731
+    corner = wp.zeros((1, 4 * T), dtype=wp.vec3, device=dev)
+    no_failure = wp.full(1, NO_FAILURE, dtype=wp.int64, device=dev)
+    zeros6 = wp.zeros((1, T), dtype=vec6, device=dev)
+    wp.launch(element_forces, (1, T), [arr(x[None].astype(np.float32), wp.vec3), arr(mesh.tets, wp.vec4i),
+              arr(rest_shape_inverse(mesh), wp.mat33), arr(mesh.volumes.astype(np.float32), float),
+              arr(np.ones(T, np.float32), float), OgdenProny().elastic().to_warp(1e-5), zeros6, zeros6,
+              wp.zeros((1, T), dtype=vec6, device=dev), 1, wp.zeros(1, dtype=int, device=dev), 0, 1e-5, corner,
+              no_failure, wp.full(1, NO_FAILURE, dtype=wp.int64, device=dev)], device=dev)
+    nodal = wp.zeros((1, N), dtype=wp.vec3, device=dev)
+    wp.launch(gathered_forces, (1, N), [corner, node_corners(mesh.tets, N, dev), nodal], device=dev)
+    got = nodal.numpy()[0]
+    by_corner = np.zeros((N, 3), np.float32)
+    np.add.at(by_corner, mesh.tets.ravel(), corner.numpy()[0])
+    assert np.array_equal(got, by_corner)
+
+    Dm_inv = rest_shape_inverse(mesh).astype(np.float64)
+
+    def total_energy(y):
+        Ds = np.stack([y[mesh.tets[:, k]] - y[mesh.tets[:, 0]] for k in (1, 2, 3)], axis=2)
+        return sum(v * energy(F) for v, F in zip(mesh.volumes, Ds @ Dm_inv))
+
+    h, grad = 1e-7, np.zeros_like(x)
+    for n in range(N):
+        for c in range(3):
+            step = np.zeros_like(x)
+            step[n, c] = h
+            grad[n, c] = (total_energy(x + step) - total_energy(x - step)) / (2 * h)
+    assert np.abs(got + grad).max() < 1e-4 * np.abs(grad).max()  # seen: 1.4e-6
+
+
+def test_a_simulation_writes_the_same_bits_alone_or_in_any_batch():
+    """Every node sums only its own simulation's corners, in a fixed order: a simulation's trajectory does not
+    depend on which others share its batch or where it sits in it (generation runs a case's attempts side by
+    side, and a resumed set batches other cases)."""
     mesh, cases = bar_cases(2)
-    solver = BatchedExplicitSolver(mesh, cases[:1], config=SolverConfig(duration=0.01, snapshots=1), device="cpu")
-    assert solver.run().deterministic_sums and solver.deterministic
-    assert wp.get_module_options(module=element_forces.module.name)["deterministic"] == wp.DeterministicMode.RUN_TO_RUN
-    meta = element_forces.adj.det_meta  # (kept from any earlier deterministic build in the process too)
-    assert meta is not None and any(t.array_var_label == "forces" and t.use_forward for t in meta.scatter_targets)
+    cfg = SolverConfig(duration=0.1, snapshots=2)
+    batch = BatchedExplicitSolver(mesh, cases, config=cfg, device="cpu").run()
+    flipped = BatchedExplicitSolver(mesh, cases[::-1], config=cfg, device="cpu").run()
+    for b, case in enumerate(cases):
+        alone = BatchedExplicitSolver(mesh, [case], config=cfg, device="cpu").run()
+        for k in ("q", "v", "sigma", "kinetic_energy", "strain_energy", "max_stretch"):
+            assert np.array_equal(getattr(alone, k)[0], getattr(batch, k)[b]), k
+            assert np.array_equal(getattr(alone, k)[0], getattr(flipped, k)[len(cases) - 1 - b]), k
 
 
 @pytest.mark.skipif(not wp.is_cuda_available(), reason="needs a CUDA device")
-def test_deterministic_sums_repeat_bit_for_bit_on_cuda(deterministic_sums_on):
-    """With order-independent element sums two CUDA runs of one batch write the same bits, ringing included: a
-    dataset generated twice is the same dataset. The solver launches step by step then (no captured interval,
-    whose deterministic launches would each keep their own sort buffers)."""
+def test_cuda_runs_repeat_bit_for_bit():
+    """No float atomics in the node sums: two CUDA runs of one batch (each replaying its captured interval) write
+    the same bits, ringing included, and so does one simulation run alone: a dataset generated twice is the same
+    dataset (float atomics differed in all 190 L5 simulations: bench/results/fem_determinism_h200.json)."""
     mesh, cases = bar_cases()
     cfg = SolverConfig(duration=0.4, snapshots=8)
     solvers = [BatchedExplicitSolver(mesh, cases, config=cfg, device="cuda:0") for _ in range(2)]
-    assert all(s.graph is None for s in solvers)
+    assert all(s.graph is not None for s in solvers)
     runs = [s.run() for s in solvers]
-    for k in ("q", "v", "sigma"):
+    alone = BatchedExplicitSolver(mesh, cases[1:2], config=cfg, device="cuda:0").run()
+    for k in ("q", "v", "sigma", "kinetic_energy", "strain_energy"):
         assert np.array_equal(getattr(runs[0], k), getattr(runs[1], k)), k
+        assert np.array_equal(getattr(alone, k)[0], getattr(runs[0], k)[1]), k
 
 
 @pytest.mark.parametrize("reflected", [False, True], ids=["turned", "turned-and-mirrored"])

@@ -1,7 +1,6 @@
 """Dataset generation: schema, determinism, resume without rewriting, sharding, atomic writes."""
 
 import hashlib
-import json
 
 import h5py
 import numpy as np
@@ -108,18 +107,3 @@ def test_parse_shard():
     for bad in ("4/4", "x/2", "1"):
         with pytest.raises(ValueError):
             parse_shard(bad)
-
-
-def test_manifest_records_whether_the_sums_were_deterministic(tmp_path, tiny_preset, monkeypatch, request):
-    monkeypatch.setitem(gen.PRESETS, "tiny", lambda: tiny_preset)
-    gen.generate(tmp_path / "default", "tiny", device="cpu", shard="1/2")
-    request.getfixturevalue("deterministic_sums_on")
-    gen.generate(tmp_path / "fixed", "tiny", device="cpu", shard="1/2")
-    read = {d: json.loads((tmp_path / d / "manifest.1-of-2.json").read_text()) for d in ("default", "fixed")}
-    assert read["default"]["deterministic_sums"] is False and read["fixed"]["deterministic_sums"] is True
-    for d, mode in (("default", False), ("fixed", True)):  # each simulation carries it too (a resumed set may mix)
-        with h5py.File(tmp_path / d / "B.h5") as f:
-            assert all(bool(f["sims"][name].attrs["deterministic_sums"]) is mode for name in f["sims"])
-    for name in ("sim_0000", "sim_0001"):  # the CPU sums in order anyway
-        a, b = (dataset.read_simulation(tmp_path / d / "B.h5", name) for d in ("default", "fixed"))
-        assert all(np.array_equal(a[k], b[k]) for k in ("q", "v", "sigma"))

@@ -34,9 +34,6 @@ def init_warp():
 
 
 WARP_COMMANDS = ("fem", "generate", "demo")  # the rest run on torch (and meshing) alone
-DETERMINISTIC_HELP = ("sum the element forces and stresses into the nodes independently of the threads' order on "
-                      "CUDA, so every run (one Warp version, one GPU architecture) writes the same bits (Warp's "
-                      "deterministic mode, launched step by step; the CPU sums in order anyway)")
 
 
 def _device(name):
@@ -72,11 +69,8 @@ def cmd_anatomy(args):
 def cmd_fem(args):
     from . import dataset
     from .fem_ref import BatchedExplicitSolver, OgdenProny, SolverConfig, make_load_case
-    from .fem_ref.solver import set_deterministic_sums
     from .mesh import TetMesh, read_ids
 
-    if args.deterministic:
-        set_deterministic_sums(True)
     mesh = TetMesh.load(args.mesh)
     if args.fixed:
         mesh.fixed[:] = False
@@ -93,8 +87,7 @@ def cmd_fem(args):
         raise InputError("--duration must be > 0 and --snapshots >= 1")
     config = SolverConfig(duration=args.duration, snapshots=args.snapshots, viscosity=not args.no_viscosity)
     solver = BatchedExplicitSolver(mesh, [case], OgdenProny(), config, device=_device(args.device))
-    print(f"explicit step {solver.dt:.3e} s, {solver.substeps * config.snapshots} steps on {solver.device}"
-          + (", order-independent element sums" if solver.deterministic else ""))
+    print(f"explicit step {solver.dt:.3e} s, {solver.substeps * config.snapshots} steps on {solver.device}")
     res = solver.run()
     if res.failures[0] is not None:
         raise InputError(f"simulation failed: {res.failures[0]} (nothing written)")
@@ -115,10 +108,7 @@ def cmd_fem(args):
 
 def cmd_generate(args):
     from .fem_ref.generate import generate
-    from .fem_ref.solver import set_deterministic_sums
 
-    if args.deterministic:
-        set_deterministic_sums(True)
     try:
         summary = generate(args.out, args.preset, args.seed, _device(args.device), args.shard, args.batch)
     except ValueError as exc:
@@ -235,7 +225,6 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--no-viscosity", action="store_true", help="switch the Prony series off")
     f.add_argument("--single-node", action="store_true", help="drive the loaded node alone (no tool footprint)")
     f.add_argument("--device", default=None, help="cpu or cuda:0 (default: Warp's default)")
-    f.add_argument("--deterministic", action="store_true", help=DETERMINISTIC_HELP)
     f.add_argument("--out", required=True, help="output .h5 (DESIGN.md schema, simulation 'run')")
     f.set_defaults(func=cmd_fem)
 
@@ -246,7 +235,6 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--device", default=None)
     g.add_argument("--shard", default=None, help="i/n: this process takes every n-th file from i")
     g.add_argument("--batch", type=int, default=256, help="most simulations per launch")
-    g.add_argument("--deterministic", action="store_true", help=DETERMINISTIC_HELP)
     g.set_defaults(func=cmd_generate)
 
     t = sub.add_parser("train", help="train the vanilla or hybrid network on a generated dataset")

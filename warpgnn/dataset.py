@@ -130,5 +130,5 @@ def simulation_record(case, res, b: int, config, attempt: int) -> dict:
         "kinetic_energy": res.kinetic_energy[b], "strain_energy": res.strain_energy[b],
         "max_stretch": res.max_stretch[b],
         "attrs": {"attempt": attempt, "duration": config.duration, "ramp_fraction": config.ramp_fraction,
-                  "viscosity": config.viscosity, "deterministic_sums": res.deterministic_sums},
+                  "viscosity": config.viscosity},
     }
