@@ -55,25 +55,53 @@ def measure_bandwidth(device) -> float:
     return 2 * 4 * n / float(np.median(times))
 
 
-def graphless_peer(device, mesh, count: int) -> dict:
-    """One set's simulations with per-step launches (no CUDA graph), timed after warm-up."""
-    from warpgnn.fem_ref import BatchedExplicitSolver, LoadSampler, SolverConfig
+def l5_cases(mesh, count: int) -> list:
+    from warpgnn.fem_ref import LoadSampler
 
     sampler = LoadSampler(mesh)
-    cases = [sampler.sample(np.random.default_rng([0, 0, i, 0])) for i in range(count)]
-    out = {}
-    for graph in (True, False):
-        solver = BatchedExplicitSolver(mesh, cases, config=SolverConfig(), device=device, capture_graph=graph)
-        solver.step()  # warm-up
-        wp.synchronize_device(device)
-        t0 = time.perf_counter()
-        solver.run()
-        wp.synchronize_device(device)
-        seconds = time.perf_counter() - t0
-        steps = solver.substeps * (solver.config.snapshots - 1)
-        out["graph" if graph else "plain_launches"] = {
-            "seconds": seconds, "steps": steps, "us_per_step": 1e6 * seconds / steps,
-            "element_updates_per_s": steps * count * len(mesh.tets) / seconds}
+    return [sampler.sample(np.random.default_rng([0, 0, i, 0])) for i in range(count)]
+
+
+def time_solver(solver_class, device, mesh, cases, capture_graph: bool = True) -> dict:
+    """One batch's simulations after a warm-up snapshot (which compiles): seconds and us per explicit step."""
+    from warpgnn.fem_ref import SolverConfig
+
+    solver = solver_class(mesh, cases, config=SolverConfig(), device=device, capture_graph=capture_graph)
+    solver.step()  # warm-up
+    wp.synchronize_device(device)
+    t0 = time.perf_counter()
+    solver.run()
+    wp.synchronize_device(device)
+    seconds = time.perf_counter() - t0
+    steps = solver.substeps * (solver.config.snapshots - 1)
+    return {"seconds": seconds, "steps": steps, "us_per_step": 1e6 * seconds / steps,
+            "element_updates_per_s": steps * len(cases) * len(mesh.tets) / seconds}
+
+
+def graphless_peer(device, mesh, count: int) -> dict:
+    """One set's simulations with per-step launches (no CUDA graph), timed after warm-up."""
+    from warpgnn.fem_ref import BatchedExplicitSolver
+
+    cases = l5_cases(mesh, count)
+    return {"graph" if graph else "plain_launches": time_solver(BatchedExplicitSolver, device, mesh, cases, graph)
+            for graph in (True, False)}
+
+
+def solver_peer(device, mesh, count: int, module: str, repeats: int = 3) -> dict:
+    """The same batch with this solver and with the BatchedExplicitSolver of ``module`` (an earlier version copied
+    into the package, e.g. warpgnn.fem_ref.solver_f5add69), alternately ``repeats`` times each: medians."""
+    import importlib
+
+    from warpgnn.fem_ref import BatchedExplicitSolver
+
+    peer = importlib.import_module(module).BatchedExplicitSolver
+    cases = l5_cases(mesh, count)
+    runs = {"this": [], module: []}
+    for _ in range(repeats):
+        runs["this"].append(time_solver(BatchedExplicitSolver, device, mesh, cases))
+        runs[module].append(time_solver(peer, device, mesh, cases))
+    out = {k: {"us_per_step_median": float(np.median([r["us_per_step"] for r in v])), "runs": v} for k, v in runs.items()}
+    out["this_over_peer"] = out["this"]["us_per_step_median"] / out[module]["us_per_step_median"]
     return out
 
 
@@ -106,6 +134,9 @@ def main():
     p.add_argument("--preset", default="paper")
     p.add_argument("--json", required=True)
     p.add_argument("--anatomies", help="folder of L1..L5.vtu made beforehand (a GPU host without tetgen)")
+    p.add_argument("--peer-solver", metavar="MODULE", help="also time one L5 batch of 190 with this module's "
+                   "solver beside this one's, alternately (e.g. warpgnn.fem_ref.solver_f5add69: git show "
+                   "f5add69:fem_ref/solver.py > fem_ref/solver_f5add69.py)")
     p.add_argument("--compare", metavar="NPZ", help="CPU half of the CPU-vs-CUDA check: run the CPU side here "
                    "against the CUDA trajectories NPZ (written beside --json on the GPU) and add it to --json")
     args = p.parse_args()
@@ -152,6 +183,9 @@ def main():
                        "simulation_seconds_over_floor": sim_seconds / floor})
         l5 = anatomy_mesh(out_dir, "L5")
         record["peer_graph_vs_plain_launches_L5_190"] = graphless_peer(args.device, l5, 190)
+        if args.peer_solver:
+            record["peer_solver_L5_190"] = solver_peer(args.device, l5, 190, args.peer_solver)
+            Path(args.json).write_text(json.dumps(record, indent=2))
         traj = agreement_run(args.device, l5)
         np.savez_compressed(Path(args.json).with_suffix(".cuda_trajectories.npz"), q=traj.q, v=traj.v,
                             sigma=traj.sigma, failed=sum(f is not None for f in traj.failures))
@@ -161,7 +195,8 @@ def main():
             "element_updates_per_second", "bandwidth_floor_seconds", "simulation_seconds_over_floor", "resampled"]
     for k in keys:
         print(f"{k:36s} {record.get(k)}")
-    print(json.dumps({k: record[k] for k in ("peer_graph_vs_plain_launches_L5_190", "cpu_vs_cuda") if k in record},
+    print(json.dumps({k: record[k] for k in ("peer_graph_vs_plain_launches_L5_190", "peer_solver_L5_190", "cpu_vs_cuda")
+                      if k in record},
                      indent=1))
 
 

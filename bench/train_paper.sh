@@ -283,18 +283,20 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # .devruns/next2/runs100/. /opt/runs100/ && cp -r .devruns/next2/runs300/. /opt/runs300/; call 3 carries .devwheels/b and
 # .devdata and runs source bench/device_setup.sh && export PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs FALLBACK=--compile
 # && bench/train_paper.sh /opt/data /opt/runs100 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s0$' && FIRST_GPU=2
-# bench/train_paper.sh /opt/data /opt/runs300 300e '^(hybrid|vanilla)_p5_stable_rot_smooth2e1_g3e1_vel_s0$', then on GPU 1
-# (setsid, into /opt/det) the ground truth's new node sums (fixed-order gathers, no float atomics): CUDA_VISIBLE_DEVICES=1
-# python3 bench/fem_determinism.py --anatomies /opt/data/anatomies --set L5 --device cuda:0 --json /opt/det/fem_determinism.json
-# (two generations, the second in batches of 64: expected the same bits) and python3 bench/fem_generate.py --device cuda:0
-# --anatomies /opt/data/anatomies --json /opt/det/fem_generate.json (their cost against the atomics' 59.5 s,
-# bench/results/fem_generate_deterministic_h200.json's peer; its cuda_trajectories.npz comes back for the CPU half,
-# --compare); then bench/wait_runs.sh /opt/runs100 $((560-SECONDS)) $OUT /opt/data (DATA: the 12-pass run is evaluated once
-# done, EVAL_SECONDS before the call's end), mkdir -p $OUT/r300 && bench/wait_runs.sh /opt/runs300 0 $OUT/r300 and cp
-# /opt/det/*.json /opt/det/*.npz $OUT/ (a call returns at most 8 files: runs.tar.00-02, r300's one, three of /opt/det). Later
-# calls (each starting with source bench/device_setup.sh) the same waits. The 300e runs need ~1800 s (hybrid) and ~1250 s
-# (vanilla) more, so the session after carries runs300 again. Pack torch.compile's cache (bench/device_setup.sh) only in a
-# call with room for it.
+# bench/train_paper.sh /opt/data /opt/runs300 300e '^(hybrid|vanilla)_p5_stable_rot_smooth2e1_g3e1_vel_s0$', then on GPU 1,
+# one after the other in one setsid shell writing into /opt/det, the ground truth's new node sums (fixed-order gathers, no
+# float atomics): CUDA_VISIBLE_DEVICES=1 python3 bench/fem_determinism.py --anatomies /opt/data/anatomies --set L5 --device
+# cuda:0 --json /opt/det/fem_determinism.json (three generations: expected the same bits run to run and in other batches);
+# then their cost on the same card in the same run, against the atomic solver of f5add69 (call 3 also carries the ignored
+# .devcache/solver_f5add69.py, made here by git show f5add69:fem_ref/solver.py, and copies it into fem_ref/):
+# CUDA_VISIBLE_DEVICES=1 python3 bench/fem_generate.py --device cuda:0 --anatomies /opt/data/anatomies --peer-solver
+# warpgnn.fem_ref.solver_f5add69 --json /opt/det/fem_generate.json (the preset's seconds against the atomics' 59.5 s and the
+# 60 s target; its cuda_trajectories.npz comes back for the CPU half, --compare). Then bench/wait_runs.sh /opt/runs100
+# $((560-SECONDS)) $OUT /opt/data (DATA: the 12-pass run is evaluated once done, EVAL_SECONDS before the call's end),
+# mkdir -p $OUT/r300 && bench/wait_runs.sh /opt/runs300 0 $OUT/r300 and cp /opt/det/*.json /opt/det/*.npz $OUT/ (a call
+# returns at most 8 files: runs.tar.00-02, r300's one, three of /opt/det). Later calls (each starting with source
+# bench/device_setup.sh) the same waits. The 300e runs need ~1800 s (hybrid) and ~1250 s (vanilla) more, so the session
+# after carries runs300 again. Pack torch.compile's cache (bench/device_setup.sh) only in a call with room for it.
 for s in 0 1 2; do
   run hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS --rotate \
     --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity

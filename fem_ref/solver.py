@@ -109,7 +109,7 @@ def node_stress(weighted_stress: wp.array2d(dtype=vec6), weight: wp.array2d(dtyp
                 b: int, n: int):
     """Nodal stress: its elements' stresses averaged with their weights (current volumes), in element order."""
     acc = vec6()
-    w = float(0.0)
+    w = float(0.0)  # noqa: UP018 (Warp: a variable the loop changes is declared with its type)
     for c in range(adj.first[n], adj.first[n + 1]):
         e = adj.corners[c] // 4
         acc = acc + weighted_stress[b, e]
@@ -146,6 +146,8 @@ def element_forces(
     in slot 4 e + k (zero where the element does no work)."""
     b, e = wp.tid()
     step_key = wp.int64(step_base[0] + i) * wp.int64(tets.shape[0])
+    # Where it returns early its corners are zeroed, as the atomics added nothing there: only a failed simulation's
+    # recorded velocities see them (a failed simulation is never kept), but its bits stay those of the atomic solver
     if frozen(failure, unstable, b, step_key):
         zero_corners(corner_forces, b, e)
         return  # frozen at an earlier step: no work spent on a simulation that will be redrawn
@@ -349,11 +351,11 @@ def record_energies(elastic_energy: wp.array2d(dtype=float), node_kinetic: wp.ar
     """Each simulation's stored elastic and kinetic energy of snapshot ``snap``, summed in element and node
     order (one thread a simulation: once a snapshot, the order matters more than the speed)."""
     b = wp.tid()
-    total = float(0.0)
+    total = float(0.0)  # noqa: UP018 (as in node_stress)
     for e in range(elastic_energy.shape[1]):
         total = total + elastic_energy[b, e]
     strain[b, snap[0]] = total
-    total = float(0.0)
+    total = float(0.0)  # noqa: UP018
     for n in range(node_kinetic.shape[1]):
         total = total + node_kinetic[b, n]
     kinetic[b, snap[0]] = total

@@ -203,14 +203,16 @@ def test_nodal_forces_are_minus_the_energy_gradient_added_in_element_order():
     N, T = len(mesh.nodes), len(mesh.tets)
     x = mesh.nodes + 5e-4 * np.random.default_rng(0).standard_normal(mesh.nodes.shape)  # ~5 % of an edge
     dev = "cpu"
-    arr = lambda a, dtype: wp.array(np.ascontiguousarray(a), dtype=dtype, device=dev)  # noqa: E731
+    def arr(a, dtype):
+        return wp.array(np.ascontiguousarray(a), dtype=dtype, device=dev)
+
     corner = wp.zeros((1, 4 * T), dtype=wp.vec3, device=dev)
     no_failure = wp.full(1, NO_FAILURE, dtype=wp.int64, device=dev)
-    zeros6 = wp.zeros((1, T), dtype=vec6, device=dev)
+    prony = [wp.zeros((1, T), dtype=vec6, device=dev) for _ in range(3)]  # S_iso_prev, H1, H2: no history
     wp.launch(element_forces, (1, T), [arr(x[None].astype(np.float32), wp.vec3), arr(mesh.tets, wp.vec4i),
               arr(rest_shape_inverse(mesh), wp.mat33), arr(mesh.volumes.astype(np.float32), float),
-              arr(np.ones(T, np.float32), float), OgdenProny().elastic().to_warp(1e-5), zeros6, zeros6,
-              wp.zeros((1, T), dtype=vec6, device=dev), 1, wp.zeros(1, dtype=int, device=dev), 0, 1e-5, corner,
+              arr(np.ones(T, np.float32), float), OgdenProny().elastic().to_warp(1e-5), *prony,
+              1, wp.zeros(1, dtype=int, device=dev), 0, 1e-5, corner,
               no_failure, wp.full(1, NO_FAILURE, dtype=wp.int64, device=dev)], device=dev)
     nodal = wp.zeros((1, N), dtype=wp.vec3, device=dev)
     wp.launch(gathered_forces, (1, N), [corner, node_corners(mesh.tets, N, dev), nodal], device=dev)
@@ -235,9 +237,9 @@ def test_nodal_forces_are_minus_the_energy_gradient_added_in_element_order():
 
 
 def test_a_simulation_writes_the_same_bits_alone_or_in_any_batch():
-    """Every node sums only its own simulation's corners, in a fixed order: a simulation's trajectory does not
-    depend on which others share its batch or where it sits in it (generation runs a case's attempts side by
-    side, and a resumed set batches other cases)."""
+    """Every node sums only its own simulation's corners: a simulation's trajectory does not depend on which others
+    share its batch or where it sits in it (generation runs a case's attempts side by side, and a resumed set batches
+    other cases). A guard of the per-simulation indexing; the CPU's serial atomics had this property too."""
     mesh, cases = bar_cases(2)
     cfg = SolverConfig(duration=0.1, snapshots=2)
     batch = BatchedExplicitSolver(mesh, cases, config=cfg, device="cpu").run()
@@ -249,11 +251,37 @@ def test_a_simulation_writes_the_same_bits_alone_or_in_any_batch():
             assert np.array_equal(getattr(alone, k)[0], getattr(flipped, k)[len(cases) - 1 - b]), k
 
 
+def test_snapshot_velocities_are_the_half_step_velocity_moved_by_half_a_step():
+    """v_n = v_(n-1/2) + dt/2 a_n on free nodes, with a_n the gathered force over the lumped mass; zero on fixed nodes
+    and the ramp's rate times the displacement on the tools' nodes (mid-ramp, where that rate is not zero)."""
+    mesh, cases = bar_cases(2)
+    cfg = SolverConfig(duration=0.1, snapshots=2, ramp_fraction=1.0)
+    solver = BatchedExplicitSolver(mesh, cases, config=cfg, device="cpu")
+    solver.step()  # snapshot 1 of 2: t = 0.05 s, halfway up the ramp
+    v = solver.result().v[:, 1]
+    force = np.zeros((len(cases), len(mesh.nodes), 3), np.float32)
+    for b in range(len(cases)):
+        np.add.at(force[b], mesh.tets.ravel(), solver.corner_forces.numpy()[b])
+    half_step = 0.5 * solver.dt * solver.inv_mass.numpy()[None, :, None] * force
+    expected = solver.v_half.numpy() + half_step
+    loads, weights = solver.pres_load.numpy(), solver.pres_weight.numpy()
+    free = ~mesh.fixed[None] & (loads < 0)
+    assert np.abs(half_step[free]).max() > 1e-3 * np.abs(v[free]).max()  # the half step is not lost in rounding
+    assert np.allclose(v[free], expected[free], rtol=1e-6, atol=1e-9)
+    assert np.array_equal(v[:, mesh.fixed], np.zeros_like(v[:, mesh.fixed]))
+    s = 0.5  # t / t_ramp; the C2 ramp's rate 30 s^2 (1 - s)^2 / t_ramp
+    for b, case in enumerate(cases):
+        tools = loads[b] >= 0
+        rate = (30 * s**2 * (1 - s) ** 2 / cfg.duration) * weights[b, tools, None] * case.displacement[loads[b, tools]]
+        assert np.allclose(v[b, tools], rate, rtol=1e-5)
+
+
 @pytest.mark.skipif(not wp.is_cuda_available(), reason="needs a CUDA device")
 def test_cuda_runs_repeat_bit_for_bit():
     """No float atomics in the node sums: two CUDA runs of one batch (each replaying its captured interval) write
-    the same bits, ringing included, and so does one simulation run alone: a dataset generated twice is the same
-    dataset (float atomics differed in all 190 L5 simulations: bench/results/fem_determinism_h200.json)."""
+    the same bits, and so does one simulation run alone. A guard against their return: that the atomics would fail
+    it on this small bar is not shown; on L5 they differed in all 190 simulations
+    (bench/results/fem_determinism_h200.json, which bench/fem_determinism.py repeats for the gathers)."""
     mesh, cases = bar_cases()
     cfg = SolverConfig(duration=0.4, snapshots=8)
     solvers = [BatchedExplicitSolver(mesh, cases, config=cfg, device="cuda:0") for _ in range(2)]
