@@ -55,29 +55,43 @@ def differences(path_a: Path, path_b: Path) -> dict:
     return {"simulations": len(names_a | names_b), "differing": len(per), "identical": not per, "per_simulation": per}
 
 
-def main():
-    p = argparse.ArgumentParser()
+def set_arguments(p: argparse.ArgumentParser, count: int, device: str) -> None:
+    """The options naming one set's first simulations on one device (shared with bench/fem_rounding_floor.py)."""
     p.add_argument("--anatomies", help="folder of L1..L5.vtu made beforehand (a GPU host without tetgen)")
     p.add_argument("--set", default="L5", help="a set of the paper preset")
-    p.add_argument("--count", type=int, default=190, help="its first COUNT simulations")
+    p.add_argument("--count", type=int, default=count, help="its first COUNT simulations")
+    p.add_argument("--device", default=device)
+    p.add_argument("--json", required=True)
+
+
+def paper_set(args, work: Path):
+    """The paper preset, the index of the set --set, that set cut to its first --count simulations, and the folder
+    of its anatomy: --anatomies, or the anatomy meshed once into WORK (outside any timing)."""
+    from warpgnn.fem_ref.generate import PRESETS, anatomy_mesh
+
+    preset = PRESETS["paper"]()
+    index = [s.name for s in preset.sets].index(args.set)
+    spec = replace(preset.sets[index], count=min(args.count, preset.sets[index].count))
+    if args.anatomies:
+        return preset, index, spec, Path(args.anatomies)
+    anatomy_mesh(work / "mesh", spec.anatomy)
+    return preset, index, spec, work / "mesh" / "anatomies"
+
+
+def main():
+    p = argparse.ArgumentParser()
+    set_arguments(p, count=190, device="cuda:0")
     p.add_argument("--other-batch", type=int, default=64, help="most simulations per launch in the third "
                    "generation (the first two: warpgnn generate's default, 256)")
-    p.add_argument("--device", default="cuda:0")
-    p.add_argument("--json", required=True)
     args = p.parse_args()
     from warpgnn.cli import init_warp
 
     init_warp()
     import warp as wp
-    from warpgnn.fem_ref.generate import PRESETS, anatomy_mesh, generate_set
+    from warpgnn.fem_ref.generate import generate_set
 
-    preset = PRESETS["paper"]()
-    index = [s.name for s in preset.sets].index(args.set)
-    spec = replace(preset.sets[index], count=min(args.count, preset.sets[index].count))
     work = Path(tempfile.mkdtemp(prefix="warpgnn-determinism-"))
-    anatomies = Path(args.anatomies) if args.anatomies else work / "mesh" / "anatomies"
-    if not args.anatomies:
-        anatomy_mesh(work / "mesh", spec.anatomy)  # meshed once, outside the timings
+    preset, index, spec, anatomies = paper_set(args, work)
     record = {"benchmark": "fem_determinism", "device": str(wp.get_device(args.device)),
               "device_name": wp.get_device(args.device).name, "date": datetime.date.today().isoformat(),
               "command": " ".join(sys.argv), "warp": wp.config.version, "set": args.set, "simulations": spec.count}

@@ -291,10 +291,13 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # .devcache/solver_f5add69.py, made here by git show f5add69:fem_ref/solver.py, and copies it into fem_ref/):
 # CUDA_VISIBLE_DEVICES=1 python3 bench/fem_generate.py --device cuda:0 --anatomies /opt/data/anatomies --peer-solver
 # warpgnn.fem_ref.solver_f5add69 --json /opt/det/fem_generate.json (the preset's seconds against the atomics' 59.5 s and the
-# 60 s target; its cuda_trajectories.npz comes back for the CPU half, --compare). Then bench/wait_runs.sh /opt/runs100
+# 60 s target; its cuda_trajectories.npz comes back for the CPU half, --compare), and the v floor the ground truth's own
+# rounding sets on all 190 L5 simulations: CUDA_VISIBLE_DEVICES=1 python3 bench/fem_rounding_floor.py --anatomies
+# /opt/data/anatomies --set L5 --count 190 --device cuda:0 --json /opt/det/fem_rounding_floor.json (10 on the CPU:
+# bench/results/fem_rounding_floor_cpu.json). Then bench/wait_runs.sh /opt/runs100
 # $((560-SECONDS)) $OUT /opt/data (DATA: the 12-pass run is evaluated once done, EVAL_SECONDS before the call's end),
 # mkdir -p $OUT/r300 && bench/wait_runs.sh /opt/runs300 0 $OUT/r300 and cp /opt/det/*.json /opt/det/*.npz $OUT/ (a call
-# returns at most 8 files: runs.tar.00-02, r300's one, three of /opt/det). Later calls (each starting with source
+# returns at most 8 files: runs.tar.00-02, r300's one, four of /opt/det). Later calls (each starting with source
 # bench/device_setup.sh) the same waits. The 300e runs need ~1800 s (hybrid) and ~1250 s (vanilla) more, so the session
 # after carries runs300 again. Pack torch.compile's cache (bench/device_setup.sh) only in a call with room for it.
 for s in 0 1 2; do

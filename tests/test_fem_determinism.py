@@ -1,5 +1,7 @@
-"""bench/fem_determinism.py's comparison of two generations of one set (its GPU run is recorded in bench/results)."""
+"""bench/fem_determinism.py's comparison of two generations of one set (its GPU run is recorded in bench/results), and
+bench/fem_rounding_floor.py's reversed summing order."""
 
+import itertools
 import sys
 from pathlib import Path
 
@@ -48,3 +50,37 @@ def test_another_kept_load_case_is_reported_as_such(two_generations):
         u = f["sims/sim_0000/u"]
         u[...] = u[()] * 1.5
     assert differences(a, b)["per_simulation"] == {"sim_0000": {"other_loads": True}}
+
+
+def test_reversed_corners_sum_the_same_forces_in_the_other_order():
+    """bench/fem_rounding_floor.py's second generation: every node's corner list reversed, so its sums round
+    differently; the trajectories agree to rounding and yet differ, and the solver module is restored after."""
+    from fem_rounding_floor import reversed_corners, summing_in_reverse
+    from warpgnn.fem_ref import (
+        BatchedExplicitSolver,
+        SolverConfig,
+        make_load_case,
+        solver,
+    )
+
+    from warpgnn.mesh import box_tet_mesh
+
+    mesh = box_tet_mesh(3, 2, 2, (0.03, 0.02, 0.02))
+    mesh.fixed[:] = mesh.nodes[:, 0] < 1e-9
+    tip = np.flatnonzero(mesh.nodes[:, 0] > 0.03 - 1e-9)
+    case = make_load_case(mesh, tip, np.tile([0.0, 0.004, 0.002], (len(tip), 1)), spread=False)
+    forward = solver.node_corners(mesh.tets, len(mesh.nodes), "cpu")
+    flipped = reversed_corners(solver.node_corners)(mesh.tets, len(mesh.nodes), "cpu")
+    first, a, b = forward.first.numpy(), forward.corners.numpy(), flipped.corners.numpy()
+    assert np.array_equal(first, flipped.first.numpy())
+    assert all(np.array_equal(a[i:j][::-1], b[i:j]) for i, j in itertools.pairwise(first))
+    cfg = SolverConfig(duration=0.1, snapshots=2)
+    original = solver.node_corners
+    runs = [BatchedExplicitSolver(mesh, [case], config=cfg, device="cpu").run()]
+    with summing_in_reverse():
+        runs.append(BatchedExplicitSolver(mesh, [case], config=cfg, device="cpu").run())
+    assert solver.node_corners is original
+    runs.append(BatchedExplicitSolver(mesh, [case], config=cfg, device="cpu").run())
+    dq = np.abs(runs[0].q - runs[1].q).max()
+    assert 0 < dq < 1e-4 * np.abs(runs[0].q - mesh.nodes).max()  # seen: 2.6e-8 m, ~14 float32 ulps of 3 cm
+    assert np.array_equal(runs[0].q, runs[2].q)  # element order again once restored
