@@ -5,7 +5,8 @@ Measures, in one run:
     simulation, HDF5 writes): simulations/s, element updates/s and the distance to the
     memory-bandwidth floor of the explicit steps;
   * the peer: the same solver on one set with plain per-step launches instead of CUDA graph
-    replay (what a straightforward Warp port does);
+    replay (what a straightforward Warp port does); with --peer-solver MODULE, also an earlier
+    solver on the same batch, alternately (f5add69's float-atomic node sums against the gathers);
   * CPU against CUDA trajectories of the same liver load cases (float32 agreement): the CUDA
     half is saved beside the JSON, the CPU half runs with --compare (the GPU host's Warp build
     has no CPU compiler).
