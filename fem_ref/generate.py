@@ -169,8 +169,7 @@ def generate(out_dir, preset: str = "paper", seed: int = 0, device=None, shard: 
     stats = [generate_set(out_dir, spec, k, p, seed, device, max_batch, log)
              for k, spec in enumerate(p.sets) if k % n == i]
     summary = {"preset": preset, "seed": seed, "shard": f"{i}/{n}", "device": str(wp.get_device(device)),
-               "solver": asdict(p.solver), "sets": stats,
-               "seconds": time.perf_counter() - t0}
+               "solver": asdict(p.solver), "sets": stats, "seconds": time.perf_counter() - t0}
     manifest = out_dir / (f"manifest.{i}-of-{n}.json" if n > 1 else "manifest.json")
     dataset.write_text_atomically(manifest, json.dumps(summary, indent=2))
     return summary
