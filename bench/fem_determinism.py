@@ -5,14 +5,15 @@ differ, by how much (largest |dq|, |dv|, |dsigma| and v's normaliser, the larges
 which the v RRMSE divides by), and each generation's seconds (the first includes the compile unless Warp's kernel
 cache holds it). All generations simulate one mesh of the anatomy (--anatomies, or built once here).
 
-The solver sums into the nodes by gathers in a fixed order (fem_ref/solver.py), so nothing should differ. Until
+The solver sums into the nodes by gathers in a fixed order (fem_ref/solver.py), so nothing should differ, and on an
+H200 nothing did (bench/results/fem_determinism_gathers_h200.json). Until
 2026-11-26 it summed with float atomics, and two such generations of L5 on an H200 differed in all 190
 simulations (bench/results/fem_determinism_h200.json, keys atomic_order / order_independent: the latter Warp's
 deterministic mode, 12-14x slower, which the gathers replaced). Motivation: docs/gnn-experiments.md, "The ground
 truth's hold velocity rings in a few simulations".
 
     python bench/fem_determinism.py --anatomies /opt/data/anatomies --set L5 --count 190 --device cuda:0 \
-        --json bench/results/fem_determinism_gather_h200.json
+        --json bench/results/fem_determinism_gathers_h200.json   (2026-11-26: 0 of 190 differ, both pairs)
 """
 
 from __future__ import annotations

@@ -18,7 +18,8 @@ their corners up in element order (NodeCorners). Float atomics would add in what
 threads land, which rounds differently from run to run, and a simulation that keeps ringing once
 the tools stop carries that rounding on (on an H200, two generations of L5 differed in all 190
 simulations, bench/results/fem_determinism_h200.json). So a device writes the same bits on every
-run, whatever else shares the batch, and the CPU adds in the order its serial atomics did.
+run, whatever else shares the batch (three L5 generations on an H200, bench/results/fem_determinism_gathers_h200.json),
+at 0.81x the atomics' time a step (fem_generate_h200.json), and the CPU adds in the order its serial atomics did.
 
 A simulation whose element inverts (J <= 0), goes non-finite or breaks its CFL condition (the
 explicit scheme would go unstable there) is frozen and reported with the element and time of

@@ -281,7 +281,7 @@ def test_cuda_runs_repeat_bit_for_bit():
     """No float atomics in the node sums: two CUDA runs of one batch (each replaying its captured interval) write
     the same bits, and so does one simulation run alone. A guard against their return: that the atomics would fail
     it on this small bar is not shown; on L5 they differed in all 190 simulations
-    (bench/results/fem_determinism_h200.json, which bench/fem_determinism.py repeats for the gathers)."""
+    (bench/results/fem_determinism_h200.json; the gathers on all 190: fem_determinism_gathers_h200.json)."""
     mesh, cases = bar_cases()
     cfg = SolverConfig(duration=0.4, snapshots=8)
     solvers = [BatchedExplicitSolver(mesh, cases, config=cfg, device="cuda:0") for _ in range(2)]
