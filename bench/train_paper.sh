@@ -270,36 +270,32 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # 5.552e-2, +6.4 / +3.6 / +8.7 % against the 5-pass take-back, behind each of its seeds; its best epoch was its last and its
 # final training loss (1.03) the 5-pass runs' at epochs 67-76 of their 139-167: still falling when its schedule ended.)
 # So 100 epochs, in a RUNS folder of its own: ... bench/train_paper.sh DATA RUNS100 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s0$'
-# (seed 0 started 2026-11-26 on GPU 0 of the same nvidia-h200-x4, after the pair's seed 2: epochs 0-29 in 1028 s; resumed the
-# next session on a fresh nvidia-h200-x4 to epoch 71 (2458 s in all; its best validation mean 3.386e-2 at epoch 64). Its best.pt
-# and logs are in the ignored .devruns/next1/runs100, its last.pt in .devruns/next2/runs100; 28 epochs, ~950 s, to go.)
+# (seed 0 started 2026-11-26 on GPU 0 of the same nvidia-h200-x4, after the pair's seed 2; resumed on fresh nvidia-h200-x4s
+# over two more sessions, 3396 s in all, 34 s an epoch, its best epoch its last. bench/results/gnn_p12_takeback_e100_h200.json:
+# 9.517e-3 / 3.505e-2 / 5.016e-2, -0.9 / -4.3 / -1.8 % against the 5-pass take-back's three seeds (0.5 / 3.8 / 1.7 standard
+# errors): ahead on all three with one seed. Its last.pt is in the ignored .devruns/archive.)
 # Beside it since 2026-11-26, the one opening left for hybrid better than vanilla (their gap shrank with epochs under the noise
 # before the take-back): the take-back's hybrid and its vanilla peer, seed 0 each, at 300 epochs (the 'seeds
 # stable_rot_smooth2e1_g3e1_vel' line above) in a RUNS folder of their own: FIRST_GPU=2 ... /opt/data /opt/runs300 300e
-# '^(hybrid|vanilla)_p5_stable_rot_smooth2e1_g3e1_vel_s0$' (hybrid on GPU 2, vanilla on GPU 3). First session: epochs 0-135 and
-# 0-163 (best validation mean 3.282e-2 at 131 and 3.167e-2 at 162); all their files (9.6 MB) are in .devruns/next2/runs300.
-# Next session: call 1 carries .devwheels/a and .devruns/next1 and runs mkdir -p /opt/dw /opt/runs100 && cp .devwheels/a/*
-# /opt/dw/ && cp -r .devruns/next1/runs100/. /opt/runs100/; call 2 carries .devruns/next2 and runs mkdir -p /opt/runs300 && cp -r
-# .devruns/next2/runs100/. /opt/runs100/ && cp -r .devruns/next2/runs300/. /opt/runs300/; call 3 carries .devwheels/b and
-# .devdata and runs source bench/device_setup.sh && export PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs FALLBACK=--compile
-# && bench/train_paper.sh /opt/data /opt/runs100 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s0$' && FIRST_GPU=2
-# bench/train_paper.sh /opt/data /opt/runs300 300e '^(hybrid|vanilla)_p5_stable_rot_smooth2e1_g3e1_vel_s0$', then on GPU 1,
-# one after the other in one setsid shell writing into /opt/det, the ground truth's new node sums (fixed-order gathers, no
-# float atomics): CUDA_VISIBLE_DEVICES=1 python3 bench/fem_determinism.py --anatomies /opt/data/anatomies --set L5 --device
-# cuda:0 --json /opt/det/fem_determinism.json (three generations: expected the same bits run to run and in other batches);
-# then their cost on the same card in the same run, against the atomic solver of f5add69 (call 3 also carries the ignored
-# .devcache/solver_f5add69.py, made here by git show f5add69:fem_ref/solver.py, and copies it into fem_ref/):
-# CUDA_VISIBLE_DEVICES=1 python3 bench/fem_generate.py --device cuda:0 --anatomies /opt/data/anatomies --peer-solver
-# warpgnn.fem_ref.solver_f5add69 --json /opt/det/fem_generate.json (the preset's seconds against the atomics' 59.5 s and the
-# 60 s target; its cuda_trajectories.npz comes back for the CPU half, --compare), and the v floor the ground truth's own
-# rounding sets on all 190 L5 simulations: CUDA_VISIBLE_DEVICES=1 python3 bench/fem_rounding_floor.py --anatomies
-# /opt/data/anatomies --set L5 --count 190 --device cuda:0 --json /opt/det/fem_rounding_floor.json (10 on the CPU:
-# bench/results/fem_rounding_floor_cpu.json). Then bench/wait_runs.sh /opt/runs100
-# $((560-SECONDS)) $OUT /opt/data (DATA: the 12-pass run is evaluated once done, EVAL_SECONDS before the call's end),
-# mkdir -p $OUT/r300 && bench/wait_runs.sh /opt/runs300 0 $OUT/r300 and cp /opt/det/*.json /opt/det/*.npz $OUT/ (a call
-# returns at most 8 files: runs.tar.00-02, r300's one, four of /opt/det). Later calls (each starting with source
-# bench/device_setup.sh) the same waits. The 300e runs need ~1800 s (hybrid) and ~1250 s (vanilla) more, so the session
-# after carries runs300 again. Pack torch.compile's cache (bench/device_setup.sh) only in a call with room for it.
+# '^(hybrid|vanilla)_p5_stable_rot_smooth2e1_g3e1_vel_s0$' (hybrid on GPU 2, vanilla on GPU 3), over three sessions. Vanilla
+# finished (bench/results/gnn_vanilla_takeback_e300_h200.json: 8.360e-3 / 3.190e-2 / 4.911e-2, best epoch 285 at 2677 s);
+# the hybrid is at epoch 278 (best validation mean 3.055e-2 there, vanilla's best 3.074e-2), all its files (4.9 MB) in the
+# ignored .devruns/next1/runs300.
+# Next session (1800 s of device time): call 1 carries .devwheels/a and .devruns/next1 and runs mkdir -p /opt/dw /opt/runs300
+# && cp .devwheels/a/* /opt/dw/ && cp -r .devruns/next1/runs300/. /opt/runs300/; call 2 carries .devwheels/b and .devdata
+# and runs source bench/device_setup.sh && export PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs FALLBACK=--compile &&
+# FIRST_GPU=2 bench/train_paper.sh /opt/data /opt/runs300 300e '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s0$' (21 epochs,
+# ~330 s with its compile) && bench/train_paper.sh /opt/data /opt/runs100a 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s1$'
+# && FIRST_GPU=1 bench/train_paper.sh /opt/data /opt/runs100b 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s2$' (the
+# 12-pass target's seeds 1 and 2, ~3600 s each with the compile: three sessions) && FIRST_GPU=3 bench/train_paper.sh
+# /opt/data /opt/runs300 300e '^vanilla_p5_stable_rot_smooth2e1_g3e1_vel_s1$' (a second 300-epoch pair, ~2700 s; its hybrid
+# twin on GPU 2 once seed 0 is done, by a setsid'd shell waiting on pgrep -f 'train.*hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s[0]'),
+# then bench/wait_runs.sh /opt/runs300 $((560-SECONDS)) $OUT/r300 /opt/data (mkdir first: it evaluates the finished hybrid).
+# Later calls the same waits (each starting with source bench/device_setup.sh). The session's last calls bring the
+# 12-pass runs back one folder a call (last.pt 30 MB + best.pt 10 MB each; a call returns at most 64 MiB in 8 files):
+# bench/wait_runs.sh /opt/runs100a 0 $OUT, then at once the next call with /opt/runs100b, then /opt/runs300.
+# On this machine: bench/gnn_report.py for the finished hybrid (the vanilla record's peers), and save the checkpoints
+# back into .devruns/next1 (runs300) and .devruns/next2, next3 (runs100a, runs100b).
 for s in 0 1 2; do
   run hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS --rotate \
     --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity
