@@ -278,24 +278,32 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # before the take-back): the take-back's hybrid and its vanilla peer, seed 0 each, at 300 epochs (the 'seeds
 # stable_rot_smooth2e1_g3e1_vel' line above) in a RUNS folder of their own: FIRST_GPU=2 ... /opt/data /opt/runs300 300e
 # '^(hybrid|vanilla)_p5_stable_rot_smooth2e1_g3e1_vel_s0$' (hybrid on GPU 2, vanilla on GPU 3), over three sessions. Vanilla
-# finished (bench/results/gnn_vanilla_takeback_e300_h200.json: 8.360e-3 / 3.190e-2 / 4.911e-2, best epoch 285 at 2677 s);
-# the hybrid is at epoch 278 (best validation mean 3.055e-2 there, vanilla's best 3.074e-2), all its files (4.9 MB) in the
-# ignored .devruns/next1/runs300.
-# Next session (1800 s of device time): call 1 carries .devwheels/a and .devruns/next1 and runs mkdir -p /opt/dw /opt/runs300
-# && cp .devwheels/a/* /opt/dw/ && cp -r .devruns/next1/runs300/. /opt/runs300/; call 2 carries .devwheels/b and .devdata
-# and runs source bench/device_setup.sh && export PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs FALLBACK=--compile &&
-# FIRST_GPU=2 bench/train_paper.sh /opt/data /opt/runs300 300e '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s0$' (21 epochs,
-# ~330 s with its compile) && bench/train_paper.sh /opt/data /opt/runs100a 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s1$'
-# && FIRST_GPU=1 bench/train_paper.sh /opt/data /opt/runs100b 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s2$' (the
-# 12-pass target's seeds 1 and 2, ~3600 s each with the compile: three sessions) && FIRST_GPU=3 bench/train_paper.sh
-# /opt/data /opt/runs300 300e '^vanilla_p5_stable_rot_smooth2e1_g3e1_vel_s1$' (a second 300-epoch pair, ~2700 s; its hybrid
-# twin on GPU 2 once seed 0 is done, by a setsid'd shell waiting on pgrep -f 'train.*hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s[0]'),
-# then bench/wait_runs.sh /opt/runs300 $((560-SECONDS)) $OUT/r300 /opt/data (mkdir first: it evaluates the finished hybrid).
-# Later calls the same waits (each starting with source bench/device_setup.sh). The session's last calls bring the
-# 12-pass runs back one folder a call (last.pt 30 MB + best.pt 10 MB each; a call returns at most 64 MiB in 8 files):
-# bench/wait_runs.sh /opt/runs100a 0 $OUT, then at once the next call with /opt/runs100b, then /opt/runs300.
-# On this machine: bench/gnn_report.py for the finished hybrid (the vanilla record's peers), and save the checkpoints
-# back into .devruns/next1 (runs300) and .devruns/next2, next3 (runs100a, runs100b).
+# finished (bench/results/gnn_vanilla_takeback_e300_h200.json: 8.360e-3 / 3.190e-2 / 4.911e-2, best epoch 285 at 2677 s),
+# and the hybrid the session after (bench/results/gnn_hybrid_takeback_e300_h200.json: 8.845e-3 / 3.388e-2 / 4.660e-2, best
+# epoch 278 at 3114 s): +5.8 / +6.2 / -5.1 % against vanilla, the 139-epoch pattern; its files in the ignored .devruns/archive.
+# That session (2026-11-26, nvidia-h200-x4, all 1800 s) also started the 12-pass target's seeds 1 and 2 (100e, RUNS folders
+# /opt/runs100a and /opt/runs100b, GPUs 0 and 1; 34 s an epoch, 196 s the first) and a second 300-epoch pair, seed 1
+# ('^(hybrid|vanilla)_p5_stable_rot_smooth2e1_g3e1_vel_s1$' in /opt/runs300; vanilla on GPU 3, the hybrid on GPU 2 once seed 0
+# was done). Where they stopped: 12-pass s1 epoch 39, s2 epoch 40 (of 100); hybrid s1 epoch 91, vanilla s1 epoch 158 (of 300).
+# Their files, in the ignored .devruns (next1: runs300, 9 MB; next2: runs100a, 40 MB; next3: runs100b without its last.pt,
+# 10 MB; next4: runs100b's last.pt, 30 MB), go back in three calls (a call carries at most 64 MiB with the tree; move
+# bench/results aside first, mv bench/results /tmp/bench_results_aside && mkdir -p bench/results, and back after):
+#   call 1 carries .devwheels/a and .devruns/next1:  mkdir -p /opt/dw && cp .devwheels/a/* /opt/dw/ && cp -r .devruns/next1/. /opt/
+#   call 2 carries .devruns/next2 and .devruns/next3:  cp -r .devruns/next2/. .devruns/next3/. /opt/
+#   call 3 carries .devwheels/b, .devdata and .devruns/next4, and starts all four:  cp -r .devruns/next4/. /opt/ &&
+#     source bench/device_setup.sh && export PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs FALLBACK=--compile &&
+#     bench/train_paper.sh /opt/data /opt/runs100a 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s1$' &&
+#     FIRST_GPU=1 bench/train_paper.sh /opt/data /opt/runs100b 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s2$' &&
+#     FIRST_GPU=2 bench/train_paper.sh /opt/data /opt/runs300 300e '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s1$' &&
+#     FIRST_GPU=3 bench/train_paper.sh /opt/data /opt/runs300 300e '^vanilla_p5_stable_rot_smooth2e1_g3e1_vel_s1$';
+#     mkdir -p $OUT/r300; bench/wait_runs.sh /opt/runs300 $((560-SECONDS)) $OUT/r300 /opt/data
+# (each train_paper.sh line resumes its run from last.pt). Later calls: source bench/device_setup.sh, then the same wait.
+# A wait in a setsid'd shell on pgrep must not use a run's name that the call's own command line holds: on 2026-11-26 the
+# hybrid s1 waited on 'train.*..._vel_s[0]', which the call's own train_paper.sh line for s0 matched, so it started only
+# when that call ended (3 minutes lost). The session's last calls bring the runs back (a call returns at most 64 MiB in 8
+# files): bench/wait_runs.sh /opt/runs100a 0 $OUT (40 MB), then at once mkdir -p $OUT/b $OUT/c; bench/wait_runs.sh
+# /opt/runs100b 0 $OUT/b; bench/wait_runs.sh /opt/runs300 0 $OUT/c. Vanilla s1 needs ~1300 s more (one session), the
+# hybrid s1 ~2300 s and each 12-pass seed ~2250 s with its first epoch's compile (two sessions each).
 for s in 0 1 2; do
   run hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS --rotate \
     --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity
