@@ -8,7 +8,7 @@
 #   .devwheels/a/warp.part.00 in two with split -b 23592960 into .devwheels/a1, a2 and carry them in
 #   two calls: cp a1/wp.00 /opt/dw/, then cat /opt/dw/wp.00 a2/wp.01 > /opt/dw/warp.part.00)
 #        call 2 carries .devwheels/b and .devdata and starts with  source bench/device_setup.sh
-#   (bench/results, ~37 MB, travels with the tree and is not needed there: once the tree plus
+#   (bench/results, ~190 MB by 2026-11-26, travels with the tree and is not needed there: once the tree plus
 #   .devwheels/b pass 64 MiB, move bench/results aside for the device calls and back after)
 # A machine is given back 30 s after a call ends: make every call copy what must survive
 # (checkpoints, logs) into $OUT (bench/wait_runs.sh RUNS SECONDS $OUT does; given DATA too, it also

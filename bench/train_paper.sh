@@ -290,7 +290,8 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # bench/results aside first, mv bench/results /tmp/bench_results_aside && mkdir -p bench/results, and back after):
 #   call 1 carries .devwheels/a and .devruns/next1:  mkdir -p /opt/dw && cp .devwheels/a/* /opt/dw/ && cp -r .devruns/next1/. /opt/
 #   call 2 carries .devruns/next2 and .devruns/next3:  cp -r .devruns/next2/. .devruns/next3/. /opt/
-#   call 3 carries .devwheels/b, .devdata and .devruns/next4, and starts all four:  cp -r .devruns/next4/. /opt/ &&
+#   call 3 carries .devwheels/b, .devdata and .devruns/next4 (63.4 of 64 MiB with the tree: keep the tree from growing, or
+#   move docs/ (1 MB) aside too), and starts all four:  cp -r .devruns/next4/. /opt/ &&
 #     source bench/device_setup.sh && export PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs FALLBACK=--compile &&
 #     bench/train_paper.sh /opt/data /opt/runs100a 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s1$' &&
 #     FIRST_GPU=1 bench/train_paper.sh /opt/data /opt/runs100b 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s2$' &&
