@@ -285,6 +285,8 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # /opt/runs100a and /opt/runs100b, GPUs 0 and 1; 34 s an epoch, 196 s the first) and a second 300-epoch pair, seed 1
 # ('^(hybrid|vanilla)_p5_stable_rot_smooth2e1_g3e1_vel_s1$' in /opt/runs300; vanilla on GPU 3, the hybrid on GPU 2 once seed 0
 # was done). Where they stopped: 12-pass s1 epoch 39, s2 epoch 40 (of 100); hybrid s1 epoch 91, vanilla s1 epoch 158 (of 300).
+# Their best validation means so far track seed 0's at the same epochs: 12-pass s1 / s2 3.82e-2 / 3.69e-2 against 3.88e-2
+# by epoch 39; hybrid s1 3.55e-2 against 3.49e-2 by epoch 91; vanilla s1 3.25e-2 against 3.18e-2 by epoch 158.
 # Their files, in the ignored .devruns (next1: runs300, 9 MB; next2: runs100a, 40 MB; next3: runs100b without its last.pt,
 # 10 MB; next4: runs100b's last.pt, 30 MB), go back in three calls (a call carries at most 64 MiB with the tree; move
 # bench/results aside first, mv bench/results /tmp/bench_results_aside && mkdir -p bench/results, and back after):
