@@ -28,7 +28,7 @@ from warpgnn import dataset
 from warpgnn.checkpoint import load_model
 from warpgnn.data import load_file, make_batch
 from warpgnn.fem_ref import OgdenProny, elastic_nodal_stress
-from warpgnn.graphs import NODE_FIXED, NODE_FREE, NODE_PRESCRIBED, apply_boundary_conditions
+from warpgnn.graphs import NODE_FREE, NODE_PRESCRIBED, apply_boundary_conditions
 
 PERTURBATIONS = (1e-6, 1e-5, 1e-4)  # m, uniform in [-a, a] on each coordinate of every free node
 FOLDS = 5

@@ -197,7 +197,7 @@ def _grow(x: torch.Tensor, size: int, fill, dim: int = 0) -> torch.Tensor:
 
 
 def pad_topology(top: Topology, shape: BatchShape) -> Topology:
-    n, k = top.n_nodes, top.n_tools
+    n = top.n_nodes
     shape = first_fitting(shape, top)
     sink, sink_tool = shape.nodes - 1, shape.tools - 1
     return Topology(
