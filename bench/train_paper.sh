@@ -299,7 +299,14 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 #     FIRST_GPU=1 bench/train_paper.sh /opt/data /opt/runs100b 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s2$' &&
 #     FIRST_GPU=2 bench/train_paper.sh /opt/data /opt/runs300 300e '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s1$' &&
 #     FIRST_GPU=3 bench/train_paper.sh /opt/data /opt/runs300 300e '^vanilla_p5_stable_rot_smooth2e1_g3e1_vel_s1$';
+#     setsid nohup bash -c "while pgrep -f 'warpgnn(.cli)? train.*vanilla_p5_stable_rot_smooth2e1_g3e1_vel_s[1]' > /dev/null;
+#     do sleep 10; done; FIRST_GPU=3 bench/train_paper.sh /opt/data /opt/runs300 300e
+#     '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_revq_s0$'" > /opt/revq.log 2>&1 < /dev/null &
 #     mkdir -p $OUT/r300; bench/wait_runs.sh /opt/runs300 $((560-SECONDS)) $OUT/r300 /opt/data
+# (the setsid'd line queues the take-back with positions moved by L dE alone at 300 epochs on GPU 3 once vanilla s1 is done,
+# ~1300 s in: at 300 epochs the take-back moves its positions more through M dS, not less (generic_parts_e300_cpu.json), so
+# whether --reversible-positions, a tie at 30 minutes, closes the gap to vanilla with more epochs is the open question;
+# the pattern names warpgnn's own train process, which no device call's command line matches)
 # (each train_paper.sh line resumes its run from last.pt). Later calls: source bench/device_setup.sh, then the same wait.
 # A wait in a setsid'd shell on pgrep must not use a run's name that the call's own command line holds: on 2026-11-26 the
 # hybrid s1 waited on 'train.*..._vel_s[0]', which the call's own train_paper.sh line for s0 matched, so it started only
