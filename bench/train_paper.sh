@@ -315,9 +315,10 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # /opt/runs100b 0 $OUT/b; bench/wait_runs.sh /opt/runs300 0 $OUT/c. Vanilla s1 needs ~1300 s more (one session), the
 # hybrid s1 ~2300 s and each 12-pass seed ~2250 s with its first epoch's compile (two sessions each).
 # When the 12-pass seeds finish, run bench/long_hold.py and bench/generic_parts.py on them beside seed 0: seed 0 at 100
-# epochs drifts when held and barely dissipates (generic_parts_e300_cpu.json); whether seeds 1 and 2 do too decides
-# whether the 12-pass network needs its dissipation kept from fading (seeds 1 and 2 at epochs 38 and 36 dissipate even
-# less, and seed 2 already grows when held, 1.03-1.07 a step: generic_parts_p12_partial_cpu.json, long_hold_p12_partial_cpu.json).
+# epochs drifts when held and barely damps its velocities (generic_parts_e300_cpu.json); whether seeds 1 and 2 do too decides
+# whether the 12-pass network needs its velocities' damping kept from fading (seeds 1 and 2 at epochs 38 and 36 damp them
+# less than seed 0 did at 50 epochs, and seed 2 already grows when held, 1.03-1.07 a step: generic_parts_p12_partial_cpu.json,
+# long_hold_p12_partial_cpu.json).
 for s in 0 1 2; do
   run hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS --rotate \
     --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity
