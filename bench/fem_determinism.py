@@ -79,6 +79,27 @@ def paper_set(args, work: Path):
     return preset, index, spec, work / "mesh" / "anatomies"
 
 
+def set_record(benchmark: str, args, spec) -> dict:
+    """A record's head: what was measured, on which device, when, by which command (shared as paper_set is)."""
+    import warp as wp
+
+    device = wp.get_device(args.device)
+    return {"benchmark": benchmark, "device": str(device), "device_name": device.name,
+            "date": datetime.date.today().isoformat(), "command": " ".join(sys.argv), "warp": wp.config.version,
+            "set": args.set, "simulations": spec.count}
+
+
+def generate_copy(out: Path, anatomies: Path, preset, index: int, spec, device: str, **options) -> tuple[Path, float]:
+    """One generation of the set into OUT, from its own copy of the anatomy folder: its file and the seconds
+    generate_set took (the copy not counted). ``options``: generate_set's (max_batch)."""
+    from warpgnn.fem_ref.generate import generate_set
+
+    shutil.copytree(anatomies, out / "anatomies")
+    t0 = time.perf_counter()
+    generate_set(out, spec, index, preset, 0, device, log=lambda m: print(m, file=sys.stderr), **options)
+    return out / f"{spec.name}.h5", time.perf_counter() - t0
+
+
 def main():
     p = argparse.ArgumentParser()
     set_arguments(p, count=190, device="cuda:0")
@@ -88,25 +109,15 @@ def main():
     from warpgnn.cli import init_warp
 
     init_warp()
-    import warp as wp
-    from warpgnn.fem_ref.generate import generate_set
 
     work = Path(tempfile.mkdtemp(prefix="warpgnn-determinism-"))
     preset, index, spec, anatomies = paper_set(args, work)
-    record = {"benchmark": "fem_determinism", "device": str(wp.get_device(args.device)),
-              "device_name": wp.get_device(args.device).name, "date": datetime.date.today().isoformat(),
-              "command": " ".join(sys.argv), "warp": wp.config.version, "set": args.set, "simulations": spec.count}
+    record = set_record("fem_determinism", args, spec)
     try:
-        paths, seconds, batches = [], [], (256, 256, args.other_batch)
-        for run, batch in enumerate(batches):
-            out = work / f"run_{run}"
-            shutil.copytree(anatomies, out / "anatomies")
-            t0 = time.perf_counter()
-            generate_set(out, spec, index, preset, 0, args.device, max_batch=batch,
-                         log=lambda m: print(m, file=sys.stderr))
-            seconds.append(time.perf_counter() - t0)
-            paths.append(out / f"{spec.name}.h5")
-        record |= {"max_batch": list(batches), "seconds": seconds, "repeat": differences(paths[0], paths[1]),
+        batches = (256, 256, args.other_batch)
+        paths, seconds = zip(*(generate_copy(work / f"run_{run}", anatomies, preset, index, spec, args.device,
+                                             max_batch=batch) for run, batch in enumerate(batches)))
+        record |= {"max_batch": list(batches), "seconds": list(seconds), "repeat": differences(paths[0], paths[1]),
                    "other_batches": differences(paths[0], paths[2])}
         print({k: v for k, v in record.items() if k not in ("repeat", "other_batches")},
               {k: {f: v for f, v in record[k].items() if f != "per_simulation"} for k in ("repeat", "other_batches")})

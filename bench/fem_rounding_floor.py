@@ -16,18 +16,22 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import datetime
 import itertools
 import json
 import platform
 import shutil
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 import warp as wp
-from fem_determinism import differences, paper_set, set_arguments
+from fem_determinism import (
+    differences,
+    generate_copy,
+    paper_set,
+    set_arguments,
+    set_record,
+)
 
 from warpgnn import dataset
 from warpgnn.metrics import rollout_metrics, set_metrics
@@ -59,11 +63,6 @@ def summing_in_reverse():
         solver.node_corners = forward
 
 
-def state(sim: dict) -> np.ndarray:
-    """(S+1, N, 12): q, v, sigma, the layout warpgnn.metrics scores."""
-    return np.concatenate([sim["q"], sim["v"], sim["sigma"]], axis=-1)
-
-
 def velocity_profile(ref: dict, other: dict, hold_from: int) -> dict:
     """Per snapshot, RMS over the nodes of |v_other - v_ref| and of |v_ref|, over the normaliser (the largest |v|
     component of ref); and the correlation of the two velocity fields over snapshots hold_from.. (the hold)."""
@@ -85,7 +84,6 @@ def main():
     from warpgnn.cli import init_warp
 
     init_warp()
-    from warpgnn.fem_ref.generate import generate_set
 
     work = Path(tempfile.mkdtemp(prefix="warpgnn-rounding-"))
     try:
@@ -94,11 +92,8 @@ def main():
         hold_from = round(config.ramp_fraction * config.snapshots) + 1  # the first snapshot after the tools stop
         paths = []
         for order in ("element", "reverse"):
-            out = work / order
-            shutil.copytree(anatomies, out / "anatomies")
             with summing_in_reverse() if order == "reverse" else contextlib.nullcontext():
-                generate_set(out, spec, index, preset, 0, args.device, log=lambda m: print(m, file=sys.stderr))
-            paths.append(out / f"{spec.name}.h5")
+                paths.append(generate_copy(work / order, anatomies, preset, index, spec, args.device)[0])
         diff = differences(*paths)
         common = sorted(n for n in dataset.simulation_names(paths[0]) & dataset.simulation_names(paths[1])
                         if not diff["per_simulation"].get(n, {}).get("other_loads"))
@@ -106,13 +101,10 @@ def main():
         for n in common:
             a, b = (dataset.read_simulation(path, n) for path in paths)
             profiles.append(velocity_profile(a, b, hold_from))
-            per[n] = rollout_metrics(state(b), state(a)) | {"hold_velocity_correlation": profiles[-1]["hold_correlation"]}
+            per[n] = rollout_metrics(dataset.state(b), dataset.state(a)) | {"hold_velocity_correlation": profiles[-1]["hold_correlation"]}
         a_hold = [pr["hold_correlation"] for pr in profiles]
-        record = {"benchmark": "fem_rounding_floor", "device": str(wp.get_device(args.device)),
-                  "device_name": wp.get_device(args.device).name, "host": platform.node(),
-                  "processor": platform.processor(), "date": datetime.date.today().isoformat(),
-                  "command": " ".join(sys.argv), "warp": wp.config.version, "set": args.set, "simulations": spec.count,
-                  "scored": len(common), "set_metrics": set_metrics(list(per.values())) if per else None,
+        record = set_record("fem_rounding_floor", args, spec) | {
+                  "host": platform.node(), "processor": platform.processor(), "scored": len(common), "set_metrics": set_metrics(list(per.values())) if per else None,
                   "velocity_per_snapshot": {  # snapshots 0..S, snapshot_dt apart; means over the scored simulations
                       "snapshot_dt": config.snapshot_dt, "hold_from_snapshot": hold_from,
                       "rms_dv_over_normaliser": np.mean([pr["rms_dv"] for pr in profiles], 0).tolist(),

@@ -62,8 +62,8 @@ def load_file(path, device="cpu", names=None) -> list[Simulation]:
         footprint = ("footprint_nodes", "footprint_load", "footprint_weight")
         tip = [rec[k] for k in footprint] if all(k in rec for k in footprint) else [None] * 3
         top = make_topology(mesh, rec["loaded"], *tip, edges=edges)
-        z = np.concatenate([rec["q"], rec["v"], rec["sigma"]], -1)
-        sims.append(Simulation(f"{path.stem}/{name}", top, torch.as_tensor(z, dtype=torch.float32, device=device),
+        z = torch.as_tensor(dataset.state(rec), dtype=torch.float32, device=device)
+        sims.append(Simulation(f"{path.stem}/{name}", top, z,
                                torch.as_tensor(rec["u"], dtype=torch.float32, device=device), dt, mean_edge))
     return sims
 

@@ -115,6 +115,11 @@ def read_simulation(path: Path, name: str) -> dict:
     return sim
 
 
+def state(sim: dict) -> np.ndarray:
+    """(S+1, N, 12): a simulation's q, v and sigma side by side, the model's and the metrics' state layout."""
+    return np.concatenate([sim["q"], sim["v"], sim["sigma"]], axis=-1)
+
+
 def simulation_record(case, res, b: int, config, attempt: int) -> dict:
     """The schema record of simulation ``b`` of a solver result (LoadCase, SimulationResult)."""
     from .fem_ref.loads import smooth_ramp
