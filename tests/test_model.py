@@ -22,8 +22,9 @@ from warpgnn.core_model import EdgeMLP
 from warpgnn.mesh import TetMesh, box_tet_mesh
 from warpgnn.model import ModelConfig, Prediction, TIGNN
 from warpgnn.normalization import FEATURES, Normalizer
-from warpgnn.port_metriplectic import (N_L, N_M, OPERATOR_ACTIVATIONS, OPERATOR_PRODUCTS, PortMetriplecticDecoder,
-                                       apply_L, apply_M, lower_triangular, set_operator_products)
+from warpgnn.port_metriplectic import (N_L, N_M, OPERATOR_ACTIVATIONS, OPERATOR_INIT_SCALE, OPERATOR_PRODUCTS,
+                                       PortMetriplecticDecoder, apply_L, apply_M, lower_triangular,
+                                       set_operator_products)
 from warpgnn.training import pushed_forward, train_step
 
 VARIANTS = [("hybrid", True), ("hybrid", False), ("vanilla", True), ("vanilla", False)]
@@ -351,6 +352,33 @@ def test_loss_hand_values():
     for bad in ((1.0, -1.0, 1.0), (0.0, 0.0, 0.0), (1.0, 1.0)):
         with pytest.raises(ValueError, match="rate weights"):
             ModelConfig(rate_weights=bad)
+
+
+def test_dissipation_init_scale_sets_only_B_initial_outputs():
+    """B's raw decoder outputs (the m of M = B B^T) start dissipation_init_scale / OPERATOR_INIT_SCALE times the
+    default's, A's (l) are unchanged, so M x starts that ratio squared larger."""
+    x, e = torch.randn(5, 16), torch.randn(7, 16)
+    senders, receivers = torch.tensor([0, 1, 2, 3, 4, 0, 2]), torch.tensor([1, 2, 3, 4, 0, 3, 4])
+    outputs = {}
+    for scale in (OPERATOR_INIT_SCALE, 4 * OPERATOR_INIT_SCALE):
+        torch.manual_seed(3)
+        decoder = PortMetriplecticDecoder(16, dissipation_init_scale=scale)
+        with torch.no_grad():
+            outputs[scale] = torch.cat(decoder.operator_outputs(x, e, senders, receivers))
+    default, larger = outputs.values()
+    torch.testing.assert_close(larger[:, :N_L], default[:, :N_L])
+    torch.testing.assert_close(larger[:, N_L:], 4 * default[:, N_L:])
+    assert ModelConfig().dissipation_init_scale == OPERATOR_INIT_SCALE
+    torch.manual_seed(3)
+    model = TIGNN(ModelConfig(passes=1, latent=16, dissipation_init_scale=0.2))  # the config reaches the decoder
+    torch.manual_seed(3)
+    base = TIGNN(ModelConfig(passes=1, latent=16))
+    torch.testing.assert_close(model.decoder.delta_e.rest[-1].bias[N_L:], 4 * base.decoder.delta_e.rest[-1].bias[N_L:])
+    for bad in (0.0, -0.1, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="dissipation init scale"):
+            ModelConfig(dissipation_init_scale=bad)
+    with pytest.raises(ValueError, match="vanilla has none"):
+        ModelConfig(kind="vanilla", dissipation_init_scale=0.2)
 
 
 def test_tip_weight_hand_values():

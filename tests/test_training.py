@@ -655,6 +655,15 @@ def test_each_reversible_flag_reaches_its_own_field(flags, positions, velocities
                                                           *flags]))
 
 
+def test_dissipation_init_scale_flag_reaches_the_config():
+    parse = build_parser().parse_args
+    assert train_model_config(parse(["train", "--data", "d", "--out", "o"])).dissipation_init_scale == 0.05
+    args = parse(["train", "--data", "d", "--out", "o", "--dissipation-init-scale", "0.2"])
+    assert train_model_config(args).dissipation_init_scale == 0.2
+    with pytest.raises(InputError, match="dissipation init scale"):
+        train_model_config(parse(["train", "--data", "d", "--out", "o", "--dissipation-init-scale", "0"]))
+
+
 # --------------------------------------------------------------------------- bad input
 
 

@@ -160,7 +160,9 @@ def train_model_config(args):
                            tip_weight=args.tip_weight, imposed_in_loss=not args.skip_imposed_rates,
                            operator_activation=args.operator_activation,
                            reversible_positions=args.reversible_positions,
-                           reversible_velocities=args.reversible_velocities)
+                           reversible_velocities=args.reversible_velocities,
+                           **({} if args.dissipation_init_scale is None else
+                              {"dissipation_init_scale": args.dissipation_init_scale}))
     except ValueError as exc:
         raise InputError(str(exc)) from None
 
@@ -303,6 +305,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--reversible-velocities", action="store_true",
                    help="the hybrid's velocities move by L dE alone too (with --reversible-positions: M acts on the "
                         "stress alone, as the ground truth's Prony relaxation does; default off)")
+    t.add_argument("--dissipation-init-scale", type=float, metavar="K",
+                   help="the hybrid's B (M = B B^T) starts at K times a default layer's output scale (default 0.05, "
+                        "A's: OPERATOR_INIT_SCALE); larger gives the dissipative path more gradient at the start")
     t.add_argument("--rotate", action="store_true",
                    help="turn each training sample by a random angle about the vertical z axis (an exact new simulation: "
                         "no gravity, isotropic material; default off: the paper)")

@@ -18,7 +18,7 @@ from .core_model import EdgeSet, EncodeProcess, MultiGraph, mlp
 from .graphs import (GROUPS, NODE_PRESCRIBED, NODE_TYPES, STATE, Topology, apply_boundary_conditions, imposed_components,
                      raw_features)
 from .normalization import FEATURES, Normalizer
-from .port_metriplectic import OPERATOR_ACTIVATIONS, PortMetriplecticDecoder
+from .port_metriplectic import OPERATOR_ACTIVATIONS, OPERATOR_INIT_SCALE, PortMetriplecticDecoder
 
 
 @dataclass
@@ -49,6 +49,10 @@ class ModelConfig:
     # the hybrid's velocities moved by L dE alone: M without velocity rows or columns; with reversible_positions, M on the
     # stress alone, the ground truth's only dissipation (Prony relaxation)
     reversible_velocities: bool = False
+    # how much smaller than a default layer's B's outputs start (A's: OPERATOR_INIT_SCALE, 0.05; the paper does not say).
+    # M = B B^T is quadratic in B, so its gradient shrinks with B: a larger start gives the dissipative path more pull
+    # (the 12-pass hybrid's damping of its velocities fades with epochs: bench/results/generic_parts_e300_cpu.json)
+    dissipation_init_scale: float = OPERATOR_INIT_SCALE
 
     def __post_init__(self):
         if self.kind not in ("hybrid", "vanilla"):
@@ -67,6 +71,10 @@ class ModelConfig:
             raise ValueError("an operator activation applies to the hybrid's operators; vanilla has none")
         if self.kind == "vanilla" and (self.reversible_positions or self.reversible_velocities):
             raise ValueError("reversible positions or velocities constrain the hybrid's M; vanilla has none")
+        if not (math.isfinite(self.dissipation_init_scale) and self.dissipation_init_scale > 0):
+            raise ValueError(f"the dissipation init scale must be a finite number > 0, got {self.dissipation_init_scale}")
+        if self.kind == "vanilla" and self.dissipation_init_scale != OPERATOR_INIT_SCALE:
+            raise ValueError("the dissipation init scale sets the hybrid's B; vanilla has none")
 
 
 @dataclass
@@ -98,7 +106,8 @@ class TIGNN(nn.Module):
         if c.kind == "hybrid":
             self.decoder = PortMetriplecticDecoder(c.latent, c.hidden_layers, c.operator_activation,
                                                    reversible_positions=c.reversible_positions,
-                                                   reversible_velocities=c.reversible_velocities)
+                                                   reversible_velocities=c.reversible_velocities,
+                                                   dissipation_init_scale=c.dissipation_init_scale)
         else:
             self.decoder = mlp(c.latent, c.latent, STATE, c.hidden_layers, layer_norm=False)
 

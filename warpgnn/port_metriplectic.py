@@ -97,7 +97,8 @@ class GenericOutput:
 
 class PortMetriplecticDecoder(nn.Module):
     def __init__(self, latent: int, hidden_layers: int = 1, operator_activation: str = "none",
-                 reversible_positions: bool = False, reversible_velocities: bool = False):
+                 reversible_positions: bool = False, reversible_velocities: bool = False,
+                 dissipation_init_scale: float = OPERATOR_INIT_SCALE):
         super().__init__()
         self.activation = OPERATOR_ACTIVATIONS[operator_activation]()
         self.masked = reversible_positions or reversible_velocities
@@ -109,10 +110,11 @@ class PortMetriplecticDecoder(nn.Module):
         self.delta_e = EdgeMLP(latent, latent, N_L + N_M, hidden_layers, layer_norm=False)
         self.self_loop = nn.Parameter(torch.randn(latent) / latent**0.5)  # the learned edge latent x_ii
         self.products = "einsum"  # how (A - A^T) x and B B^T x are computed: set_operator_products
-        with torch.no_grad():
+        with torch.no_grad():  # A's outputs (the first N_L) and B's (the rest) each start at their own scale
             last = self.delta_e.rest[-1]
-            last.weight.mul_(OPERATOR_INIT_SCALE)
-            last.bias.mul_(OPERATOR_INIT_SCALE)
+            for rows, scale in ((slice(0, N_L), OPERATOR_INIT_SCALE), (slice(N_L, N_L + N_M), dissipation_init_scale)):
+                last.weight[rows].mul_(scale)
+                last.bias[rows].mul_(scale)
 
     def operators(self, lm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(E, 144) decoder output -> A (strictly lower) and B (lower), each (E, 12, 12)."""
