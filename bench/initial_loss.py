@@ -9,12 +9,12 @@ import argparse
 import json
 
 import numpy as np
+import provenance  # bench/, beside this script
 import torch
 
-import provenance  # bench/, beside this script
 from warpgnn import training
 from warpgnn.data import all_samples, load_file, make_batch
-from warpgnn.model import ModelConfig, TIGNN
+from warpgnn.model import TIGNN, ModelConfig
 
 SIZES = ((5, 64), (12, 128))  # passes, latent: the paper's two hybrids
 
