@@ -92,11 +92,15 @@ def flip_statistics(z: torch.Tensor, t: int, dt: float) -> dict:
 PERTURBATION_UNITS = torch.tensor([1e-3] * 6 + [1e3] * 6)
 
 
-def held_step_growth(model, sim, z: torch.Tensor, iterations: int = 40) -> dict:
+def held_step_growth(model, sim, z: torch.Tensor, iterations: int = 40, ritz: int = 12) -> dict:
     """Power iteration on the Jacobian of z -> Euler step with the tools held, at z (the network's own
     state at the last snapshot, from free_node_history): the geometric mean of the last 10 growth factors (above 1: a
     perturbation grows every step), the mode's share per group and in its 10 largest nodes, and
-    how far those lie from the nearest tool (mm)."""
+    how far those lie from the nearest tool (mm). Then ``ritz`` Arnoldi steps from the last iterate, whose Krylov space
+    holds the dominant modes (a complex pair too, which power iteration only turns within): the dominant eigenvalue
+    lambda of the Euler step and the rate mu = (lambda - 1) / dt of the network's linearised dynamics behind it. A
+    mode with Re mu < 0 (decaying in continuous time) still grows under the Euler step when its frequency is high
+    enough, |1 + dt mu| > 1: then more damping of that mode, not a different rate, keeps the hold."""
     top = sim.topology
     u, units = sim.u[-1], PERTURBATION_UNITS.to(z.dtype)
 
@@ -104,20 +108,44 @@ def held_step_growth(model, sim, z: torch.Tensor, iterations: int = 40) -> dict:
         moved = z + x * units
         return apply_boundary_conditions(top, moved + sim.dt * model(top, moved, u, u).zdot, u) / units
 
+    def jacobian_times(d):
+        return torch.func.jvp(held_step, (torch.zeros_like(z),), (d,))[1].detach()
+
     d = torch.randn(z.shape, generator=torch.Generator().manual_seed(0), dtype=z.dtype)
     d[top.node_type != NODE_FREE] = 0
     factors = []
     for _ in range(iterations):
-        _, jd = torch.func.jvp(held_step, (torch.zeros_like(z),), (d / d.norm(),))
+        jd = jacobian_times(d / d.norm())
         factors.append(jd.norm().item())
-        d = jd.detach()
+        d = jd
     share = (d / d.norm()).square()
     nodes = share.sum(1).argsort(descending=True)[:10]
     tool_distance = (top.rest[nodes, None] - top.rest[top.loaded][None]).norm(dim=-1).min(1).values
+    # Arnoldi from the power iterate, rich in the dominant modes: the Ritz values of its Hessenberg matrix
+    basis, H = [(d / d.norm()).flatten().double()], np.zeros((ritz + 1, ritz))
+    for m in range(1, ritz + 1):
+        w = jacobian_times(basis[-1].reshape(z.shape).to(z.dtype)).flatten().double()
+        for i in range(m):  # modified Gram-Schmidt, twice for a basis orthogonal to rounding
+            for _ in range(2):
+                c = float(basis[i] @ w)
+                H[i, m - 1] += c
+                w = w - c * basis[i]
+        H[m, m - 1] = float(w.norm())
+        if H[m, m - 1] < 1e-6 * np.abs(H[:m, :m]).max():  # invariant to float32 rounding: its Ritz values are exact
+            break
+        basis.append(w / H[m, m - 1])
+    values, vectors = np.linalg.eig(H[:m, :m])
+    k = int(np.argmax(np.abs(values)))
+    lam, y = complex(values[k]), vectors[:, k]
+    residual = H[m, m - 1] * abs(y[-1]) / np.linalg.norm(y)  # |J x - lam x| / |x| of the Ritz vector
+    mu = (lam - 1) / sim.dt
     return {"growth_per_step": float(np.exp(np.mean(np.log(factors[-10:])))),
             "share": {g: float(share[:, sl].sum()) for g, sl in GROUPS.items()},
             "share_10_largest_nodes": float(share[nodes].sum()),
-            "their_distance_to_a_tool_mm": (tool_distance * 1e3).round().tolist()}
+            "their_distance_to_a_tool_mm": (tool_distance * 1e3).round().tolist(),
+            "dominant_eigenvalue": {"modulus": abs(lam), "re": lam.real, "im": abs(lam.imag),
+                                    "relative_residual": float(residual)},
+            "linearised_rate": {"decay_per_s": -mu.real, "angular_frequency_rad_per_s": abs(mu.imag)}}
 
 
 def fem_speed(sim) -> np.ndarray:
@@ -166,7 +194,10 @@ def main():
                 record.setdefault("growth", {})[run] = growth
                 print(f"{run}: growth per held step " + ", ".join(f"{g['growth_per_step']:.3f}" for g in growth)
                       + f" (first {len(growth)} simulations); mode shares q/v/sigma "
-                      + "/".join(f"{growth[0]['share'][k]:.2f}" for k in GROUPS))
+                      + "/".join(f"{growth[0]['share'][k]:.2f}" for k in GROUPS) + "; dominant mode's decay / "
+                      + "angular frequency " + ", ".join(f"{g['linearised_rate']['decay_per_s']:.2f} 1/s / "
+                                                         f"{g['linearised_rate']['angular_frequency_rad_per_s']:.2f} rad/s"
+                                                         for g in growth))
             name = run + (", tool velocity imposed" if imposed else "")
             record["networks"][name] = {"checkpoint": path, "tool_velocity_imposed": imposed,
                                         "free_rms_speed": speed.tolist(), "free_rms_moved": moved.tolist(),

@@ -1,14 +1,19 @@
 """bench/long_hold.py's flip measures against motions whose answer is known by hand: a period-2 flip,
-a uniform motion and a constant acceleration."""
+a uniform motion and a constant acceleration; its growth per held step against a linear rate whose Euler step
+is known in closed form."""
 
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
+from synthetic import make_dataset
+
+from warpgnn.data import load_file
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-from long_hold import flip_statistics, second_difference
+from long_hold import flip_statistics, held_step_growth, second_difference
 
 STEPS, NODES, DT = 8, 20, 0.05
 
@@ -54,3 +59,39 @@ def test_uniform_motion_has_no_second_difference_and_constant_acceleration_its_o
     assert flip["rate_over_velocity_10_largest"] == pytest.approx(1.0, rel=1e-9)  # consistent state
     accelerated = uniform + 0.5 * acceleration * t ** 2  # q(t+1) - 2 q(t) + q(t-1) = acceleration exactly
     assert second_difference(accelerated) == pytest.approx([5e-5] * (STEPS - 2), rel=1e-9)
+
+
+class DampedOscillator:
+    """A stand-in network whose rate is linear and the same at every node: velocity components x and y turn into
+    each other at angular frequency OMEGA while decaying at DECAY, every other component decays at ``slow``."""
+    DECAY, OMEGA = 1.0, 8.0
+
+    def __init__(self, slow: float):
+        self.slow = slow
+
+    def __call__(self, top, z, u_now, u_next):
+        K = -self.slow * torch.eye(12, dtype=z.dtype)
+        K[3:5, 3:5] = torch.tensor([[-self.DECAY, self.OMEGA], [-self.OMEGA, -self.DECAY]], dtype=z.dtype)
+        return SimpleNamespace(zdot=z @ K.T)
+
+
+@pytest.mark.parametrize("slow", [4.0, 0.5])
+def test_growth_finds_an_oscillation_that_decays_but_grows_under_the_euler_step(tmp_path, slow):
+    """Euler's step of a damped oscillation, lambda = 1 + dt (-DECAY +- i OMEGA), has modulus above 1 for
+    dt = 0.05: its modulus and the linearised rate behind it are read back exactly. With the other modes decaying
+    slowly (0.975 a step against 1.031) 30 power iterations have not separated them and underestimate the growth;
+    the Rayleigh-Ritz step still finds the mode."""
+    sim = load_file(make_dataset(tmp_path, steps=4) / "L1.h5")[0]
+    rate = DampedOscillator(slow)
+    growth = held_step_growth(rate, sim, sim.z[-1], iterations=30)  # float32, as the networks run
+    lam = complex(1 - sim.dt * rate.DECAY, sim.dt * rate.OMEGA)
+    assert abs(lam) > 1  # decaying in continuous time, growing under the step
+    assert growth["dominant_eigenvalue"]["modulus"] == pytest.approx(abs(lam), rel=1e-5)
+    assert growth["dominant_eigenvalue"]["relative_residual"] < 1e-4  # float32 rounding
+    assert growth["linearised_rate"]["decay_per_s"] == pytest.approx(rate.DECAY, rel=1e-4)
+    assert growth["linearised_rate"]["angular_frequency_rad_per_s"] == pytest.approx(rate.OMEGA, rel=1e-5)
+    if slow == 4.0:  # the others at 0.8 a step: power iteration has converged to the mode, the velocities'
+        assert growth["growth_per_step"] == pytest.approx(abs(lam), rel=1e-4)
+        assert growth["share"]["v"] == pytest.approx(1.0, abs=1e-4)
+    else:
+        assert growth["growth_per_step"] < abs(lam) - 0.01
