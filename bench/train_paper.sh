@@ -284,44 +284,50 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # That session (2026-11-26, nvidia-h200-x4, all 1800 s) also started the 12-pass target's seeds 1 and 2 (100e, RUNS folders
 # /opt/runs100a and /opt/runs100b, GPUs 0 and 1; 34 s an epoch, 196 s the first) and a second 300-epoch pair, seed 1
 # ('^(hybrid|vanilla)_p5_stable_rot_smooth2e1_g3e1_vel_s1$' in /opt/runs300; vanilla on GPU 3, the hybrid on GPU 2 once seed 0
-# was done). Where they stopped: 12-pass s1 epoch 39, s2 epoch 40 (of 100); hybrid s1 epoch 91, vanilla s1 epoch 158 (of 300).
-# Their best validation means so far track seed 0's at the same epochs: 12-pass s1 / s2 3.82e-2 / 3.69e-2 against 3.88e-2
-# by epoch 39; hybrid s1 3.55e-2 against 3.49e-2 by epoch 91; vanilla s1 3.25e-2 against 3.18e-2 by epoch 158.
-# Their files, in the ignored .devruns (next1: runs300, 9 MB; next2: runs100a, 40 MB; next3: runs100b without its last.pt,
-# 10 MB; next4: runs100b's last.pt, 30 MB), go back in three calls (a call carries at most 64 MiB with the tree; move
-# bench/results aside first, mv bench/results /tmp/bench_results_aside && mkdir -p bench/results, and back after):
+# was done). The next session (2026-11-26 13:24 UTC, nvidia-h200-x4, 1757 s) resumed all four; vanilla s1 finished
+# (bench/results/gnn_vanilla_takeback_e300_s1_h200.json: 8.711e-3 / 3.200e-2 / 5.008e-2, best epoch 266) and GPU 3 went on to
+# the take-back with positions moved by L dE alone at 300 epochs ('^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_revq_s0$',
+# /opt/runs300; at 30 minutes a tie, so whether more epochs close its gap to vanilla is the question). Where they stopped:
+# 12-pass s1 epoch 81, s2 epoch 78 (of 100); hybrid s1 epoch 230 (of 300); revq s0 epoch 7 (of 300).
+# Their files, in the ignored .devruns (next1: runs300, 10 MB, the hybrid s1 and revq s0; next2: runs100a, 40 MB; next3:
+# runs100b without its last.pt, 10 MB; next4: runs100b's last.pt, 30 MB), go back in three calls (a call carries at most
+# 64 MiB with the tree; move bench/results aside first, mv bench/results /tmp/bench_results_aside && mkdir -p bench/results,
+# and back after):
 #   call 1 carries .devwheels/a and .devruns/next1:  mkdir -p /opt/dw && cp .devwheels/a/* /opt/dw/ && cp -r .devruns/next1/. /opt/
 #   call 2 carries .devruns/next2 and .devruns/next3:  cp -r .devruns/next2/. .devruns/next3/. /opt/
 #   call 3 carries .devwheels/b, .devdata and .devruns/next4 (63.4 of 64 MiB with the tree: keep the tree from growing, or
-#   move docs/ (1 MB) aside too), and starts all four:  cp -r .devruns/next4/. /opt/ &&
+#   move docs/ (1 MB) aside too), and starts all four, then the 12-pass take-back with B starting 4x larger on GPUs 0 and 1
+#   as each 12-pass seed finishes (~750 s in):  cp -r .devruns/next4/. /opt/ &&
 #     source bench/device_setup.sh && export PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs FALLBACK=--compile &&
 #     bench/train_paper.sh /opt/data /opt/runs100a 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s1$' &&
 #     FIRST_GPU=1 bench/train_paper.sh /opt/data /opt/runs100b 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s2$' &&
 #     FIRST_GPU=2 bench/train_paper.sh /opt/data /opt/runs300 300e '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s1$' &&
-#     FIRST_GPU=3 bench/train_paper.sh /opt/data /opt/runs300 300e '^vanilla_p5_stable_rot_smooth2e1_g3e1_vel_s1$';
-#     setsid nohup bash -c "while pgrep -f 'warpgnn(.cli)? train.*vanilla_p5_stable_rot_smooth2e1_g3e1_vel_s[1]' > /dev/null;
-#     do sleep 10; done; FIRST_GPU=3 bench/train_paper.sh /opt/data /opt/runs300 300e
-#     '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_revq_s0$'" > /opt/revq.log 2>&1 < /dev/null &
+#     FIRST_GPU=3 bench/train_paper.sh /opt/data /opt/runs300 300e '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_revq_s0$';
+#     for s in 1 2; do setsid nohup bash -c "while pgrep -f 'warpgnn(.cli)? train.*hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s[$s]'
+#     > /dev/null; do sleep 10; done; FIRST_GPU=$((s - 1)) bench/train_paper.sh /opt/data /opt/runs50d 50e
+#     '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_dis2e1_s$((s - 1))\$'" > /opt/dis$s.log 2>&1 < /dev/null & done;
 #     mkdir -p $OUT/r300; bench/wait_runs.sh /opt/runs300 $((560-SECONDS)) $OUT/r300 /opt/data
-# (the setsid'd line queues the take-back with positions moved by L dE alone at 300 epochs on GPU 3 once vanilla s1 is done,
-# ~1300 s in: at 300 epochs the take-back moves its positions more through M dS, not less (generic_parts_e300_cpu.json), so
-# whether --reversible-positions, a tie at 30 minutes, closes the gap to vanilla with more epochs is the open question;
-# the pattern names warpgnn's own train process, which no device call's command line matches)
-# (each train_paper.sh line resumes its run from last.pt). Later calls: source bench/device_setup.sh, then the same wait.
-# A wait in a setsid'd shell on pgrep must not use a run's name that the call's own command line holds: on 2026-11-26 the
-# hybrid s1 waited on 'train.*..._vel_s[0]', which the call's own train_paper.sh line for s0 matched, so it started only
-# when that call ended (3 minutes lost). The session's last calls bring the runs back (a call returns at most 64 MiB in 8
-# files): bench/wait_runs.sh /opt/runs100a 0 $OUT (40 MB), then at once mkdir -p $OUT/b $OUT/c; bench/wait_runs.sh
-# /opt/runs100b 0 $OUT/b; bench/wait_runs.sh /opt/runs300 0 $OUT/c. Vanilla s1 needs ~1300 s more (one session), the
-# hybrid s1 ~2300 s and each 12-pass seed ~2250 s with its first epoch's compile (two sessions each).
-# When the 12-pass seeds finish, run bench/long_hold.py and bench/generic_parts.py on them beside seed 0: seed 0 at 100
-# epochs drifts when held and barely damps its velocities (generic_parts_e300_cpu.json); whether seeds 1 and 2 do too decides
-# whether the 12-pass network needs its velocities' damping kept from fading (seeds 1 and 2 at epochs 38 and 36 damp them
-# less than seed 0 did at 50 epochs, and seed 2 already grows when held, 1.03-1.07 a step: generic_parts_p12_partial_cpu.json,
-# long_hold_p12_partial_cpu.json).
+# (the 12-pass runs finish ~750 s in; bench/wait_runs.sh evaluates whatever has finished while 240 s of the call are left, so
+# wait on /opt/runs100a and /opt/runs100b with DATA in the calls after them: bench/wait_runs.sh /opt/runs100a SECONDS $OUT/a
+# /opt/data). Later calls: source bench/device_setup.sh, then the same waits. A wait in a setsid'd shell on pgrep must not
+# use a run's name that the call's own command line holds: on 2026-11-26 the hybrid s1 waited on 'train.*..._vel_s[0]',
+# which the call's own train_paper.sh line for s0 matched, so it started only when that call ended (3 minutes lost). The
+# session's last calls bring the runs back (a call returns at most 64 MiB in 8 files): bench/wait_runs.sh /opt/runs100a 0
+# $OUT/a, then at once mkdir -p $OUT/b $OUT/c; bench/wait_runs.sh /opt/runs100b 0 $OUT/b; bench/wait_runs.sh /opt/runs300 0
+# $OUT/c, and /opt/runs50d (2 x 40 MB once it has a last.pt: one call each, or leave its best.pt behind). Hybrid s1 needs
+# ~800 s more, each 12-pass seed ~750 s, revq s0 ~3200 s (two more sessions), the runs50d pair ~1900 s each (two sessions).
+# When the 12-pass seeds finish, run bench/long_hold.py --growth and bench/generic_parts.py on them beside seed 0: the
+# seeds so far barely damp their velocities, and two of three grow when held (long_hold_spectrum_cpu.json,
+# generic_parts_p12_partial_e77_cpu.json); the dis2e1 pair asks whether a larger start of B (16x M at the first step; the
+# first loss 48-67 against 3.6-9 of the default on 8 L5 samples) keeps the velocities' damping from fading.
 for s in 0 1 2; do
   run hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS --rotate \
     --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity
+done
+# The same with B starting 4x larger (M 16x): does the velocities' damping still fade? (the plan above, 50 epochs)
+for s in 0 1; do
+  run hybrid_p12_stable_rot_smooth2e1_g3e1_vel_dis2e1_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS \
+    --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity --dissipation-init-scale 0.2
 done
 # (M on the stress alone, --reversible-velocities too, is not queued: at toy scale it was worse than --reversible-positions
 # alone in all six L5 figures, bench/results/reversible_velocities_cpu_proxy.json. Nor is --mirror: the 30-minute networks
