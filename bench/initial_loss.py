@@ -1,6 +1,7 @@
 """The training loss of freshly initialised hybrids at each --dissipation-init-scale: how far from the targets' scale a
-larger start of B (M = B B^T) puts the first predictions, before anything is learnt. One batch of 8 noisy samples (the
-GPU runs' noise) of DATA_FILE per seed, the normaliser fitted on that file.
+larger start of B (M = B B^T) puts the first predictions, before anything is learnt. One batch of 8 samples of DATA_FILE
+per seed with the paper's per-node noise at the GPU runs' size (n_q 3e-3, n_v 1e-2; not their other augmentations), the
+normaliser fitted on that file.
 
     python bench/initial_loss.py DATA_FILE.h5 --scales 0.05 0.1 0.2 0.5 --json OUT.json --device "..." --command "..."
 """

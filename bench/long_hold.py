@@ -122,29 +122,40 @@ def held_step_growth(model, sim, z: torch.Tensor, iterations: int = 40, ritz: in
     nodes = share.sum(1).argsort(descending=True)[:10]
     tool_distance = (top.rest[nodes, None] - top.rest[top.loaded][None]).norm(dim=-1).min(1).values
     # Arnoldi from the power iterate, rich in the dominant modes: the Ritz values of its Hessenberg matrix
+    if ritz < 1:
+        raise ValueError(f"ritz must be >= 1 Arnoldi steps, got {ritz}")
     basis, H = [(d / d.norm()).flatten().double()], np.zeros((ritz + 1, ritz))
     for m in range(1, ritz + 1):
         w = jacobian_times(basis[-1].reshape(z.shape).to(z.dtype)).flatten().double()
-        for i in range(m):  # modified Gram-Schmidt, twice for a basis orthogonal to rounding
-            for _ in range(2):
+        image = float(w.norm())
+        for _ in range(2):  # Gram-Schmidt over the whole basis, twice: orthogonal to rounding
+            for i in range(m):
                 c = float(basis[i] @ w)
                 H[i, m - 1] += c
                 w = w - c * basis[i]
         H[m, m - 1] = float(w.norm())
-        if H[m, m - 1] < 1e-6 * np.abs(H[:m, :m]).max():  # invariant to float32 rounding: its Ritz values are exact
+        if H[m, m - 1] < 1e-6 * image:  # the space is invariant, up to the float32 step's rounding
             break
         basis.append(w / H[m, m - 1])
     values, vectors = np.linalg.eig(H[:m, :m])
     k = int(np.argmax(np.abs(values)))
-    lam, y = complex(values[k]), vectors[:, k]
-    residual = H[m, m - 1] * abs(y[-1]) / np.linalg.norm(y)  # |J x - lam x| / |x| of the Ritz vector
+    lam = complex(values[k])
+    # the Ritz vector's true residual |J x - lam x| / |x|, its real and imaginary parts each through the step
+    x = torch.stack(basis[:m], 1).to(torch.complex128) @ torch.from_numpy(vectors[:, k].astype(np.complex128))
+    parts = [x.real, x.imag] if abs(lam.imag) > 0 else [x.real]
+    images = [jacobian_times(p.reshape(z.shape).to(z.dtype)).flatten().double() for p in parts]
+    r = images[0] - lam.real * x.real + lam.imag * x.imag
+    residual = r.square().sum()
+    if len(images) == 2:
+        residual = residual + (images[1] - lam.real * x.imag - lam.imag * x.real).square().sum()
+    residual = float(residual.sqrt() / x.abs().norm())
     mu = (lam - 1) / sim.dt
     return {"growth_per_step": float(np.exp(np.mean(np.log(factors[-10:])))),
             "share": {g: float(share[:, sl].sum()) for g, sl in GROUPS.items()},
             "share_10_largest_nodes": float(share[nodes].sum()),
             "their_distance_to_a_tool_mm": (tool_distance * 1e3).round().tolist(),
             "dominant_eigenvalue": {"modulus": abs(lam), "re": lam.real, "im": abs(lam.imag),
-                                    "relative_residual": float(residual)},
+                                    "relative_residual": residual},
             "linearised_rate": {"decay_per_s": -mu.real, "angular_frequency_rad_per_s": abs(mu.imag)}}
 
 

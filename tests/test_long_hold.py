@@ -87,7 +87,7 @@ def test_growth_finds_an_oscillation_that_decays_but_grows_under_the_euler_step(
     lam = complex(1 - sim.dt * rate.DECAY, sim.dt * rate.OMEGA)
     assert abs(lam) > 1  # decaying in continuous time, growing under the step
     assert growth["dominant_eigenvalue"]["modulus"] == pytest.approx(abs(lam), rel=1e-5)
-    assert growth["dominant_eigenvalue"]["relative_residual"] < 1e-4  # float32 rounding
+    assert growth["dominant_eigenvalue"]["relative_residual"] < 1e-5  # float32 rounding
     assert growth["linearised_rate"]["decay_per_s"] == pytest.approx(rate.DECAY, rel=1e-4)
     assert growth["linearised_rate"]["angular_frequency_rad_per_s"] == pytest.approx(rate.OMEGA, rel=1e-5)
     if slow == 4.0:  # the others at 0.8 a step: power iteration has converged to the mode, the velocities'

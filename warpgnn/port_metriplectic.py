@@ -112,9 +112,9 @@ class PortMetriplecticDecoder(nn.Module):
         self.products = "einsum"  # how (A - A^T) x and B B^T x are computed: set_operator_products
         with torch.no_grad():  # A's outputs (the first N_L) and B's (the rest) each start at their own scale
             last = self.delta_e.rest[-1]
-            for rows, scale in ((slice(0, N_L), OPERATOR_INIT_SCALE), (slice(N_L, N_L + N_M), dissipation_init_scale)):
-                last.weight[rows].mul_(scale)
-                last.bias[rows].mul_(scale)
+            for outputs, scale in ((slice(0, N_L), OPERATOR_INIT_SCALE), (slice(N_L, N_L + N_M), dissipation_init_scale)):
+                last.weight[outputs].mul_(scale)
+                last.bias[outputs].mul_(scale)
 
     def operators(self, lm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(E, 144) decoder output -> A (strictly lower) and B (lower), each (E, 12, 12)."""
