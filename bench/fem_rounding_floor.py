@@ -101,10 +101,12 @@ def main():
         for n in common:
             a, b = (dataset.read_simulation(path, n) for path in paths)
             profiles.append(velocity_profile(a, b, hold_from))
-            per[n] = rollout_metrics(dataset.state(b), dataset.state(a)) | {"hold_velocity_correlation": profiles[-1]["hold_correlation"]}
+            per[n] = rollout_metrics(dataset.state(b), dataset.state(a)) | {
+                "hold_velocity_correlation": profiles[-1]["hold_correlation"]}
         a_hold = [pr["hold_correlation"] for pr in profiles]
         record = set_record("fem_rounding_floor", args, spec) | {
-                  "host": platform.node(), "processor": platform.processor(), "scored": len(common), "set_metrics": set_metrics(list(per.values())) if per else None,
+                  "host": platform.node(), "processor": platform.processor(), "scored": len(common),
+                  "set_metrics": set_metrics(list(per.values())) if per else None,
                   "velocity_per_snapshot": {  # snapshots 0..S, snapshot_dt apart; means over the scored simulations
                       "snapshot_dt": config.snapshot_dt, "hold_from_snapshot": hold_from,
                       "rms_dv_over_normaliser": np.mean([pr["rms_dv"] for pr in profiles], 0).tolist(),

@@ -14,7 +14,7 @@ import pytest
 import torch
 from synthetic import box, simulation
 
-from warpgnn import metrics
+from warpgnn import dataset, metrics
 from warpgnn.data import BatchShape, Simulation, make_batch, rotate_states, vertical_rotations
 from warpgnn.graphs import (NODE_FIXED, NODE_FREE, NODE_PRESCRIBED, apply_boundary_conditions, batch,
                             imposed_components, make_topology, raw_features)
@@ -593,7 +593,7 @@ def mean_edge(mesh):
 def make_sim(mesh, seed, dt):
     rec = simulation(mesh, np.random.default_rng(seed), steps=3, dt=dt, tools=2)
     top = make_topology(mesh, rec["loaded"])
-    z = torch.as_tensor(np.concatenate([rec["q"], rec["v"], rec["sigma"]], -1))
+    z = torch.as_tensor(dataset.state(rec))
     return Simulation(f"box/{seed}", top, z, torch.as_tensor(rec["u"]), dt, mean_edge(mesh))
 
 
