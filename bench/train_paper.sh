@@ -287,39 +287,44 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # was done). The next session (2026-11-26 13:24 UTC, nvidia-h200-x4, 1757 s) resumed all four; vanilla s1 finished
 # (bench/results/gnn_vanilla_takeback_e300_s1_h200.json: 8.711e-3 / 3.200e-2 / 5.008e-2, best epoch 266) and GPU 3 went on to
 # the take-back with positions moved by L dE alone at 300 epochs ('^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_revq_s0$',
-# /opt/runs300; at 30 minutes a tie, so whether more epochs close its gap to vanilla is the question). Where they stopped:
-# 12-pass s1 epoch 81, s2 epoch 78 (of 100); hybrid s1 epoch 230 (of 300); revq s0 epoch 7 (of 300).
-# Their files, in the ignored .devruns (next1: runs300, 10 MB, the hybrid s1 and revq s0; next2: runs100a, 40 MB; next3:
-# runs100b without its last.pt, 10 MB; next4: runs100b's last.pt, 30 MB), go back in three calls (a call carries at most
-# 64 MiB with the tree; move bench/results aside first, mv bench/results /tmp/bench_results_aside && mkdir -p bench/results,
-# and back after):
+# /opt/runs300; at 30 minutes a tie, so whether more epochs close its gap to vanilla is the question). The session after
+# (2026-11-26 15:14 UTC, nvidia-h200-x4, 1752 s) resumed them from the ignored .devruns and finished three:
+# 12-pass s1 and s2 (bench/results/gnn_p12_takeback_e100_s12_h200.json; the three 12-pass seeds average 9.468e-3 / 3.500e-2 /
+# 4.969e-2, -1.4 / -4.4 / -2.7 % against the 5-pass take-back's three) and the hybrid s1 at 300 epochs
+# (bench/results/gnn_hybrid_takeback_e300_s1_h200.json: 9.186e-3 / 3.377e-2 / 4.690e-2; two seeds each, the hybrid +5.6 / +5.9
+# / -5.7 % against vanilla). It started the 12-pass take-back with B 4x larger (the dis2e1 lines below, 50e, /opt/runs50d) on
+# GPUs 0 and 1 as the 12-pass seeds finished. Where they stopped: revq s0 epoch 149 of 300; dis2e1 s0 epoch 19, s1 epoch 20
+# (of 50). Their files, in the ignored .devruns (next1: runs300, 5 MB, revq s0; next2: runs50d's dis2e1 s0, 40 MB; next3:
+# runs50d's dis2e1 s1 without its last.pt, 10 MB; next4: that last.pt, 30 MB; finished runs in .devruns/archive), go back in
+# three calls (a call carries at most 64 MiB with the tree; move bench/results aside first, mv bench/results
+# /tmp/bench_results_aside && mkdir -p bench/results, and back after):
 #   call 1 carries .devwheels/a and .devruns/next1:  mkdir -p /opt/dw && cp .devwheels/a/* /opt/dw/ && cp -r .devruns/next1/. /opt/
 #   call 2 carries .devruns/next2 and .devruns/next3:  cp -r .devruns/next2/. .devruns/next3/. /opt/
 #   call 3 carries .devwheels/b, .devdata and .devruns/next4 (63.4 of 64 MiB with the tree: keep the tree from growing, or
-#   move docs/ (1 MB) aside too), and starts all four, then the 12-pass take-back with B starting 4x larger on GPUs 0 and 1
-#   as each 12-pass seed finishes (~750 s in):  cp -r .devruns/next4/. /opt/ &&
-#     source bench/device_setup.sh && export PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs FALLBACK=--compile &&
-#     bench/train_paper.sh /opt/data /opt/runs100a 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s1$' &&
-#     FIRST_GPU=1 bench/train_paper.sh /opt/data /opt/runs100b 100e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s2$' &&
-#     FIRST_GPU=2 bench/train_paper.sh /opt/data /opt/runs300 300e '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s1$' &&
-#     FIRST_GPU=3 bench/train_paper.sh /opt/data /opt/runs300 300e '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_revq_s0$';
-#     for s in 1 2; do setsid nohup bash -c "while pgrep -f 'warpgnn(.cli)? train.*hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s[$s]'
-#     > /dev/null; do sleep 10; done; FIRST_GPU=$((s - 1)) bench/train_paper.sh /opt/data /opt/runs50d 50e
-#     '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_dis2e1_s$((s - 1))\$'" > /opt/dis$s.log 2>&1 < /dev/null & done;
-#     mkdir -p $OUT/r300; bench/wait_runs.sh /opt/runs300 $((560-SECONDS)) $OUT/r300 /opt/data
-# (the 12-pass runs finish ~750 s in; bench/wait_runs.sh evaluates whatever has finished while 240 s of the call are left, so
-# wait on /opt/runs100a and /opt/runs100b with DATA in the calls after them: bench/wait_runs.sh /opt/runs100a SECONDS $OUT/a
-# /opt/data). Later calls: source bench/device_setup.sh, then the same waits. A wait in a setsid'd shell on pgrep must not
-# use a run's name that the call's own command line holds: on 2026-11-26 the hybrid s1 waited on 'train.*..._vel_s[0]',
-# which the call's own train_paper.sh line for s0 matched, so it started only when that call ended (3 minutes lost). The
-# session's last calls bring the runs back (a call returns at most 64 MiB in 8 files): bench/wait_runs.sh /opt/runs100a 0
-# $OUT/a, then at once mkdir -p $OUT/b $OUT/c; bench/wait_runs.sh /opt/runs100b 0 $OUT/b; bench/wait_runs.sh /opt/runs300 0
-# $OUT/c, and /opt/runs50d (2 x 40 MB once it has a last.pt: one call each, or leave its best.pt behind). Hybrid s1 needs
-# ~800 s more, each 12-pass seed ~750 s, revq s0 ~3200 s (two more sessions), the runs50d pair ~1900 s each (two sessions).
-# When the 12-pass seeds finish, run bench/long_hold.py --growth and bench/generic_parts.py on them beside seed 0: the
-# seeds so far barely damp their velocities, and two of three grow when held (long_hold_spectrum_cpu.json,
-# generic_parts_p12_partial_e77_cpu.json); the dis2e1 pair asks whether a larger start of B (16x M at the first step; the
-# first loss 48-67 against 3.6-9 of the default on 8 L5 samples) keeps the velocities' damping from fading.
+#   move docs/ (1 MB) aside too), resumes the three and starts the third 300-epoch seed's hybrid on GPU 3, then its vanilla
+#   on GPU 0 once dis2e1 s0 is done (~1220 s in; no 300-epoch pair has a third seed yet, and the targets are 3-seed means):
+#     cp -r .devruns/next4/. /opt/ && source bench/device_setup.sh &&
+#     export PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs FALLBACK=--compile &&
+#     bench/train_paper.sh /opt/data /opt/runs50d 50e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_dis2e1_s0$' &&
+#     FIRST_GPU=1 bench/train_paper.sh /opt/data /opt/runs50d 50e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_dis2e1_s1$' &&
+#     FIRST_GPU=2 bench/train_paper.sh /opt/data /opt/runs300 300e '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_revq_s0$' &&
+#     FIRST_GPU=3 bench/train_paper.sh /opt/data /opt/runs300 300e '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s2$';
+#     setsid nohup bash -c "while pgrep -f 'warpgnn(.cli)? train.*vel_dis2e1_s[0]' > /dev/null; do sleep 10; done;
+#     bench/train_paper.sh /opt/data /opt/runs300v 300e '^vanilla_p5_stable_rot_smooth2e1_g3e1_vel_s2\$'" > /opt/v2.log 2>&1
+#     < /dev/null & mkdir -p $OUT/r300; bench/wait_runs.sh /opt/runs300 $((560-SECONDS)) $OUT/r300 /opt/data
+# (a wait in a setsid'd shell on pgrep must not use a pattern that the call's own command line matches: on 2026-11-26 the
+# hybrid s1 waited on 'train.*..._vel_s[0]', which the call's own train_paper.sh line for s0 matched, so it started only when
+# that call ended; the bracket keeps the pattern from matching itself.) Later calls: source bench/device_setup.sh, then
+# bench/wait_runs.sh /opt/runs50d SECONDS $OUT/d /opt/data (it evaluates a finished run while EVAL_SECONDS, default 240,
+# are left; a 12-pass evaluation took ~100 s beside three trainings; several folders in one call: wait on the others in the
+# background without OUT, as in (bench/wait_runs.sh /opt/runs300 550 "" /opt/data > /opt/w.log 2>&1 &), then pack each with
+# SECONDS 0). Device time counts the gaps between calls too: chain them at once. The last calls bring the runs back (a call
+# returns at most 64 MiB in 8 files; a 12-pass run with its last.pt is 40 MB, so one a call, beside /opt/runs300 and
+# /opt/runs300v, 5-pass, ~6 MB a run). What is left: dis2e1 ~1050 s each (~31 epochs), revq s0 ~1600 s, hybrid s2 ~3300 s
+# and vanilla s2 ~2850 s (two more sessions). When dis2e1 finishes: bench/long_hold.py --growth and bench/generic_parts.py
+# on it beside the default-start seeds (long_hold_p12_e100_s12_cpu.json, generic_parts_p12_e100_s12_cpu.json): does a
+# larger start of B (16x M at the first step; the first loss 48-67 against 3.6-9 of the default on 8 L5 samples) keep the
+# 12-pass velocities damped and its holds from growing?
 for s in 0 1 2; do
   run hybrid_p12_stable_rot_smooth2e1_g3e1_vel_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS --rotate \
     --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity
