@@ -18,6 +18,7 @@
 # Generates the paper dataset first if DATA lacks it. Then: bench/wait_runs.sh RUNS SECONDS.
 # To stop everything: kill $(cat RUNS/.queue.*.pid) (the dispatchers), then pkill -f 'warpgnn train'.
 set -euo pipefail
+case ${1:-} in -h|--help) sed -n '2,/^set -euo pipefail/p' "$0" | sed '$d; s/^# \{0,1\}//'; exit 0;; esac
 DATA=${1:-data}; RUNS=${2:-runs}; BUDGET=${3:-1200}; ONLY=${4:-.}; PER_GPU=${PER_GPU:-2}; BATCH=${BATCH:-32}; EXTRA=${EXTRA:-}; FALLBACK=${FALLBACK:-}
 NOISE=${NOISE:---noise-q 3e-3 --noise-v 1e-2}; NOISE_V_ADD=${NOISE_V_ADD:-1e-2}
 PUSHFORWARD_FLAGS="$NOISE --pushforward ${PUSHFORWARD:-2}"  # the pushforward recipe, shared by its arms
@@ -29,7 +30,9 @@ if [ ! -f "$DATA/manifest.json" ] && [ ! -f "$DATA/manifest.0-of-$GPUS.json" ]; 
   for g in $(seq 0 $((GPUS - 1))); do
     warpgnn generate --preset paper --out "$DATA" --device cuda:$g --shard $g/$GPUS > "$DATA.generate.$g.log" 2>&1 &
   done
-  wait
+  failed=0; for job in $(jobs -p); do wait "$job" || failed=1; done
+  # a failed generation must not queue every run on data that is not there
+  [ "$failed" = 0 ] || { echo "train_paper.sh: generating the paper dataset in $DATA failed (see $DATA.generate.*.log)" >&2; exit 1; }
 fi
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}  # many processes share the host's cores
 if [[ $BUDGET == *e ]]; then LENGTH="--epochs ${BUDGET%e}"; else LENGTH="--time-budget $BUDGET"; fi

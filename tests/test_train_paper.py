@@ -96,6 +96,33 @@ def test_a_negative_first_gpu_is_refused_before_anything_starts(tmp_path):
     assert not any(tmp_path.iterdir())  # no data generated, no runs queued
 
 
+
+def test_help_prints_the_usage_and_starts_nothing(tmp_path):
+    proc = subprocess.run(["bash", str(BENCH / "train_paper.sh"), "--help"], capture_output=True, text=True,
+                          timeout=60, check=False, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "usage: bench/train_paper.sh DATA RUNS TIME_BUDGET [NAME_REGEX]" in proc.stdout
+    assert "set -euo" not in proc.stdout
+    assert not any(tmp_path.iterdir())  # no "--help" dataset generated, no runs queued
+
+
+def test_a_failed_generation_stops_before_any_run_is_queued(tmp_path):
+    """DATA without a manifest is generated first; if that fails, one line says so and nothing is queued."""
+    script = tmp_path / "bin" / "warpgnn"
+    script.parent.mkdir()
+    script.write_text("#!/bin/sh\necho \"generate: no GPU\" >&2\nexit 1\n")
+    script.chmod(0o755)
+    runs = tmp_path / "runs"
+    proc = subprocess.run(["bash", str(BENCH / "train_paper.sh"), str(tmp_path / "data"), str(runs), "2e", "x"],
+                          capture_output=True, text=True, timeout=60, check=False,
+                          env=os.environ | {"PATH": f"{script.parent}:{os.environ['PATH']}", "GPUS": "2"})
+    assert proc.returncode == 1
+    assert proc.stderr.strip().splitlines() == [
+        f"train_paper.sh: generating the paper dataset in {tmp_path / 'data'} failed (see {tmp_path / 'data'}.generate.*.log)"]
+    assert not runs.exists()
+    assert "generate: no GPU" in (tmp_path / "data.generate.1.log").read_text()
+
+
 EVAL_STUB = """#!/bin/sh
 echo "$@" >> {log}
 out=$(echo "$@" | sed 's/.*--out \\([^ ]*\\).*/\\1/')
