@@ -5,6 +5,7 @@
 # only those runs of RUNS.
 #   usage: bench/eval_paper.sh DATA RUNS EVAL [NAME ...]
 set -uo pipefail
+source "$(dirname "$0")/help.sh" "$@"
 DATA=$1; RUNS=$2; EVAL=$3; shift 3
 one() {
   local run=$1 name failed=0; name=$(basename "$1")

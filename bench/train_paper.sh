@@ -18,7 +18,7 @@
 # Generates the paper dataset first if DATA lacks it. Then: bench/wait_runs.sh RUNS SECONDS.
 # To stop everything: kill $(cat RUNS/.queue.*.pid) (the dispatchers), then pkill -f 'warpgnn train'.
 set -euo pipefail
-case ${1:-} in -h|--help) sed -n '2,/^set -euo pipefail/p' "$0" | sed '$d; s/^# \{0,1\}//'; exit 0;; esac
+source "$(dirname "$0")/help.sh" "$@"
 DATA=${1:-data}; RUNS=${2:-runs}; BUDGET=${3:-1200}; ONLY=${4:-.}; PER_GPU=${PER_GPU:-2}; BATCH=${BATCH:-32}; EXTRA=${EXTRA:-}; FALLBACK=${FALLBACK:-}
 NOISE=${NOISE:---noise-q 3e-3 --noise-v 1e-2}; NOISE_V_ADD=${NOISE_V_ADD:-1e-2}
 PUSHFORWARD_FLAGS="$NOISE --pushforward ${PUSHFORWARD:-2}"  # the pushforward recipe, shared by its arms
@@ -297,9 +297,11 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # (bench/results/gnn_hybrid_takeback_e300_s1_h200.json: 9.186e-3 / 3.377e-2 / 4.690e-2; two seeds each, the hybrid +5.6 / +5.9
 # / -5.7 % against vanilla). It started the 12-pass take-back with B 4x larger (the dis2e1 lines below, 50e, /opt/runs50d) on
 # GPUs 0 and 1 as the 12-pass seeds finished. Where they stopped: revq s0 epoch 149 of 300; dis2e1 s0 epoch 19, s1 epoch 20
-# (of 50). Their files, in the ignored .devruns (next1: runs300, 5 MB, revq s0; next2: runs50d's dis2e1 s0, 40 MB; next3:
-# runs50d's dis2e1 s1 without its last.pt, 10 MB; next4: that last.pt, 30 MB; finished runs in .devruns/archive), go back in
-# three calls (a call carries at most 64 MiB with the tree; move bench/results aside first, mv bench/results
+# (of 50); revq s0 tracks the plain take-back's hybrids on validation (best mean 3.24e-2 by epoch 149, theirs 3.22e-2 and
+# 3.25e-2, vanilla's 3.18e-2 and 3.25e-2), so more epochs are not closing its gap either. Their files, in the ignored
+# .devruns (next1: runs300, 5 MB, revq s0; next2: runs50d's dis2e1 s0, 40 MB; next3: runs50d's dis2e1 s1 without its
+# last.pt, 10 MB; next4: that last.pt, 30 MB; finished runs in .devruns/archive), go back in three calls (a call carries
+# at most 64 MiB with the tree; move bench/results aside first, mv bench/results
 # /tmp/bench_results_aside && mkdir -p bench/results, and back after):
 #   call 1 carries .devwheels/a and .devruns/next1:  mkdir -p /opt/dw && cp .devwheels/a/* /opt/dw/ && cp -r .devruns/next1/. /opt/
 #   call 2 carries .devruns/next2 and .devruns/next3:  cp -r .devruns/next2/. .devruns/next3/. /opt/

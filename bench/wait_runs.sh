@@ -8,6 +8,7 @@
 # evaluations, into OUT/runs.tar.NN, so that whatever the call ends with comes back even if the
 # machine is released before the next call.
 #   usage: bench/wait_runs.sh RUNS SECONDS [OUT [DATA]]
+source "$(dirname "$0")/help.sh" "$@"
 RUNS=$1; LIMIT=$2; OUT=${3:-}; DATA=${4:-}; EVAL_SECONDS=${EVAL_SECONDS:-240}; t0=$SECONDS
 BENCH=$(dirname "$0")
 # without warpgnn every evaluation fails, silently, until the call ends: on the device machine each call must

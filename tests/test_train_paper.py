@@ -97,13 +97,18 @@ def test_a_negative_first_gpu_is_refused_before_anything_starts(tmp_path):
 
 
 
-def test_help_prints_the_usage_and_starts_nothing(tmp_path):
-    proc = subprocess.run(["bash", str(BENCH / "train_paper.sh"), "--help"], capture_output=True, text=True,
+@pytest.mark.parametrize("script, usage", [
+    ("train_paper.sh", "usage: bench/train_paper.sh DATA RUNS TIME_BUDGET [NAME_REGEX]"),
+    ("eval_paper.sh", "usage: bench/eval_paper.sh DATA RUNS EVAL [NAME ...]"),
+    ("wait_runs.sh", "usage: bench/wait_runs.sh RUNS SECONDS [OUT [DATA]]"),
+])
+def test_help_prints_the_usage_and_starts_nothing(tmp_path, script, usage):
+    proc = subprocess.run(["bash", str(BENCH / script), "--help"], capture_output=True, text=True,
                           timeout=60, check=False, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
-    assert "usage: bench/train_paper.sh DATA RUNS TIME_BUDGET [NAME_REGEX]" in proc.stdout
-    assert "set -euo" not in proc.stdout
-    assert not any(tmp_path.iterdir())  # no "--help" dataset generated, no runs queued
+    assert usage in proc.stdout
+    assert "pipefail" not in proc.stdout and "RUNS=$1" not in proc.stdout  # the header comment only
+    assert not any(tmp_path.iterdir())  # no "--help" dataset generated, no runs queued or evaluated
 
 
 def test_a_failed_generation_stops_before_any_run_is_queued(tmp_path):
