@@ -26,7 +26,12 @@ STABLE_FLAGS="$PUSHFORWARD_FLAGS --noise-v-add $NOISE_V_ADD"  # the stable recip
 GPUS=${GPUS:-$(python3 -c 'import torch; print(max(1, torch.cuda.device_count()))')}
 FIRST_GPU=${FIRST_GPU:-0}
 [[ $FIRST_GPU =~ ^[0-9]+$ ]] || { echo "train_paper.sh: FIRST_GPU must be a GPU number >= 0, got '$FIRST_GPU'" >&2; exit 2; }
-if [ ! -f "$DATA/manifest.json" ] && [ ! -f "$DATA/manifest.0-of-$GPUS.json" ]; then  # one shard of the sets per GPU
+have_data() {  # the whole dataset, or every GPU's shard of it (a failed shard leaves the others' manifests behind)
+  local g
+  [ -f "$DATA/manifest.json" ] && return 0
+  for g in $(seq 0 $((GPUS - 1))); do [ -f "$DATA/manifest.$g-of-$GPUS.json" ] || return 1; done
+}
+if ! have_data; then  # one shard of the sets per GPU
   for g in $(seq 0 $((GPUS - 1))); do
     warpgnn generate --preset paper --out "$DATA" --device cuda:$g --shard $g/$GPUS > "$DATA.generate.$g.log" 2>&1 &
   done
@@ -293,7 +298,7 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # /opt/runs300; at 30 minutes a tie, so whether more epochs close its gap to vanilla is the question). The session after
 # (2026-11-26 15:14 UTC, nvidia-h200-x4, 1752 s) resumed them from the ignored .devruns and finished three:
 # 12-pass s1 and s2 (bench/results/gnn_p12_takeback_e100_s12_h200.json; the three 12-pass seeds average 9.468e-3 / 3.500e-2 /
-# 4.969e-2, -1.4 / -4.4 / -2.7 % against the 5-pass take-back's three) and the hybrid s1 at 300 epochs
+# 4.968e-2, -1.4 / -4.4 / -2.7 % against the 5-pass take-back's three) and the hybrid s1 at 300 epochs
 # (bench/results/gnn_hybrid_takeback_e300_s1_h200.json: 9.186e-3 / 3.377e-2 / 4.690e-2; two seeds each, the hybrid +5.6 / +5.9
 # / -5.7 % against vanilla). It started the 12-pass take-back with B 4x larger (the dis2e1 lines below, 50e, /opt/runs50d) on
 # GPUs 0 and 1 as the 12-pass seeds finished. Where they stopped: revq s0 epoch 149 of 300; dis2e1 s0 epoch 19, s1 epoch 20
@@ -313,13 +318,15 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 #     bench/train_paper.sh /opt/data /opt/runs50d 50e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_dis2e1_s0$' &&
 #     FIRST_GPU=1 bench/train_paper.sh /opt/data /opt/runs50d 50e '^hybrid_p12_stable_rot_smooth2e1_g3e1_vel_dis2e1_s1$' &&
 #     FIRST_GPU=2 bench/train_paper.sh /opt/data /opt/runs300 300e '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_revq_s0$' &&
-#     FIRST_GPU=3 bench/train_paper.sh /opt/data /opt/runs300 300e '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s2$';
+#     FIRST_GPU=3 bench/train_paper.sh /opt/data /opt/runs300 300e '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_s2$' || exit 1;
 #     setsid nohup bash -c "while pgrep -f 'warpgnn(.cli)? train.*vel_dis2e1_s[0]' > /dev/null; do sleep 10; done;
 #     bench/train_paper.sh /opt/data /opt/runs300v 300e '^vanilla_p5_stable_rot_smooth2e1_g3e1_vel_s2\$'" > /opt/v2.log 2>&1
 #     < /dev/null & mkdir -p $OUT/r300; bench/wait_runs.sh /opt/runs300 $((560-SECONDS)) $OUT/r300 /opt/data
 # (a wait in a setsid'd shell on pgrep must not use a pattern that the call's own command line matches: on 2026-11-26 the
 # hybrid s1 waited on 'train.*..._vel_s[0]', which the call's own train_paper.sh line for s0 matched, so it started only when
-# that call ended; the bracket keeps the pattern from matching itself.) Later calls: source bench/device_setup.sh, then
+# that call ended. The 'warpgnn(.cli)? ' prefix keeps the pattern off the call's train_paper.sh lines, which hold no
+# 'warpgnn train', and the bracket keeps it off the waiting shell's own command line; '|| exit 1' keeps the waiting shell
+# from starting vanilla s2 at once when a resume before it failed.) Later calls: source bench/device_setup.sh, then
 # bench/wait_runs.sh /opt/runs50d SECONDS $OUT/d /opt/data (it evaluates a finished run while EVAL_SECONDS, default 240,
 # are left; a 12-pass evaluation took ~100 s beside three trainings; several folders in one call: wait on the others in the
 # background without OUT, as in (bench/wait_runs.sh /opt/runs300 550 "" /opt/data > /opt/w.log 2>&1 &), then pack each with

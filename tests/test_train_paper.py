@@ -96,36 +96,56 @@ def test_a_negative_first_gpu_is_refused_before_anything_starts(tmp_path):
     assert not any(tmp_path.iterdir())  # no data generated, no runs queued
 
 
-
 @pytest.mark.parametrize("script, usage", [
     ("train_paper.sh", "usage: bench/train_paper.sh DATA RUNS TIME_BUDGET [NAME_REGEX]"),
     ("eval_paper.sh", "usage: bench/eval_paper.sh DATA RUNS EVAL [NAME ...]"),
     ("wait_runs.sh", "usage: bench/wait_runs.sh RUNS SECONDS [OUT [DATA]]"),
 ])
 def test_help_prints_the_usage_and_starts_nothing(tmp_path, script, usage):
+    # were --help not handled, the script would find a failing warpgnn on one GPU: nothing real runs
+    stub = tmp_path.parent / f"{tmp_path.name}_bin" / "warpgnn"
+    stub.parent.mkdir()
+    stub.write_text("#!/bin/sh\nexit 1\n")
+    stub.chmod(0o755)
     proc = subprocess.run(["bash", str(BENCH / script), "--help"], capture_output=True, text=True,
-                          timeout=60, check=False, cwd=tmp_path)
+                          timeout=60, check=False, cwd=tmp_path,
+                          env=os.environ | {"PATH": f"{stub.parent}:{os.environ['PATH']}", "GPUS": "1"})
     assert proc.returncode == 0, proc.stderr
     assert usage in proc.stdout
     assert "pipefail" not in proc.stdout and "RUNS=$1" not in proc.stdout  # the header comment only
     assert not any(tmp_path.iterdir())  # no "--help" dataset generated, no runs queued or evaluated
 
 
-def test_a_failed_generation_stops_before_any_run_is_queued(tmp_path):
-    """DATA without a manifest is generated first; if that fails, one line says so and nothing is queued."""
+# generates its shard's manifest, except on GPU 1, which fails: the shard before it succeeds (a check of shard 0
+# alone would trust it), and so does the one after it (the last started, all a check of `wait $!` would see)
+GENERATE_STUB = """#!/bin/sh
+case "$*" in
+  *cuda:1*) echo "generate: no GPU" >&2; exit 1;;
+  *) out=$(echo "$@" | sed 's/.*--out \\([^ ]*\\).*/\\1/'); shard=$(echo "$@" | sed 's/.*--shard \\([0-9]*\\)\\/\\([0-9]*\\).*/\\1-of-\\2/')
+     mkdir -p "$out" && echo {} > "$out/manifest.$shard.json";;
+esac
+"""
+
+
+def test_a_failed_generation_stops_before_any_run_is_queued_and_is_redone(tmp_path):
+    """DATA without a manifest is generated first, a shard per GPU; if any shard fails, one line says so and nothing
+    is queued, and the next call generates again rather than trusting the shards that succeeded."""
     script = tmp_path / "bin" / "warpgnn"
     script.parent.mkdir()
-    script.write_text("#!/bin/sh\necho \"generate: no GPU\" >&2\nexit 1\n")
+    script.write_text(GENERATE_STUB)
     script.chmod(0o755)
     runs = tmp_path / "runs"
-    proc = subprocess.run(["bash", str(BENCH / "train_paper.sh"), str(tmp_path / "data"), str(runs), "2e", "x"],
-                          capture_output=True, text=True, timeout=60, check=False,
-                          env=os.environ | {"PATH": f"{script.parent}:{os.environ['PATH']}", "GPUS": "2"})
-    assert proc.returncode == 1
-    assert proc.stderr.strip().splitlines() == [
-        f"train_paper.sh: generating the paper dataset in {tmp_path / 'data'} failed (see {tmp_path / 'data'}.generate.*.log)"]
-    assert not runs.exists()
-    assert "generate: no GPU" in (tmp_path / "data.generate.1.log").read_text()
+    for attempt in range(2):
+        proc = subprocess.run(["bash", str(BENCH / "train_paper.sh"), str(tmp_path / "data"), str(runs), "2e", "x"],
+                              capture_output=True, text=True, timeout=60, check=False,
+                              env=os.environ | {"PATH": f"{script.parent}:{os.environ['PATH']}", "GPUS": "3"})
+        assert proc.returncode == 1, (attempt, proc.stdout, proc.stderr)
+        assert proc.stderr.strip().splitlines() == [
+            f"train_paper.sh: generating the paper dataset in {tmp_path / 'data'} failed (see {tmp_path / 'data'}.generate.*.log)"]
+        assert not runs.exists()
+        assert "generate: no GPU" in (tmp_path / "data.generate.1.log").read_text()
+        assert (tmp_path / "data" / "manifest.0-of-3.json").exists()  # the shards that succeeded
+        assert (tmp_path / "data" / "manifest.2-of-3.json").exists()
 
 
 EVAL_STUB = """#!/bin/sh
