@@ -92,41 +92,26 @@ def flip_statistics(z: torch.Tensor, t: int, dt: float) -> dict:
 PERTURBATION_UNITS = torch.tensor([1e-3] * 6 + [1e3] * 6)
 
 
-def held_step_growth(model, sim, z: torch.Tensor, iterations: int = 40, ritz: int = 12) -> dict:
-    """Power iteration on the Jacobian of z -> Euler step with the tools held, at z (the network's own
-    state at the last snapshot, from free_node_history): the geometric mean of the last 10 growth factors (above 1: a
-    perturbation grows every step), the mode's share per group and in its 10 largest nodes, and
-    how far those lie from the nearest tool (mm). Then ``ritz`` Arnoldi steps from the last iterate, whose Krylov space
-    holds the dominant modes (a complex pair too, which power iteration only turns within): the dominant eigenvalue
-    lambda of the Euler step and the rate mu = (lambda - 1) / dt of the network's linearised dynamics behind it. A
-    mode with Re mu < 0 (decaying in continuous time) still grows under the Euler step when its frequency is high
-    enough, |1 + dt mu| > 1: then more damping of that mode, not a different rate, keeps the hold."""
-    top = sim.topology
-    u, units = sim.u[-1], PERTURBATION_UNITS.to(z.dtype)
-
-    def held_step(x):
-        moved = z + x * units
-        return apply_boundary_conditions(top, moved + sim.dt * model(top, moved, u, u).zdot, u) / units
-
-    def jacobian_times(d):
-        return torch.func.jvp(held_step, (torch.zeros_like(z),), (d,))[1].detach()
-
-    d = torch.randn(z.shape, generator=torch.Generator().manual_seed(0), dtype=z.dtype)
-    d[top.node_type != NODE_FREE] = 0
+def power_iteration(apply, d: torch.Tensor, iterations: int) -> tuple[torch.Tensor, list[float]]:
+    """``iterations`` products d <- apply(d / |d|) from d: the last iterate, rich in the dominant modes, and the
+    growth factor |apply(d)| / |d| of each product."""
     factors = []
     for _ in range(iterations):
-        jd = jacobian_times(d / d.norm())
-        factors.append(jd.norm().item())
-        d = jd
-    share = (d / d.norm()).square()
-    nodes = share.sum(1).argsort(descending=True)[:10]
-    tool_distance = (top.rest[nodes, None] - top.rest[top.loaded][None]).norm(dim=-1).min(1).values
-    # Arnoldi from the power iterate, rich in the dominant modes: the Ritz values of its Hessenberg matrix
+        image = apply(d / d.norm())
+        factors.append(image.norm().item())
+        d = image
+    return d, factors
+
+
+def dominant_eigenvalue(apply, d: torch.Tensor, ritz: int) -> tuple[complex, float]:
+    """``ritz`` Arnoldi steps of the linear map ``apply`` from d (a power iterate, whose Krylov space holds the dominant
+    modes, a complex pair too, which power iteration only turns within): the Ritz value of largest modulus and its
+    Ritz vector's true residual |A x - lambda x| / |x|."""
     if ritz < 1:
         raise ValueError(f"ritz must be >= 1 Arnoldi steps, got {ritz}")
     basis, H = [(d / d.norm()).flatten().double()], np.zeros((ritz + 1, ritz))
     for m in range(1, ritz + 1):
-        w = jacobian_times(basis[-1].reshape(z.shape).to(z.dtype)).flatten().double()
+        w = apply(basis[-1].reshape(d.shape).to(d.dtype)).flatten().double()
         image = float(w.norm())
         for _ in range(2):  # Gram-Schmidt over the whole basis, twice: orthogonal to rounding
             for i in range(m):
@@ -140,20 +125,56 @@ def held_step_growth(model, sim, z: torch.Tensor, iterations: int = 40, ritz: in
     values, vectors = np.linalg.eig(H[:m, :m])
     k = int(np.argmax(np.abs(values)))
     lam = complex(values[k])
-    # the Ritz vector's true residual |J x - lam x| / |x|, its real and imaginary parts each through the step
+    # the Ritz vector's true residual, its real and imaginary parts each through the map
     x = torch.stack(basis[:m], 1).to(torch.complex128) @ torch.from_numpy(vectors[:, k].astype(np.complex128))
     parts = [x.real, x.imag] if abs(lam.imag) > 0 else [x.real]
-    images = [jacobian_times(p.reshape(z.shape).to(z.dtype)).flatten().double() for p in parts]
+    images = [apply(p.reshape(d.shape).to(d.dtype)).flatten().double() for p in parts]
     r = images[0] - lam.real * x.real + lam.imag * x.imag
     residual = r.square().sum()
     if len(images) == 2:
         residual = residual + (images[1] - lam.real * x.imag - lam.imag * x.real).square().sum()
-    residual = float(residual.sqrt() / x.abs().norm())
+    return lam, float(residual.sqrt() / x.abs().norm())
+
+
+def euler_step_jacobian(model, sim, z: torch.Tensor, u_now: torch.Tensor, u_next: torch.Tensor):
+    """d -> the Jacobian of the Euler step (boundary conditions included) at z times d, both in PERTURBATION_UNITS
+    (mm, mm/s, kPa: the groups comparable), by forward-mode derivatives; and a random start on the free nodes."""
+    top, units = sim.topology, PERTURBATION_UNITS.to(z.dtype)
+
+    def step(x):
+        moved = z + x * units
+        return apply_boundary_conditions(top, moved + sim.dt * model(top, moved, u_now, u_next).zdot, u_next) / units
+
+    d = torch.randn(z.shape, generator=torch.Generator().manual_seed(0), dtype=z.dtype)
+    d[top.node_type != NODE_FREE] = 0
+    return (lambda v: torch.func.jvp(step, (torch.zeros_like(z),), (v,))[1].detach()), d
+
+
+def mode_location(sim, d: torch.Tensor) -> dict:
+    """A mode's share per group and in its 10 largest nodes, and how far those lie from the nearest tool (mm)."""
+    top, share = sim.topology, (d / d.norm()).square()
+    nodes = share.sum(1).argsort(descending=True)[:10]
+    tool_distance = (top.rest[nodes, None] - top.rest[top.loaded][None]).norm(dim=-1).min(1).values
+    return {"share": {g: float(share[:, sl].sum()) for g, sl in GROUPS.items()},
+            "share_10_largest_nodes": float(share[nodes].sum()),
+            "their_distance_to_a_tool_mm": (tool_distance * 1e3).round().tolist()}
+
+
+def held_step_growth(model, sim, z: torch.Tensor, iterations: int = 40, ritz: int = 12) -> dict:
+    """Power iteration on the Jacobian of z -> Euler step with the tools held, at z (the network's own
+    state at the last snapshot, from free_node_history): the geometric mean of the last 10 growth factors (above 1: a
+    perturbation grows every step), the mode's share per group and in its 10 largest nodes, and
+    how far those lie from the nearest tool (mm). Then ``ritz`` Arnoldi steps from the last iterate, whose Krylov space
+    holds the dominant modes (a complex pair too, which power iteration only turns within): the dominant eigenvalue
+    lambda of the Euler step and the rate mu = (lambda - 1) / dt of the network's linearised dynamics behind it. A
+    mode with Re mu < 0 (decaying in continuous time) still grows under the Euler step when its frequency is high
+    enough, |1 + dt mu| > 1: then more damping of that mode, not a different rate, keeps the hold."""
+    jacobian_times, d = euler_step_jacobian(model, sim, z, sim.u[-1], sim.u[-1])
+    d, factors = power_iteration(jacobian_times, d, iterations)
+    lam, residual = dominant_eigenvalue(jacobian_times, d, ritz)
     mu = (lam - 1) / sim.dt
     return {"growth_per_step": float(np.exp(np.mean(np.log(factors[-10:])))),
-            "share": {g: float(share[:, sl].sum()) for g, sl in GROUPS.items()},
-            "share_10_largest_nodes": float(share[nodes].sum()),
-            "their_distance_to_a_tool_mm": (tool_distance * 1e3).round().tolist(),
+            **mode_location(sim, d),
             "dominant_eigenvalue": {"modulus": abs(lam), "re": lam.real, "im": abs(lam.imag),
                                     "relative_residual": residual},
             "linearised_rate": {"decay_per_s": -mu.real, "angular_frequency_rad_per_s": abs(mu.imag)}}

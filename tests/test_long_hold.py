@@ -1,6 +1,6 @@
 """bench/long_hold.py's flip measures against motions whose answer is known by hand: a period-2 flip,
-a uniform motion and a constant acceleration; its growth per held step against a linear rate whose Euler step
-is known in closed form."""
+a uniform motion and a constant acceleration; its growth per held step, and bench/step_stiffness.py's stiffest mode,
+against a linear rate whose Euler step is known in closed form."""
 
 import sys
 from pathlib import Path
@@ -14,6 +14,7 @@ from warpgnn.data import load_file
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from long_hold import flip_statistics, held_step_growth, second_difference
+from step_stiffness import stiffest_mode
 
 STEPS, NODES, DT = 8, 20, 0.05
 
@@ -63,11 +64,10 @@ def test_uniform_motion_has_no_second_difference_and_constant_acceleration_its_o
 
 class DampedOscillator:
     """A stand-in network whose rate is linear and the same at every node: velocity components x and y turn into
-    each other at angular frequency OMEGA while decaying at DECAY, every other component decays at ``slow``."""
-    DECAY, OMEGA = 1.0, 8.0
+    each other at angular frequency ``omega`` while decaying at ``decay``, every other component decays at ``slow``."""
 
-    def __init__(self, slow: float):
-        self.slow = slow
+    def __init__(self, slow: float, decay: float = 1.0, omega: float = 8.0):
+        self.slow, self.DECAY, self.OMEGA = slow, decay, omega
 
     def __call__(self, top, z, u_now, u_next):
         K = -self.slow * torch.eye(12, dtype=z.dtype)
@@ -95,3 +95,20 @@ def test_growth_finds_an_oscillation_that_decays_but_grows_under_the_euler_step(
         assert growth["share"]["v"] == pytest.approx(1.0, abs=1e-4)
     else:
         assert growth["growth_per_step"] < abs(lam) - 0.01
+
+
+@pytest.mark.parametrize("decay", [50.0, 30.0])
+def test_stiffest_mode_reads_back_a_damping_too_fast_for_the_euler_step(tmp_path, decay):
+    """A velocity pair damped at ``decay`` while turning at 10 rad/s, the rest decaying at 4 1/s (dt mu = -0.2; the
+    fixed nodes' overwritten components read -1): dt mu = dt (-decay +- 10 i), exactly. At 50 1/s it lies past the
+    explicit Euler bound (|1 + dt mu| = 1.58, a flip that grows); at 30 1/s inside it (0.71)."""
+    sim = load_file(make_dataset(tmp_path, steps=4) / "L1.h5")[0]
+    rate = DampedOscillator(4.0, decay=decay, omega=10.0)
+    mode = stiffest_mode(rate, sim, sim.z[2], 2)
+    dt_mu = complex(-sim.dt * decay, sim.dt * 10.0)
+    assert mode["dt_mu"]["re"] == pytest.approx(dt_mu.real, rel=1e-4)
+    assert mode["dt_mu"]["im"] == pytest.approx(dt_mu.imag, rel=1e-4)
+    assert mode["euler_factor"] == pytest.approx(abs(1 + dt_mu), rel=1e-4)
+    assert (mode["euler_factor"] > 1) == (decay == 50.0)
+    assert mode["relative_residual"] < 1e-5
+    assert mode["share"]["v"] == pytest.approx(1.0, abs=1e-4)

@@ -670,6 +670,29 @@ def test_make_batch_additive_velocity_noise(two_sims):
     assert torch.equal(b.zdot, (z1 - b.z) / dt)  # the target leads back from the noisy velocity
 
 
+def test_make_batch_additive_velocity_noise_gamma(two_sims):
+    """--noise-v-add-gamma G: the target's velocity keeps (1 - G)^(k + 1) of the additive velocity noise after the k
+    lead-in steps its sample has (G = 1: the target as before, bit for bit); the states, positions' and stresses'
+    targets and every other draw stay as they were."""
+    samples, add = [(0, 0), (1, 2)], 0.02
+    n0 = two_sims[0].topology.n_nodes
+    for lead, k in ((0, (0, 0)), (2, (0, 2))):  # sample (0, 0) has no lead-in yet, sample (1, 2) both steps
+        def batch(lead=lead, **kw):
+            return make_batch(two_sims, samples, 0.05, 0.1, generator=torch.Generator().manual_seed(0), lead=lead, **kw)
+
+        paper, full = batch(), batch(noise_v_add=add)
+        assert torch.equal(batch(noise_v_add=add, noise_v_add_gamma=1.0).z_next, full.z_next)
+        added = full.z[:, 3:6] - paper.z[:, 3:6]
+        for gamma in (0.5, 0.0):
+            b = batch(noise_v_add=add, noise_v_add_gamma=gamma)
+            assert torch.equal(b.z, full.z)
+            assert torch.equal(b.z_next[:, :3], full.z_next[:, :3]) and torch.equal(b.z_next[:, 6:], full.z_next[:, 6:])
+            kept = torch.cat([torch.full((n0, 1), (1 - gamma) ** (k[0] + 1)),
+                              torch.full((len(added) - n0, 1), (1 - gamma) ** (k[1] + 1))])
+            torch.testing.assert_close(b.z_next[:, 3:6] - full.z_next[:, 3:6], kept * added, rtol=0, atol=1e-6)
+            assert (b.z_next[:, 3:6] != full.z_next[:, 3:6]).any()
+
+
 def test_make_batch_smooth_position_noise(two_sims):
     """--noise-smooth: on top of the paper's noise (its draws and the rotations' left as they were), each
     sample's free nodes move by a quadratic field of its rest coordinates (checked by an independent

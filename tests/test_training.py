@@ -729,6 +729,24 @@ def test_train_smooth_noise_gamma_out_of_range(data, tmp_path):
     assert not (tmp_path / "run" / "last.pt").exists()
 
 
+def test_velocity_noise_gamma(data, tmp_path):
+    """--noise-v-add-gamma: out of [0, 1], or without --noise-v-add, one clear line and no run; within, it reaches the
+    training batches (from the same seed 0.5 trains differently from the default 1) and the checkpoint."""
+    proc = run_cli("train", "--data", data, "--passes", 2, "--latent", 16, "--epochs", 1, "--device", "cpu",
+                   "--noise-v-add", "1e-2", "--noise-v-add-gamma", "1.5", "--out", tmp_path / "run")
+    assert_one_line_error(proc, "--noise-v-add-gamma", "[0, 1]")
+    proc = run_cli("train", "--data", data, "--passes", 2, "--latent", 16, "--epochs", 1, "--device", "cpu",
+                   "--noise-v-add-gamma", "0.5", "--out", tmp_path / "run")
+    assert_one_line_error(proc, "--noise-v-add-gamma", "give --noise-v-add too")
+    assert not (tmp_path / "run" / "last.pt").exists()
+    full, _ = quiet_train(config(data, tmp_path / "full", epochs=1, noise_v_add=1e-2))
+    half, _ = quiet_train(config(data, tmp_path / "half", epochs=1, noise_v_add=1e-2, noise_v_add_gamma=0.5))
+    assert np.isfinite(half["history"][0]["loss"])
+    assert half["history"][0]["loss"] != pytest.approx(full["history"][0]["loss"], rel=1e-6)
+    saved = torch.load(tmp_path / "half" / "last.pt", weights_only=False)["train_config"]
+    assert saved["noise_v_add_gamma"] == 0.5
+
+
 def test_smooth_noise_velocity_reaches_the_training_batches(data, tmp_path):
     """--noise-smooth-velocity changes only the velocity targets: the run trains (finite losses) and, from
     the same seed, differs from the run without it, which it would not if the flag never reached make_batch,

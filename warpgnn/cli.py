@@ -182,7 +182,8 @@ def cmd_train(args):
                           compile=args.compile, cuda_graphs=args.cuda_graphs, operator_products=args.operator_products,
                           pushforward=args.pushforward,
                           rotate=args.rotate, mirror=args.mirror, noise_smooth_velocity=args.noise_smooth_velocity, device=args.device,
-                          **{k: getattr(args, k) for k in ("noise_q", "noise_v", "noise_v_add", "noise_smooth",
+                          **{k: getattr(args, k) for k in ("noise_q", "noise_v", "noise_v_add", "noise_v_add_gamma",
+                                                           "noise_smooth",
                                                            "noise_smooth_gamma", "noise_smooth_share")
                              if getattr(args, k) is not None})
     except ValueError as exc:
@@ -274,6 +275,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--noise-v", type=float, help="relative noise on velocity and stress (default: the paper's 1e-3)")
     t.add_argument("--noise-v-add", type=float, help="additive velocity noise on free nodes, times mean edge / dt "
                    "(default 0, the paper: none); keeps the hold phase stable")
+    t.add_argument("--noise-v-add-gamma", type=float, metavar="G",
+                   help="fraction of that velocity noise the target takes back per step (default 1: all of it at once, "
+                        "a response the networks overshoot toward explicit Euler's stability bound)")
     t.add_argument("--noise-smooth", type=float, help="a random quadratic displacement field on free nodes, RMS up "
                    "to this times the mean edge (default 0, the paper: none); per-node noise cannot teach the network to pull "
                    "back the smooth error its rollouts carry")

@@ -260,7 +260,7 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
                generator: torch.Generator | None = None, shape: BatchShape | Sequence[BatchShape] | None = None,
                lead: int = 0, noise_v_add: float = 0.0, rotate: bool = False, noise_smooth: float = 0.0,
                noise_smooth_gamma: float = 1.0, noise_smooth_velocity: float = 0.0,
-               noise_smooth_share: float = 1.0, mirror: bool = False) -> Batch:
+               noise_smooth_share: float = 1.0, mirror: bool = False, noise_v_add_gamma: float = 1.0) -> Batch:
     """Stack the steps t -> t+1 of ``samples`` = [(simulation index, t), ...] into one graph,
     padded to ``shape`` if given, or to the first of several shapes that it fits (the real nodes,
     their noise and targets are the same either way).
@@ -269,6 +269,10 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     noise_v), sigma' = sigma (1 + eps noise_v), eps ~ U(-1, 1); the target is built from z'.
     ``noise_v_add`` > 0 adds v' += mean_edge / dt * eps' * noise_v_add on free nodes (own draws):
     relative noise vanishes where v does (once the tools stop), additive noise does not.
+    ``noise_v_add_gamma`` G is the fraction of that additive velocity noise the target's velocity takes back per step
+    the network takes: it keeps (1 - G)^(k + 1) of it after the k lead-in steps a sample has (1, the default: all of it
+    in one step, a deadbeat response dt mu = -1 that trained networks overshoot toward explicit Euler's bound -2,
+    bench/results/step_stiffness_recipes_cpu.json; G asks for dt mu = -G).
     ``rotate`` turns each sample as a whole (rest shape, states, target, tools' path) by its own random
     angle about the vertical z axis, before the noise is added (the angles are drawn after the noise's
     draws, which keeps the noise's random stream): without gravity and with an isotropic material a
@@ -335,11 +339,17 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
         amp, eps = host[:, 1:2], host[:, 2:14]
         z = torch.cat([z[:, :3] + free * amp * eps[:, :3], z[:, 3:] * (1 + eps[:, 3:] * noise_v)], -1)
         if noise_v_add > 0:
-            z[:, 3:6] += free * host[:, 14:15] * host[:, 15:18]
+            added = free * host[:, 14:15] * host[:, 15:18]
+            z[:, 3:6] += added
     active = None
     if lead:  # lead step j moves a sample's nodes once its path has begun (j >= lead - t)
         first = torch.tensor([max(lead - t, 0) for _, t in samples]).repeat_interleave(sizes)
         active = (torch.arange(lead)[:, None] >= first[None]).to(device)
+    # the lead-in steps each node takes before the trained step
+    led = torch.as_tensor(active.sum(0) if lead else 0, device=device, dtype=z.dtype).reshape(-1, 1)
+    if noise_v_add > 0 and noise_v_add_gamma != 1:  # the target's velocity keeps what it does not take back yet
+        kept = (1 - noise_v_add_gamma) ** (led + 1) * added
+        z_next = torch.cat([z_next[:, :3], z_next[:, 3:6] + kept, z_next[:, 6:]], -1)
     if noise_smooth > 0:  # drawn last: the other noises' and the angles' streams stay as they were
         coefficients = torch.randn((len(samples), 10, 3), generator=generator, dtype=torch.float64)
         amplitude = torch.tensor([s.mean_edge * noise_smooth for s, _ in picked], dtype=torch.float64)
@@ -349,8 +359,6 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
             amplitude = amplitude * displaced
         d = smooth_displacements(top.rest[:real_nodes], sizes, free[:, 0], amplitude, coefficients).to(z.dtype)
         z = torch.cat([z[:, :3] + d, z[:, 3:]], -1)
-        # the lead-in steps the node takes before the trained step
-        led = torch.as_tensor(active.sum(0) if lead else 0, device=device, dtype=z.dtype).reshape(-1, 1)
         left = (1 - noise_smooth_gamma) ** led * d  # what is left of it when the trained step starts
         q_next, v_next = z_next[:, :3] + (1 - noise_smooth_gamma) * left, z_next[:, 3:6]
         if noise_smooth_velocity:

@@ -40,6 +40,7 @@ from .run_log import write_log
 # on purpose (a longer lead-in, say) but rarely should: each change is noted. Their flags are --name-with-dashes,
 # but for those _FLAG_NAMES names
 TRAINING_SETTINGS = ("batch_size", "lr", "lr_schedule", "lr_final", "weight_decay", "noise_q", "noise_v", "noise_v_add",
+                     "noise_v_add_gamma",
                      "noise_smooth", "noise_smooth_gamma", "noise_smooth_velocity", "noise_smooth_share", "pushforward", "rotate",
                      "mirror", "train_fraction", "seed")
 _FLAG_NAMES = {"batch_size": "--batch"}
@@ -73,6 +74,9 @@ class TrainConfig:
     # vanishes once the tools stop and v does; a hybrid trained without it grew an unstable velocity
     # mode near the tool in the hold phase (bench/long_hold.py)
     noise_v_add: float = 0.0
+    # the fraction of that noise the target's velocity takes back per step (1: all in one step, dt mu = -1, which the
+    # networks overshoot toward explicit Euler's bound: bench/results/step_stiffness_recipes_cpu.json)
+    noise_v_add_gamma: float = 1.0
     # a random smooth (quadratic) displacement of the free nodes, RMS up to this times the mean edge (0: the paper). The
     # far field's rollout error is smooth and no per-node noise teaches a network to pull it back
     # (bench/results/perturbation_recovery_cpu.json)
@@ -114,6 +118,11 @@ class TrainConfig:
     def __post_init__(self):
         if self.lr_schedule not in ("plateau", "exponential"):
             raise ValueError(f"lr_schedule must be plateau or exponential, got {self.lr_schedule!r}")
+        if not 0 <= self.noise_v_add_gamma <= 1:
+            raise ValueError(f"--noise-v-add-gamma must be in [0, 1], got {self.noise_v_add_gamma}")
+        if self.noise_v_add_gamma != 1 and not self.noise_v_add:
+            raise ValueError("--noise-v-add-gamma sets how much of --noise-v-add's velocity noise the target takes "
+                             "back: give --noise-v-add too")
         if not 0 <= self.noise_smooth_gamma <= 1:
             raise ValueError(f"--noise-smooth-gamma must be in [0, 1], got {self.noise_smooth_gamma}")
         if self.noise_smooth_gamma != 1 and not self.noise_smooth:
@@ -460,7 +469,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
         chunks = [mine[i:i + cfg.batch_size] for i in range(0, len(mine), cfg.batch_size)]
         batches = prefetched(lambda c: make_batch(train_sims, c, cfg.noise_q, cfg.noise_v, gen, shapes, cfg.pushforward,
                                                   cfg.noise_v_add, cfg.rotate, cfg.noise_smooth, cfg.noise_smooth_gamma,
-                                                  cfg.noise_smooth_velocity, cfg.noise_smooth_share, cfg.mirror),
+                                                  cfg.noise_smooth_velocity, cfg.noise_smooth_share, cfg.mirror,
+                                                  noise_v_add_gamma=cfg.noise_v_add_gamma),
                                      chunks)
         bar = tqdm(batches, total=len(chunks), desc=f"epoch {epoch}", leave=False, disable=True if rank else None)
         for b in bar:
