@@ -322,10 +322,13 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 #     setsid nohup bash -c "while pgrep -f 'warpgnn(.cli)? train.*vel_dis2e1_s[0]' > /dev/null; do sleep 10; done;
 #     bench/train_paper.sh /opt/data /opt/runs300v 300e '^vanilla_p5_stable_rot_smooth2e1_g3e1_vel_s2\$'" > /opt/v2.log 2>&1
 #     < /dev/null & setsid nohup bash -c "while pgrep -f 'warpgnn(.cli)? train.*vel_dis2e1_s[1]' > /dev/null; do sleep 10;
-#     done; for s in 0 1; do FIRST_GPU=1 bench/train_paper.sh /opt/data /opt/runs24g 24e
-#     '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_vg5e1_s'\$s'\$'; done" > /opt/g.log 2>&1 < /dev/null &
+#     done; for s in 0 1; do FIRST_GPU=1 bench/train_paper.sh /opt/data /opt/runs24g
+#     24e '^hybrid_p5_stable_rot_smooth2e1_g3e1_vel_vg5e1_s'\$s'\$'; done" > /opt/g.log 2>&1 < /dev/null &
 #     mkdir -p $OUT/r300; bench/wait_runs.sh /opt/runs300 $((560-SECONDS)) $OUT/r300 /opt/data
-#   (the screen's two seeds share GPU 1, ~6 min each alone; they need the 300-epoch seeds' 5-pass data, already there)
+#   (one line, as every command here: joined at a line break, "24e" and its regex must stay together, or train_paper.sh
+#   queues every run. The screen's two seeds share GPU 1, ~6 min each alone; collect them with bench/wait_runs.sh
+#   /opt/runs24g SECONDS $OUT/g /opt/data like the others, and run bench/step_stiffness.py on them beside the take-back's
+#   24-epoch seeds, gnn_smooth_flipfix_e24_h100_runs)
 # (a wait in a setsid'd shell on pgrep must not use a pattern that the call's own command line matches: on 2026-11-26 the
 # hybrid s1 waited on 'train.*..._vel_s[0]', which the call's own train_paper.sh line for s0 matched, so it started only when
 # that call ended. The 'warpgnn(.cli)? ' prefix keeps the pattern off the call's train_paper.sh lines, which hold no
@@ -350,10 +353,10 @@ for s in 0 1; do
   run hybrid_p12_stable_rot_smooth2e1_g3e1_vel_dis2e1_s$s --model hybrid --passes 12 --latent 128 --seed $s $STABLE_FLAGS \
     --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity --dissipation-init-scale 0.2
 done
-# The take-back with the target taking back half the additive velocity noise a step (--noise-v-add-gamma 0.5): every
-# recipe's stiffest mode is a velocity damping past the target's deadbeat dt mu = -1, the take-back's at -1.6 to -1.8, near
-# explicit Euler's bound -2 (bench/results/step_stiffness_p5_cpu.json, step_stiffness_recipes_cpu.json); asked for -0.5
-# instead, does it stay inside, and at what accuracy? A 24-epoch screen against the take-back's two 24-epoch seeds
+# The take-back with the target taking back half the additive velocity noise a step (--noise-v-add-gamma 0.5): with the
+# additive and the smooth noise the networks' stiffest mode is a velocity damping past the target's deadbeat dt mu = -1,
+# the take-back's at -1.7 to -1.8, toward explicit Euler's bound -2 (bench/results/step_stiffness_cpu.json); asked for
+# -0.5 instead, does it stay further inside, and at what accuracy? A 24-epoch screen against the take-back's two 24-epoch seeds
 # (gnn_smooth_flipfix_e24_h100.json: 1.145e-2 / 4.546e-2 / 6.396e-2), then bench/step_stiffness.py on it (the plan above)
 SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_vg5e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 \
   --noise-smooth-velocity --noise-v-add-gamma 0.5
