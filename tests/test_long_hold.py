@@ -112,3 +112,22 @@ def test_stiffest_mode_reads_back_a_damping_too_fast_for_the_euler_step(tmp_path
     assert (mode["euler_factor"] > 1) == (decay == 50.0)
     assert mode["relative_residual"] < 1e-5
     assert mode["share"]["v"] == pytest.approx(1.0, abs=1e-4)
+
+
+class ToolRateDamping(DampedOscillator):
+    """The oscillator above with its damping set by the tools' motion over the step: it tells which pair of tool
+    positions the probe hands the rate."""
+
+    def __call__(self, top, z, u_now, u_next):
+        self.DECAY = 30.0 + 1e4 * float((u_next - u_now).abs().sum())
+        return super().__call__(top, z, u_now, u_next)
+
+
+def test_stiffest_mode_steps_from_snapshot_t_to_t_plus_one_and_holds_the_tools_after_the_last(tmp_path):
+    sim = load_file(make_dataset(tmp_path, steps=4) / "L1.h5")[0]
+    rate = ToolRateDamping(4.0, omega=10.0)
+    for t in (1, 2, sim.steps):  # in the ramp, and past the last snapshot (the tools held: no motion)
+        moved = float((sim.u[min(t + 1, sim.steps)] - sim.u[t]).abs().sum())
+        assert (moved > 0) == (t < sim.steps)
+        mode = stiffest_mode(rate, sim, sim.z[t], t)
+        assert mode["dt_mu"]["re"] == pytest.approx(-sim.dt * (30.0 + 1e4 * moved), rel=1e-4)
