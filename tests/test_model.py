@@ -691,6 +691,20 @@ def test_make_batch_additive_velocity_noise_gamma(two_sims):
                               torch.full((len(added) - n0, 1), (1 - gamma) ** (k[1] + 1))])
             torch.testing.assert_close(b.z_next[:, 3:6] - full.z_next[:, 3:6], kept * added, rtol=0, atol=1e-6)
             assert (b.z_next[:, 3:6] != full.z_next[:, 3:6]).any()
+    # turned samples (the angles drawn after the added noise's draws): G = 0 keeps all of the noise, in the turned
+    # frame the state has it in, and G = 0.5 half of that (no lead-in)
+    def turned(gamma):
+        return make_batch(two_sims, samples, 0.05, 0.1, generator=torch.Generator().manual_seed(0), rotate=True,
+                          noise_v_add=add, noise_v_add_gamma=gamma)
+
+    full, none, half = turned(1.0), turned(0.0), turned(0.5)
+    assert torch.equal(none.z, full.z) and torch.equal(half.z, full.z)
+    all_of_it = none.z_next[:, 3:6] - full.z_next[:, 3:6]
+    free = full.topology.node_type == NODE_FREE
+    assert all_of_it[~free].abs().max() == 0 and all_of_it[free].abs().max() > 0
+    bound = max(s.mean_edge / s.dt for s in two_sims) * add * 3 ** 0.5  # a turned per-component draw, by its norm
+    assert all_of_it.norm(dim=1).max() <= bound * (1 + 1e-5)
+    torch.testing.assert_close(half.z_next[:, 3:6] - full.z_next[:, 3:6], 0.5 * all_of_it, rtol=0, atol=1e-6)
 
 
 def test_make_batch_smooth_position_noise(two_sims):
