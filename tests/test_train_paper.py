@@ -23,19 +23,24 @@ echo "trained $out with $*"
 """
 
 
+def stub_env(bin_dir: Path, script: str) -> dict:
+    """The environment with `warpgnn` the shell script SCRIPT, written to BIN_DIR, first on PATH."""
+    bin_dir.mkdir()
+    (bin_dir / "warpgnn").write_text(script)
+    (bin_dir / "warpgnn").chmod(0o755)
+    return os.environ | {"PATH": f"{bin_dir}:{os.environ['PATH']}"}
+
+
 def start_train_paper(tmp_path: Path, stub: str, *args: str, **env: str) -> tuple[subprocess.CompletedProcess, Path]:
     """bench/train_paper.sh DATA RUNS 2e ARGS with `warpgnn` the shell script STUB and ENV added;
     DATA holds a manifest, so nothing is generated. Returns the finished call and RUNS."""
-    script = tmp_path / "bin" / "warpgnn"
-    script.parent.mkdir()
-    script.write_text(stub)
-    script.chmod(0o755)
+    stubbed = stub_env(tmp_path / "bin", stub)
     (tmp_path / "data").mkdir()
     (tmp_path / "data" / "manifest.json").write_text("{}")
     runs = tmp_path / "runs"
     proc = subprocess.run(["bash", str(BENCH / "train_paper.sh"), str(tmp_path / "data"), str(runs), "2e", *args],
                           capture_output=True, text=True, timeout=120,
-                          env=os.environ | {"PATH": f"{script.parent}:{os.environ['PATH']}"} | env)
+                          env=stubbed | env)
     assert proc.returncode == 0, proc.stderr
     return proc, runs
 
@@ -103,13 +108,9 @@ def test_a_negative_first_gpu_is_refused_before_anything_starts(tmp_path):
 ])
 def test_help_prints_the_usage_and_starts_nothing(tmp_path, script, usage):
     # were --help not handled, the script would find a failing warpgnn on one GPU: nothing real runs
-    stub = tmp_path.parent / f"{tmp_path.name}_bin" / "warpgnn"
-    stub.parent.mkdir()
-    stub.write_text("#!/bin/sh\nexit 1\n")
-    stub.chmod(0o755)
+    failing = stub_env(tmp_path.parent / f"{tmp_path.name}_bin", "#!/bin/sh\nexit 1\n")
     proc = subprocess.run(["bash", str(BENCH / script), "--help"], capture_output=True, text=True,
-                          timeout=60, check=False, cwd=tmp_path,
-                          env=os.environ | {"PATH": f"{stub.parent}:{os.environ['PATH']}", "GPUS": "1"})
+                          timeout=60, check=False, cwd=tmp_path, env=failing | {"GPUS": "1"})
     assert proc.returncode == 0, proc.stderr
     assert usage in proc.stdout
     assert "pipefail" not in proc.stdout and "RUNS=$1" not in proc.stdout  # the header comment only
@@ -130,15 +131,12 @@ esac
 def test_a_failed_generation_stops_before_any_run_is_queued_and_is_redone(tmp_path):
     """DATA without a manifest is generated first, a shard per GPU; if any shard fails, one line says so and nothing
     is queued, and the next call generates again rather than trusting the shards that succeeded."""
-    script = tmp_path / "bin" / "warpgnn"
-    script.parent.mkdir()
-    script.write_text(GENERATE_STUB)
-    script.chmod(0o755)
+    stubbed = stub_env(tmp_path / "bin", GENERATE_STUB)
     runs = tmp_path / "runs"
     for attempt in range(2):
         proc = subprocess.run(["bash", str(BENCH / "train_paper.sh"), str(tmp_path / "data"), str(runs), "2e", "x"],
                               capture_output=True, text=True, timeout=60, check=False,
-                              env=os.environ | {"PATH": f"{script.parent}:{os.environ['PATH']}", "GPUS": "3"})
+                              env=stubbed | {"GPUS": "3"})
         assert proc.returncode == 1, (attempt, proc.stdout, proc.stderr)
         assert proc.stderr.strip().splitlines() == [
             f"train_paper.sh: generating the paper dataset in {tmp_path / 'data'} failed (see {tmp_path / 'data'}.generate.*.log)"]
@@ -167,11 +165,8 @@ def test_wait_runs_evaluates_each_finished_run_once_and_packs_it(tmp_path):
     complete; an unfinished one not (nor one resumed past its summary), none when less than
     EVAL_SECONDS are left; runs finished together are evaluated in one call, side by side; the
     evaluations travel in OUT's archive with the runs."""
-    stub = tmp_path / "bin" / "warpgnn"
-    stub.parent.mkdir()
     log = tmp_path / "evals.log"
-    stub.write_text(EVAL_STUB.format(log=log))
-    stub.chmod(0o755)
+    stubbed = stub_env(tmp_path / "bin", EVAL_STUB.format(log=log))
     runs = tmp_path / "runs"
     for name, lines in (("done_run", ["summary"]), ("done_run2", ["summary"]), ("busy_run", []),
                         ("resumed_run", ["summary", "epoch 1 (1.0 s): loss 1"])):
@@ -186,7 +181,7 @@ def test_wait_runs_evaluates_each_finished_run_once_and_packs_it(tmp_path):
         out.mkdir()
         proc = subprocess.run(["bash", str(BENCH / "wait_runs.sh"), str(runs), "600", str(out), str(tmp_path / "data")],
                               capture_output=True, text=True, timeout=120, cwd=BENCH.parent,
-                              env=os.environ | {"PATH": f"{stub.parent}:{os.environ['PATH']}"} | env)
+                              env=stubbed | env)
         assert proc.returncode == 0, proc.stderr
         return out, proc.stdout
 
