@@ -357,8 +357,13 @@ done
 # additive and the smooth noise the networks' stiffest mode is a velocity damping past the target's deadbeat dt mu = -1,
 # the take-back's at -1.7 to -1.8, toward explicit Euler's bound -2 (bench/results/step_stiffness_cpu.json); asked for
 # -0.5 instead, does it stay further inside, and at what accuracy? A 24-epoch screen against the take-back's two 24-epoch seeds
-# (gnn_smooth_flipfix_e24_h100.json: 1.145e-2 / 4.546e-2 / 6.396e-2), then bench/step_stiffness.py on it (the plan above)
-SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_vg5e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 \
+# (gnn_smooth_flipfix_e24_h100.json: 1.145e-2 / 4.546e-2 / 6.396e-2), then bench/step_stiffness.py on it (the plan above).
+# With vanilla's peer too (hybrid better than vanilla is the target the stiffness may bear on): on nvidia-h200-x2 (no x4
+# lent on 2026-11-26 evening), PER_GPU=3 ... 24e '^(hybrid|vanilla)_p5_stable_rot_smooth2e1_g3e1_vel_vg5e1_s[012]$' puts the
+# three hybrids on GPU 0 and the three vanillas on GPU 1, side by side; the G = 1 peers' 24-epoch checkpoints (the
+# take-back's two hybrids, gnn_smooth_flipfix_e24_h100_runs, and its two vanillas, gnn_smooth_share_e24_h100_runs) are
+# evaluated on the same generation of the data (bench/eval_paper.sh), as the v figures must be
+seeds stable_rot_smooth2e1_g3e1_vel_vg5e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 \
   --noise-smooth-velocity --noise-v-add-gamma 0.5
 # (M on the stress alone, --reversible-velocities too, is not queued: at toy scale it was worse than --reversible-positions
 # alone in all six L5 figures, bench/results/reversible_velocities_cpu_proxy.json. Nor is --mirror: the 30-minute networks
