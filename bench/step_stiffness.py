@@ -67,13 +67,13 @@ def main():
     sims = load_file(a.data)[:a.simulations]
     if any(not 0 <= t <= sims[0].steps for t in a.snapshots):
         ap.error(f"--snapshots must lie in 0 .. {sims[0].steps}, got {a.snapshots}")
+    runs = [f"{Path(p).parent.parent.name}/{Path(p).parent.name}" for p in a.checkpoints]  # RESULTS_runs/RUN
+    if len(set(runs)) < len(runs):  # before any network's minutes of iterations
+        ap.error(f"two checkpoints of one run ({next(r for r in runs if runs.count(r) > 1)}): give one")
     record = provenance.record(a) | {"data": a.data, "simulations": len(sims), "networks": {}}
-    for path in a.checkpoints:
+    for path, run in zip(a.checkpoints, runs):
         model, _ = load_model(path)
         model.eval().requires_grad_(False)
-        run = f"{Path(path).parent.parent.name}/{Path(path).parent.name}"  # RESULTS_runs/RUN
-        if run in record["networks"]:
-            ap.error(f"two checkpoints of one run ({run}): give one")
         modes = []
         for sim, roll in zip(sims, rollout(model, sims)):
             for t in a.snapshots:

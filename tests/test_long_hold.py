@@ -1,7 +1,9 @@
 """bench/long_hold.py's flip measures against motions whose answer is known by hand: a period-2 flip,
-a uniform motion and a constant acceleration; its growth per held step, and bench/step_stiffness.py's stiffest mode,
+a uniform motion and a constant acceleration; its growth per held step, and bench/step_stiffness.py's stiffest mode (and its command line, end to end),
 against a linear rate whose Euler step is known in closed form."""
 
+import json
+import subprocess
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -10,9 +12,13 @@ import pytest
 import torch
 from synthetic import make_dataset
 
+from warpgnn.checkpoint import model_payload, save_atomically
 from warpgnn.data import load_file
+from warpgnn.model import TIGNN, ModelConfig
+from warpgnn.training import fit_normalizer
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+sys.path.insert(0, str(BENCH))
 from long_hold import flip_statistics, held_step_growth, second_difference
 from step_stiffness import stiffest_mode
 
@@ -131,3 +137,38 @@ def test_stiffest_mode_steps_from_snapshot_t_to_t_plus_one_and_holds_the_tools_a
         assert (moved > 0) == (t < sim.steps)
         mode = stiffest_mode(rate, sim, sim.z[t], t)
         assert mode["dt_mu"]["re"] == pytest.approx(-sim.dt * (30.0 + 1e4 * moved), rel=1e-4)
+
+
+def test_step_stiffness_main_records_each_state_of_each_network_and_refuses_bad_arguments_in_one_line(tmp_path):
+    """bench/step_stiffness.py end to end on a tiny untrained network: one record entry per network (named
+    RESULTS_runs/RUN), one mode per simulation and snapshot, each with its Euler factor |1 + dt mu|; snapshots out of
+    range and two checkpoints of one run end with one usage line and exit 2."""
+    data = make_dataset(tmp_path, steps=4) / "L1.h5"
+    model = TIGNN(ModelConfig(passes=1, latent=8))
+    fit_normalizer(model, load_file(data))
+    checkpoint = tmp_path / "tiny_runs" / "net" / "best.pt"
+    checkpoint.parent.mkdir(parents=True)
+    save_atomically(model_payload(model), checkpoint)
+    out = tmp_path / "stiff.json"
+
+    def run(*args):
+        return subprocess.run([sys.executable, str(BENCH / "step_stiffness.py"), str(data), *args, "--json", str(out),
+                               "--iterations", "5", "--ritz", "3", "--device", "cpu", "--command", "t"],
+                              capture_output=True, text=True, timeout=300, check=False)
+
+    done = run(str(checkpoint), "--simulations", "1", "--snapshots", "2", "4")
+    assert done.returncode == 0, done.stderr
+    record = json.loads(out.read_text())
+    assert record["device"] == "cpu" and record["simulations"] == 1
+    modes = record["networks"]["tiny_runs/net"]["modes"]
+    assert [(m["simulation"], m["snapshot"]) for m in modes] == [("L1/sim_0000", 2), ("L1/sim_0000", 4)]
+    for m in modes:
+        dt_mu = complex(m["dt_mu"]["re"], m["dt_mu"]["im"])
+        assert m["euler_factor"] == pytest.approx(abs(1 + dt_mu), rel=1e-9)
+        assert m["step_dominant"]["modulus"] > 0 and sum(m["share"].values()) == pytest.approx(1.0, abs=1e-6)
+    out.unlink()
+    for args, message in (((str(checkpoint), "--snapshots", "9"), "--snapshots must lie in 0 .. 4"),
+                          ((str(checkpoint), str(checkpoint), "--snapshots", "2"), "two checkpoints of one run (tiny_runs/net)")):
+        bad = run(*args)
+        assert bad.returncode == 2 and message in bad.stderr.strip().splitlines()[-1] and "Traceback" not in bad.stderr
+        assert not out.exists()

@@ -674,9 +674,10 @@ def test_make_batch_additive_velocity_noise_gamma(two_sims):
     """--noise-v-add-gamma G: the target's velocity keeps (1 - G)^(k + 1) of the additive velocity noise after the k
     lead-in steps its sample has (G = 1: the target as before, bit for bit); the states, positions' and stresses'
     targets and every other draw stay as they were."""
-    samples, add = [(0, 0), (1, 2)], 0.02
-    n0 = two_sims[0].topology.n_nodes
-    for lead, k in ((0, (0, 0)), (2, (0, 2))):  # sample (0, 0) has no lead-in yet, sample (1, 2) both steps
+    samples, add = [(0, 0), (1, 2), (0, 1)], 0.02
+    sizes = [two_sims[i].topology.n_nodes for i, _ in samples]
+    # with a lead of 2, sample (0, 0) has no lead-in step yet, (1, 2) both and (0, 1) one, its lead cut short
+    for lead, k in ((0, (0, 0, 0)), (2, (0, 2, 1))):
         def batch(lead=lead, **kw):
             return make_batch(two_sims, samples, 0.05, 0.1, generator=torch.Generator().manual_seed(0), lead=lead, **kw)
 
@@ -687,8 +688,7 @@ def test_make_batch_additive_velocity_noise_gamma(two_sims):
             b = batch(noise_v_add=add, noise_v_add_gamma=gamma)
             assert torch.equal(b.z, full.z)
             assert torch.equal(b.z_next[:, :3], full.z_next[:, :3]) and torch.equal(b.z_next[:, 6:], full.z_next[:, 6:])
-            kept = torch.cat([torch.full((n0, 1), (1 - gamma) ** (k[0] + 1)),
-                              torch.full((len(added) - n0, 1), (1 - gamma) ** (k[1] + 1))])
+            kept = torch.cat([torch.full((n, 1), (1 - gamma) ** (ki + 1)) for n, ki in zip(sizes, k)])
             torch.testing.assert_close(b.z_next[:, 3:6] - full.z_next[:, 3:6], kept * added, rtol=0, atol=1e-6)
             assert (b.z_next[:, 3:6] != full.z_next[:, 3:6]).any()
     # turned samples (the angles drawn after the added noise's draws): G = 0 keeps all of the noise, in the turned
