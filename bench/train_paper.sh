@@ -340,7 +340,10 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # SECONDS 0). Device time counts the gaps between calls too: chain them at once. The last calls bring the runs back (a call
 # returns at most 64 MiB in 8 files; a 12-pass run with its last.pt is 40 MB, so one a call, beside /opt/runs300 and
 # /opt/runs300v, 5-pass, ~6 MB a run). What is left: dis2e1 ~1050 s each (~31 epochs), revq s0 ~1600 s, hybrid s2 ~3300 s
-# and vanilla s2 ~2850 s (two more sessions). When dis2e1 finishes: bench/long_hold.py --growth and bench/generic_parts.py
+# and vanilla s2 ~2850 s (two more sessions). The session of 2026-11-26 17:47 UTC had an nvidia-h200-x2 (no x4 lent): after the
+# G = 0.5 screen below it resumed revq s0 (GPU 0, now epoch 186 of 300, ~1220 s left) and dis2e1 s0 (GPU 1, now epoch 28 of
+# 50, ~750 s left) for 540 s, into .devruns/next1 and next2 (carried together in one call, 45 MB, with .devwheels already
+# unpacked on the warm machine); dis2e1 s1 (next3 + next4) is where it was. When dis2e1 finishes: bench/long_hold.py --growth and bench/generic_parts.py
 # on it beside the default-start seeds (long_hold_p12_e100_s12_cpu.json, generic_parts_p12_e100_s12_cpu.json): does a
 # larger start of B (16x M at the first step; the first loss 48-67 against 3.6-9 of the default on 8 L5 samples) keep the
 # 12-pass velocities damped and its holds from growing?
@@ -362,7 +365,10 @@ done
 # lent on 2026-11-26 evening), PER_GPU=3 ... 24e '^(hybrid|vanilla)_p5_stable_rot_smooth2e1_g3e1_vel_vg5e1_s[012]$' puts the
 # three hybrids on GPU 0 and the three vanillas on GPU 1, side by side; the G = 1 peers' 24-epoch checkpoints (the
 # take-back's two hybrids, gnn_smooth_flipfix_e24_h100_runs, and its two vanillas, gnn_smooth_share_e24_h100_runs) are
-# evaluated on the same generation of the data (bench/eval_paper.sh), as the v figures must be
+# evaluated on the same generation of the data (bench/eval_paper.sh), as the v figures must be. Done 2026-11-26 evening
+# (all six side by side, 31 s an epoch for a hybrid, 26 s for a vanilla; bench/results/gnn_noise_v_gamma_e24_h200.json,
+# step_stiffness_vg5e1_cpu.json): no change in accuracy (hybrid +0.2 / +1.7 / +3.7 %, vanilla -0.2 / +1.0 / -0.6 %, none
+# established) nor in the stiffest mode, and the hybrid's gap to vanilla stays: not queued further
 seeds stable_rot_smooth2e1_g3e1_vel_vg5e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 \
   --noise-smooth-velocity --noise-v-add-gamma 0.5
 # (M on the stress alone, --reversible-velocities too, is not queued: at toy scale it was worse than --reversible-positions
