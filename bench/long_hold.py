@@ -103,10 +103,11 @@ def power_iteration(apply, d: torch.Tensor, iterations: int) -> tuple[torch.Tens
     return d, factors
 
 
-def dominant_eigenvalue(apply, d: torch.Tensor, ritz: int) -> tuple[complex, float]:
+def dominant_eigenvalue(apply, d: torch.Tensor, ritz: int) -> tuple[complex, float, torch.Tensor]:
     """``ritz`` Arnoldi steps of the linear map ``apply`` from d (a power iterate, whose Krylov space holds the dominant
-    modes, a complex pair too, which power iteration only turns within): the Ritz value of largest modulus and its
-    Ritz vector's true residual |A x - lambda x| / |x|."""
+    modes, a complex pair too, which power iteration only turns within): the Ritz value of largest modulus, its
+    Ritz vector's true residual |A x - lambda x| / |x|, and the Ritz vector's modulus per entry, shaped as d (where
+    the mode lives: the power iterate itself may still be mostly another mode of nearly the same modulus)."""
     if ritz < 1:
         raise ValueError(f"ritz must be >= 1 Arnoldi steps, got {ritz}")
     basis, H = [(d / d.norm()).flatten().double()], np.zeros((ritz + 1, ritz))
@@ -133,7 +134,7 @@ def dominant_eigenvalue(apply, d: torch.Tensor, ritz: int) -> tuple[complex, flo
     residual = r.square().sum()
     if len(images) == 2:
         residual = residual + (images[1] - lam.real * x.imag - lam.imag * x.real).square().sum()
-    return lam, float(residual.sqrt() / x.abs().norm())
+    return lam, float(residual.sqrt() / x.abs().norm()), x.abs().reshape(d.shape).to(d.dtype)
 
 
 def euler_step_jacobian(model, sim, z: torch.Tensor, u_now: torch.Tensor, u_next: torch.Tensor):
@@ -171,7 +172,7 @@ def held_step_growth(model, sim, z: torch.Tensor, iterations: int = 40, ritz: in
     enough, |1 + dt mu| > 1: then more damping of that mode, not a different rate, keeps the hold."""
     jacobian_times, d = euler_step_jacobian(model, sim, z, sim.u[-1], sim.u[-1])
     d, factors = power_iteration(jacobian_times, d, iterations)
-    lam, residual = dominant_eigenvalue(jacobian_times, d, ritz)
+    lam, residual, _ = dominant_eigenvalue(jacobian_times, d, ritz)
     mu = (lam - 1) / sim.dt
     return {"growth_per_step": float(np.exp(np.mean(np.log(factors[-10:])))),
             **mode_location(sim, d),

@@ -120,6 +120,19 @@ def test_stiffest_mode_reads_back_a_damping_too_fast_for_the_euler_step(tmp_path
     assert mode["share"]["v"] == pytest.approx(1.0, abs=1e-4)
 
 
+def test_step_dominant_mode_is_located_by_its_ritz_vector_not_by_the_unconverged_power_iterate(tmp_path):
+    """A velocity pair damped past the bound (step factor -1.018, no turning) beside every other component growing
+    slowly (1.005 a step): after 3 power iterations the iterate is still mostly the slow components, but the Ritz
+    value is the flip's, and the mode reported with it must be the flip's too: all velocity."""
+    sim = load_file(make_dataset(tmp_path, steps=4) / "L1.h5")[0]
+    rate = DampedOscillator(-0.005 / sim.dt, decay=2.018 / sim.dt, omega=0.0)
+    mode = stiffest_mode(rate, sim, sim.z[2], 2, iterations=3, ritz=6)
+    dominant = mode["step_dominant"]
+    assert dominant["re"] == pytest.approx(-1.018, rel=1e-4) and dominant["relative_residual"] < 1e-4
+    assert dominant["share"]["v"] == pytest.approx(1.0, abs=1e-3)
+    assert mode["share"]["v"] == pytest.approx(1.0, abs=1e-3)  # the stiffest mode is the same flip
+
+
 class ToolRateDamping(DampedOscillator):
     """The oscillator above with its damping set by the tools' motion over the step: it tells which pair of tool
     positions the probe hands the rate."""
@@ -142,8 +155,9 @@ def test_stiffest_mode_steps_from_snapshot_t_to_t_plus_one_and_holds_the_tools_a
 def test_step_stiffness_main_records_each_state_of_each_network_and_refuses_bad_arguments_in_one_line(tmp_path):
     """bench/step_stiffness.py end to end on a tiny untrained network: one record entry per network (named
     RESULTS_runs/RUN), one mode per simulation and snapshot, each with its Euler factor |1 + dt mu|; snapshots out of
-    range and two checkpoints of one run end with one usage line and exit 2."""
+    range and two checkpoints of one run end with one usage line and exit 2 (the latter before loading any)."""
     data = make_dataset(tmp_path, steps=4) / "L1.h5"
+    torch.manual_seed(0)
     model = TIGNN(ModelConfig(passes=1, latent=8))
     fit_normalizer(model, load_file(data))
     checkpoint = tmp_path / "tiny_runs" / "net" / "best.pt"
@@ -168,7 +182,10 @@ def test_step_stiffness_main_records_each_state_of_each_network_and_refuses_bad_
         assert m["step_dominant"]["modulus"] > 0 and sum(m["share"].values()) == pytest.approx(1.0, abs=1e-6)
     out.unlink()
     for args, message in (((str(checkpoint), "--snapshots", "9"), "--snapshots must lie in 0 .. 4"),
-                          ((str(checkpoint), str(checkpoint), "--snapshots", "2"), "two checkpoints of one run (tiny_runs/net)")):
+                          ((str(checkpoint), str(checkpoint), "--snapshots", "2"), "two checkpoints of one run (tiny_runs/net)"),
+                          # refused before any checkpoint is loaded: these do not exist
+                          (("gone_runs/net/best.pt", "gone_runs/net/best.pt", "--snapshots", "2"),
+                           "two checkpoints of one run (gone_runs/net)")):
         bad = run(*args)
         assert bad.returncode == 2 and message in bad.stderr.strip().splitlines()[-1] and "Traceback" not in bad.stderr
         assert not out.exists()
