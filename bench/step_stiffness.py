@@ -54,15 +54,12 @@ def stiffest_mode(model, sim, z: torch.Tensor, t: int, iterations: int = 100, ri
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("data")
-    ap.add_argument("checkpoints", nargs="+")
+    provenance.add_probe_arguments(ap)
     ap.add_argument("--simulations", type=int, default=3, help="the first N simulations of DATA")
     ap.add_argument("--snapshots", type=int, nargs="+", default=[5, 10, 20],
                     help="states of the network's own rollout at these snapshots (0 .. the last)")
     ap.add_argument("--iterations", type=int, default=100, help="power iterations before the Arnoldi steps")
     ap.add_argument("--ritz", type=int, default=20, help="Arnoldi steps")
-    ap.add_argument("--json", required=True)
-    provenance.add_arguments(ap)
     a = ap.parse_args()
     if a.simulations < 1 or a.iterations < 1 or a.ritz < 1:
         ap.error("--simulations, --iterations and --ritz must be at least 1")
