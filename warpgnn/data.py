@@ -272,7 +272,8 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     ``noise_v_add_gamma`` G is the fraction of that additive velocity noise the target's velocity takes back per step
     the network takes: it keeps (1 - G)^(k + 1) of it after the k lead-in steps a sample has (1, the default: all of it
     in one step, a deadbeat response dt mu = -1 that trained networks overshoot toward explicit Euler's bound -2,
-    bench/results/step_stiffness_cpu.json; G asks for dt mu = -G of the velocity's response to it). The target's
+    bench/results/step_stiffness_cpu.json; G asks for dt mu = -G of the velocity's response to it, though G = 0.5 did
+    not move the networks' stiffest damping, bench/results/step_stiffness_vg5e1_cpu.json). The target's
     position stays the ground truth's, as for the plain additive noise: the kept velocity is one its position rate
     does not follow.
     ``rotate`` turns each sample as a whole (rest shape, states, target, tools' path) by its own random
