@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 import provenance  # bench/, beside this script
+from warpgnn.graphs import GROUPS
 from warpgnn.mesh import TetMesh
 from warpgnn.plots import node_history, rrmse_boxplot
 from warpgnn.render import render_comparison
@@ -36,6 +37,9 @@ def main():
     ap.add_argument("out_prefix")
     ap.add_argument("--peers", nargs=2, action="append", default=[], metavar=("RECORD", "REGEX"),
                     help="add the runs of an earlier record whose names match REGEX (repeatable)")
+    ap.add_argument("--compare", nargs=3, action="append", default=[], metavar=("NAME", "ARM_A", "ARM_B"),
+                    help="record arm A's seed means of RRMSE against arm B's on each set as NAME: percent = 100 (mean A / "
+                         "mean B - 1), Welch t with sample variances (repeatable; an arm is a run name without _sN)")
     provenance.add_arguments(ap)
     a = ap.parse_args()
     ev, runs, prefix = Path(a.eval), Path(a.runs), Path(a.out_prefix)
@@ -68,6 +72,8 @@ def main():
         record["runs"] |= {run: e | {"from_record": Path(path).name}
                            for run, e in earlier.items() if re.search(pattern, run) and run not in evaluated}
     record["seed_means_L5"] = seed_means(record["runs"])
+    if a.compare:
+        record["comparisons_rrmse_means"] = compare_arms(record["runs"], a.compare)
     out_json = prefix.with_suffix(".json")
     out_json.parent.mkdir(parents=True, exist_ok=True)
     out_json.write_text(json.dumps(record, indent=1))
@@ -99,14 +105,51 @@ def main():
             f"{g} {e['rrmse']['mean'][g]:.2e} +- {e['rrmse']['std'][g]:.1e}" for g in e["rrmse"]["mean"]))
 
 
+def arms_of(runs: dict) -> dict:
+    """The runs' entries grouped by arm: a run named ARM_sN is seed N of ARM."""
+    arms = {}
+    for run, e in runs.items():
+        arms.setdefault(re.sub(r"_s\d+$", "", run), []).append(e)
+    return arms
+
+
+def compare_arms(runs: dict, comparisons) -> dict:
+    """Per set and comparison (NAME, ARM_A, ARM_B): the percent difference of the seed means of each RRMSE,
+    Welch's t and its Welch-Satterthwaite degrees of freedom (with 2-3 seeds a side, |t| ~ 2 is no evidence), on the
+    sets every seed of both arms was evaluated on. A figure that cannot be computed (seeds that agree exactly, a NaN
+    RRMSE) is None."""
+    arms = arms_of(runs)
+    names = [c[0] for c in comparisons]
+    if len(set(names)) < len(names):
+        raise SystemExit(f"gnn_report: --compare names must differ, got {' '.join(names)}")
+    short = [f"{arm} has {len(arms.get(arm, []))} seed(s)" for _, *pair in comparisons for arm in pair
+             if len(arms.get(arm, [])) < 2]
+    if short:
+        raise SystemExit(f"gnn_report: --compare needs two seeds or more an arm: {'; '.join(dict.fromkeys(short))}")
+    out = {}
+    for name, arm_a, arm_b in comparisons:
+        for s in SETS:
+            if not all(s in e["sets"] for e in arms[arm_a] + arms[arm_b]):
+                print(f"--compare {name}: no {s} (not every seed evaluated on it)")
+                continue
+            values = [np.array([[e["sets"][s]["rrmse"][g] for g in GROUPS] for e in arms[arm]]) for arm in (arm_a, arm_b)]
+            (mean_a, var_a, n_a), (mean_b, var_b, n_b) = ((v.mean(0), v.var(0, ddof=1), len(v)) for v in values)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                percent = 100 * (mean_a / mean_b - 1)
+                t = (mean_a - mean_b) / np.sqrt(var_a / n_a + var_b / n_b)
+                df = (var_a / n_a + var_b / n_b) ** 2 / ((var_a / n_a) ** 2 / (n_a - 1) + (var_b / n_b) ** 2 / (n_b - 1))
+            out.setdefault(s, {})[name] = {g: {k: float(x[i]) if np.isfinite(x[i]) else None
+                                               for k, x in (("percent", percent), ("welch_t", t), ("welch_df", df))}
+                                           for i, g in enumerate(GROUPS)}
+    return out
+
+
 def seed_means(runs: dict) -> dict:
     """Mean and standard deviation over the seeds of each arm (runs named ARM_sN), on L5: the
     targets are means of three seeds."""
-    arms = {}
-    for run, e in runs.items():
-        arms.setdefault(re.sub(r"_s\d+$", "", run), []).append(e["sets"]["L5"])
     out = {}
-    for arm, sets in arms.items():
+    for arm, entries in arms_of(runs).items():
+        sets = [e["sets"]["L5"] for e in entries]
         if len(sets) < 2:
             continue
         out[arm] = {"seeds": len(sets)}

@@ -343,7 +343,9 @@ SEED_MODELS=hybrid seeds stable_rot_smooth2e1_g3e1_vel_revq $STABLE_FLAGS --rota
 # and vanilla s2 ~2850 s (two more sessions). The session of 2026-11-26 17:47 UTC had an nvidia-h200-x2 (no x4 lent): after the
 # G = 0.5 screen below it resumed revq s0 (GPU 0, now epoch 186 of 300, ~1220 s left) and dis2e1 s0 (GPU 1, now epoch 28 of
 # 50, ~750 s left) for 540 s, into .devruns/next1 and next2 (carried together in one call, 45 MB, with .devwheels already
-# unpacked on the warm machine); dis2e1 s1 (next3 + next4) is where it was. When dis2e1 finishes: bench/long_hold.py --growth and bench/generic_parts.py
+# unpacked on the warm machine); dis2e1 s1 (next3 + next4) is where it was. The next session (2026-11-26 19:26 UTC) began
+# on a fresh checkout without the ignored .devruns, so these three are lost and are not restarted (revq s0 tracked the
+# plain take-back's hybrids on validation; dis2e1 is a 12-pass side question). Had dis2e1 finished: bench/long_hold.py --growth and bench/generic_parts.py
 # on it beside the default-start seeds (long_hold_p12_e100_s12_cpu.json, generic_parts_p12_e100_s12_cpu.json): does a
 # larger start of B (16x M at the first step; the first loss 48-67 against 3.6-9 of the default on 8 L5 samples) keep the
 # 12-pass velocities damped and its holds from growing?
@@ -371,6 +373,21 @@ done
 # established) nor in the stiffest mode, and the hybrid's gap to vanilla stays: not queued further
 seeds stable_rot_smooth2e1_g3e1_vel_vg5e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 \
   --noise-smooth-velocity --noise-v-add-gamma 0.5
+# The decoder of the port-metriplectic code of the paper's group: four MLPs (dE, dS, l, m) of two hidden layers each, where
+# the paper describes two (delta_v for dE and dS, delta_e for l and m) and ours have one hidden layer. The hybrid's gap to
+# vanilla on q and v lies in its rate (the 300-epoch pairs), which its decoder builds: does the group's decoder close it? A
+# 24-epoch screen, three seeds, beside vanilla with its one decoder MLP as deep (--decoder-hidden-layers 2), against the
+# take-back's 24-epoch seeds of both (G = 1, gnn_noise_v_gamma_e24_h200.json). On nvidia-h200-x2: PER_GPU=3 ... 24e
+# '^(hybrid_p5_stable_rot_smooth2e1_g3e1_vel_grpdec|vanilla_p5_stable_rot_smooth2e1_g3e1_vel_dec2)_s[012]$' puts the
+# hybrids on GPU 0 and the vanillas on GPU 1. Done 2026-11-26 (36 s an epoch for a hybrid, 27 s for a vanilla;
+# bench/results/gnn_group_decoder_e24_h200.json): the hybrid -1.3 / -2.8 / -2.9 % (not established), still +5.4 / +11.6 /
+# -5.2 % against vanilla with its decoder as deep (which moved vanilla by +1.0 / -0.6 / +2.9 %): not queued further
+for s in 0 1 2; do
+  run hybrid_p5_stable_rot_smooth2e1_g3e1_vel_grpdec_s$s --model hybrid --passes 5 --latent 64 --seed $s $STABLE_FLAGS \
+    --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity --split-decoders --decoder-hidden-layers 2
+  run vanilla_p5_stable_rot_smooth2e1_g3e1_vel_dec2_s$s --model vanilla --passes 5 --latent 64 --seed $s $STABLE_FLAGS \
+    --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity --decoder-hidden-layers 2
+done
 # (M on the stress alone, --reversible-velocities too, is not queued: at toy scale it was worse than --reversible-positions
 # alone in all six L5 figures, bench/results/reversible_velocities_cpu_proxy.json. Nor is --mirror: the 30-minute networks
 # score a mirrored L5 only 0.4-4.3 % worse on q than a quarter-turned one (rotation_probe_mirror_cpu.json), and at toy scale

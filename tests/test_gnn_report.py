@@ -109,3 +109,43 @@ def test_a_cut_off_evaluation_is_recorded_as_missing_and_left_out_of_the_figures
                     "rep_boxplot_test.png", "rep_final_hybrid_p5_x_s0.png", "rep_node_hybrid_p5_x_s0.png"]
     assert "no extra_star evaluation" in proc.stdout and "no L5_median.npz" in proc.stdout
     assert "hybrid_p5_x_s2: no L5 evaluation, left out" in proc.stdout
+
+
+def test_compare_records_percent_and_welch_t_of_two_arms(tmp_path):
+    """--compare NAME A B: per set, 100 (mean A / mean B - 1), Welch's t with sample variances and its
+    Welch-Satterthwaite degrees of freedom, by hand and per group (q, v, sigma scaled 1, 2, 3); an arm from an earlier
+    record (--peers) counts like one evaluated here; seeds that agree exactly give no t."""
+    scale = {"q": 1.0, "v": 2.0, "sigma": 3.0}
+    for seed, l5 in enumerate((1.0, 3.0)):  # L5 mean 2, sample variance 2 (times scale, scale^2); other sets 1.0
+        write_evaluated_run(tmp_path, f"hybrid_x_s{seed}", l5)
+        metrics = tmp_path / "eval" / f"hybrid_x_s{seed}" / "L5" / "metrics.json"
+        m = json.loads(metrics.read_text())
+        m["rrmse"] = {g: l5 * scale[g] for g in GROUPS}
+        metrics.write_text(json.dumps(m))
+    earlier = tmp_path / "earlier.json"  # L5 4, 5, 6: mean 5, sample variance 1; every other set 9.0
+    earlier.write_text(json.dumps({"runs": {f"vanilla_x_s{i}": peer_entry(v) for i, v in enumerate((4.0, 5.0, 6.0))}}))
+    prefix = tmp_path / "out" / "rep"
+    proc = run_report(tmp_path, prefix, "--peers", str(earlier), "^vanilla_x", "--compare", "h_vs_v", "hybrid_x", "vanilla_x")
+    comparisons = json.loads(prefix.with_suffix(".json").read_text())["comparisons_rrmse_means"]
+    assert set(comparisons) == set(SETS) and "--compare" not in proc.stdout
+    for g, k in scale.items():
+        var_a, var_b = 2.0 * k**2 / 2, 1.0 / 3  # var / n of each arm's mean
+        assert comparisons["L5"]["h_vs_v"][g] == {
+            "percent": pytest.approx(100 * (2.0 * k / 5.0 - 1)),
+            "welch_t": pytest.approx((2.0 * k - 5.0) / np.sqrt(var_a + var_b)),
+            "welch_df": pytest.approx((var_a + var_b) ** 2 / (var_a**2 / 1 + var_b**2 / 2))}
+        assert comparisons["L1"]["h_vs_v"][g] == {"percent": pytest.approx(100 * (1.0 / 9.0 - 1)), "welch_t": None,
+                                                  "welch_df": None}
+
+
+@pytest.mark.parametrize("compare,message", [
+    (["x", "hybrid_x", "vanilla_x"], "vanilla_x has 0 seed(s)"),
+    (["x", "hybrid_y", "hybrid_x"], "hybrid_y has 1 seed(s)"),
+    (["x", "hybrid_x", "hybrid_x", "--compare", "x", "hybrid_x", "hybrid_x"], "names must differ")])
+def test_compare_refuses_arms_without_two_seeds_and_repeated_names(tmp_path, compare, message):
+    for name in ("hybrid_x_s0", "hybrid_x_s1", "hybrid_y_s0"):
+        write_evaluated_run(tmp_path, name, 1.0)
+    proc = subprocess.run([sys.executable, str(BENCH / "gnn_report.py"), str(tmp_path / "eval"), str(tmp_path / "runs"),
+                           str(tmp_path / "rep"), "--compare", *compare, "--device", "cpu", "--command", "t"],
+                          capture_output=True, text=True, env=os.environ | {"MPLBACKEND": "Agg"}, timeout=300, check=False)
+    assert proc.returncode != 0 and message in proc.stderr and not (tmp_path / "rep.json").exists()

@@ -18,7 +18,7 @@ from warpgnn import dataset, metrics
 from warpgnn.data import BatchShape, Simulation, make_batch, rotate_states, vertical_rotations
 from warpgnn.graphs import (NODE_FIXED, NODE_FREE, NODE_PRESCRIBED, apply_boundary_conditions, batch,
                             imposed_components, make_topology, raw_features)
-from warpgnn.core_model import EdgeMLP
+from warpgnn.core_model import EdgeMLP, mlp
 from warpgnn.mesh import TetMesh, box_tet_mesh
 from warpgnn.model import ModelConfig, Prediction, TIGNN
 from warpgnn.normalization import FEATURES, Normalizer
@@ -230,14 +230,18 @@ def test_edge_mlp_is_the_mlp_of_the_concatenation(layer_norm):
 @pytest.mark.parametrize("activation", list(OPERATOR_ACTIVATIONS))
 @pytest.mark.parametrize("reversible_positions, reversible_velocities",
                          [(False, False), (True, False), (False, True), (True, True)])
-def test_generic_decoder_matches_dense_assembly(products, activation, reversible_positions, reversible_velocities):
+@pytest.mark.parametrize("split", [False, True], ids=["two_decoders", "split"])
+def test_generic_decoder_matches_dense_assembly(products, activation, reversible_positions, reversible_velocities, split):
     torch.manual_seed(5)
     F, N = 8, 5
-    dec = PortMetriplecticDecoder(F, operator_activation=activation, reversible_positions=reversible_positions,
-                                  reversible_velocities=reversible_velocities).double()
+    dec = PortMetriplecticDecoder(F, hidden_layers=2 if split else 1, operator_activation=activation,
+                                  reversible_positions=reversible_positions, reversible_velocities=reversible_velocities,
+                                  split=split).double()
     set_operator_products(dec, products)
+    edge_mlps = list(dec.delta_e.heads) if split else [dec.delta_e]  # (l, m) from one EdgeMLP or from one each
     with torch.no_grad():  # operator outputs of order 1-10, where tanh is far from linear
-        dec.delta_e.rest[-1].weight.mul_(100.0)
+        for f in edge_mlps:
+            f.rest[-1].weight.mul_(100.0)
     # bidirected pairs, a one-way edge 0 -> 3 (catches a sender/receiver swap), node 4 isolated
     senders = torch.tensor([0, 1, 1, 2, 3, 2, 0])
     receivers = torch.tensor([1, 0, 2, 1, 2, 3, 3])
@@ -249,8 +253,10 @@ def test_generic_decoder_matches_dense_assembly(products, activation, reversible
         grads = dec.delta_v(x)
         dE, dS = grads[:, :12].numpy(), grads[:, 12:].numpy()
         # delta_e(x_ij, x_i, x_j): edge latent, receiver latent, sender latent
-        lm_self = concatenated_mlp(dec.delta_e, torch.cat([dec.self_loop.expand(N, -1), x, x], -1)).numpy()
-        lm_edge = concatenated_mlp(dec.delta_e, torch.cat([e, x[receivers], x[senders]], -1)).numpy()
+        lm_self = np.concatenate([concatenated_mlp(f, torch.cat([dec.self_loop.expand(N, -1), x, x], -1)).numpy()
+                                  for f in edge_mlps], -1)
+        lm_edge = np.concatenate([concatenated_mlp(f, torch.cat([e, x[receivers], x[senders]], -1)).numpy()
+                                  for f in edge_mlps], -1)
 
     def dense(lm):
         lm = np.tanh(lm) if activation == "tanh" else lm
@@ -379,6 +385,56 @@ def test_dissipation_init_scale_sets_only_B_initial_outputs():
             ModelConfig(dissipation_init_scale=bad)
     with pytest.raises(ValueError, match="vanilla has none"):
         ModelConfig(kind="vanilla", dissipation_init_scale=0.2)
+
+
+def test_split_decoders_are_one_mlp_per_output_group():
+    """--split-decoders: dE, dS, l and m each from an MLP of their own (the paper's group's code), the l and m heads'
+    last layers starting at A's and B's init scales against a default layer; vanilla refuses it.
+    --decoder-hidden-layers deepens every decoder MLP."""
+    def linears(module):
+        return [m for m in module.modules() if isinstance(m, torch.nn.Linear)]
+
+    torch.manual_seed(2)
+    x, e = torch.randn(5, 16), torch.randn(7, 16)
+    senders, receivers = torch.tensor([0, 1, 2, 3, 4, 0, 2]), torch.tensor([1, 2, 3, 4, 0, 3, 4])
+    torch.manual_seed(3)
+    dec = PortMetriplecticDecoder(16, hidden_layers=2, dissipation_init_scale=0.2, split=True)
+    dE_head, dS_head = dec.delta_v.heads
+    l_head, m_head = dec.delta_e.heads
+    # widths: dE and dS 12 each, l the 66 of A's strict lower triangle, m the 78 of B's lower triangle, in that order
+    assert [linears(h)[-1].out_features for h in (dE_head, dS_head, l_head, m_head)] == [12, 12, N_L, N_M]
+    # two hidden layers each: dE/dS MLPs have 3 linears; an edge MLP's first layer is split over edge, receiver, sender
+    assert [len(linears(h)) for h in (dE_head, dS_head, l_head, m_head)] == [3, 3, 5, 5]
+    # the init scales, against the same heads rebuilt unscaled from the same random stream
+    torch.manual_seed(3)
+    plain = [mlp(16, 16, 12, 2, layer_norm=False) for _ in range(2)] + [EdgeMLP(16, 16, n, 2, layer_norm=False)
+                                                                         for n in (N_L, N_M)]
+    for head, reference, scale in zip((dE_head, dS_head, l_head, m_head), plain, (1.0, 1.0, OPERATOR_INIT_SCALE, 0.2)):
+        torch.testing.assert_close(linears(head)[-1].weight, scale * linears(reference)[-1].weight)
+        torch.testing.assert_close(linears(head)[-1].bias, scale * linears(reference)[-1].bias)
+        torch.testing.assert_close(linears(head)[0].weight, linears(reference)[0].weight)
+    with torch.no_grad():
+        grads, (lm_ii, lm_ij) = dec.delta_v(x), dec.operator_outputs(x, e, senders, receivers)
+        assert grads.shape == (5, 24) and lm_ii.shape == (5, N_L + N_M) and lm_ij.shape == (7, N_L + N_M)
+        dS_head[-1].bias.add_(1.0)  # one head's weights move its own outputs only
+        moved = dec.delta_v(x)
+        torch.testing.assert_close(moved[:, :12], grads[:, :12])
+        assert (moved[:, 12:] != grads[:, 12:]).all()
+        linears(l_head)[-1].bias.add_(1.0)
+        moved_ii, moved_ij = dec.operator_outputs(x, e, senders, receivers)
+        torch.testing.assert_close(moved_ij[:, N_L:], lm_ij[:, N_L:])
+        assert (moved_ii[:, :N_L] != lm_ii[:, :N_L]).all()
+    # the config reaches the decoder: the split alone, the depth alone, and vanilla's depth
+    split = TIGNN(ModelConfig(passes=1, latent=16, split_decoders=True))
+    assert [len(linears(h)) for h in (*split.decoder.delta_v.heads, *split.decoder.delta_e.heads)] == [2, 2, 4, 4]
+    deeper = TIGNN(ModelConfig(passes=1, latent=16, decoder_hidden_layers=2))
+    assert (len(linears(deeper.decoder.delta_v)), len(linears(deeper.decoder.delta_e))) == (3, 5)
+    assert len(linears(TIGNN(ModelConfig(passes=1, latent=16)).decoder.delta_e)) == 4
+    assert len(linears(TIGNN(ModelConfig(kind="vanilla", passes=1, latent=16, decoder_hidden_layers=2)).decoder)) == 3
+    with pytest.raises(ValueError, match="vanilla's decoder has one output"):
+        ModelConfig(kind="vanilla", split_decoders=True)
+    with pytest.raises(ValueError, match="at least one hidden layer"):
+        ModelConfig(decoder_hidden_layers=0)
 
 
 def test_tip_weight_hand_values():

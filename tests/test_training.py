@@ -664,6 +664,20 @@ def test_dissipation_init_scale_flag_reaches_the_config():
         train_model_config(parse(["train", "--data", "d", "--out", "o", "--dissipation-init-scale", "0"]))
 
 
+def test_decoder_flags_reach_the_config():
+    parse = build_parser().parse_args
+    base = ["train", "--data", "d", "--out", "o"]
+    default = train_model_config(parse(base))
+    assert (default.decoder_hidden_layers, default.split_decoders) == (None, False)
+    config = train_model_config(parse([*base, "--split-decoders", "--decoder-hidden-layers", "2"]))
+    assert (config.decoder_hidden_layers, config.split_decoders) == (2, True)
+    assert train_model_config(parse([*base, "--model", "vanilla", "--decoder-hidden-layers", "2"])).decoder_hidden_layers == 2
+    with pytest.raises(InputError, match="vanilla's decoder has one output"):
+        train_model_config(parse([*base, "--model", "vanilla", "--split-decoders"]))
+    with pytest.raises(InputError, match="at least one hidden layer"):
+        train_model_config(parse([*base, "--decoder-hidden-layers", "0"]))
+
+
 # --------------------------------------------------------------------------- bad input
 
 

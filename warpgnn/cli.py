@@ -161,6 +161,7 @@ def train_model_config(args):
                            operator_activation=args.operator_activation,
                            reversible_positions=args.reversible_positions,
                            reversible_velocities=args.reversible_velocities,
+                           decoder_hidden_layers=args.decoder_hidden_layers, split_decoders=args.split_decoders,
                            **({} if args.dissipation_init_scale is None else
                               {"dissipation_init_scale": args.dissipation_init_scale}))
     except ValueError as exc:
@@ -313,6 +314,12 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--dissipation-init-scale", type=float, metavar="K",
                    help="the hybrid's B (M = B B^T) starts at K times a default layer's output scale (default 0.05, "
                         "A's: OPERATOR_INIT_SCALE); larger gives the dissipative path more gradient at the start")
+    t.add_argument("--decoder-hidden-layers", type=int, metavar="N",
+                   help="hidden layers of the decoder's MLPs (default 1, as every other MLP; the port-metriplectic "
+                        "code of the paper's group has 2)")
+    t.add_argument("--split-decoders", action="store_true",
+                   help="the hybrid's decoder as four MLPs, one each for dE, dS, l and m, as that code has it "
+                        "(default: the paper's two, delta_v for dE and dS, delta_e for l and m)")
     t.add_argument("--rotate", action="store_true",
                    help="turn each training sample by a random angle about the vertical z axis (an exact new simulation: "
                         "no gravity, isotropic material; default off: the paper)")

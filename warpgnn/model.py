@@ -53,6 +53,12 @@ class ModelConfig:
     # M = B B^T is quadratic in B, so its gradient shrinks with B: a larger start gives the dissipative path more pull
     # (the 12-pass hybrid's damping of its velocities fades with epochs: bench/results/generic_parts_e300_cpu.json)
     dissipation_init_scale: float = OPERATOR_INIT_SCALE
+    # hidden layers of the decoder's MLPs (None: hidden_layers, as every other MLP; the paper does not say, the
+    # port-metriplectic code of its group has 2)
+    decoder_hidden_layers: int | None = None
+    # the hybrid's decoder as four MLPs, one each for dE, dS, l and m, as that code has it (the paper: two, delta_v
+    # for (dE, dS) and delta_e for (l, m))
+    split_decoders: bool = False
 
     def __post_init__(self):
         if self.kind not in ("hybrid", "vanilla"):
@@ -75,6 +81,10 @@ class ModelConfig:
             raise ValueError(f"the dissipation init scale must be a finite number > 0, got {self.dissipation_init_scale}")
         if self.kind == "vanilla" and self.dissipation_init_scale != OPERATOR_INIT_SCALE:
             raise ValueError("the dissipation init scale sets the hybrid's B; vanilla has none")
+        if self.decoder_hidden_layers is not None and self.decoder_hidden_layers < 1:
+            raise ValueError(f"the decoder needs at least one hidden layer, got {self.decoder_hidden_layers}")
+        if self.kind == "vanilla" and self.split_decoders:
+            raise ValueError("split decoders are the hybrid's (dE, dS, l, m); vanilla's decoder has one output")
 
 
 @dataclass
@@ -103,13 +113,15 @@ class TIGNN(nn.Module):
                              persistent=False)
         self.core = EncodeProcess(node_in, FEATURES["mesh_edge"], FEATURES["actuator_node"], FEATURES["actuator_edge"],
                                   c.latent, c.passes, c.hidden_layers, c.actuator_graphs)
+        decoder_layers = c.hidden_layers if c.decoder_hidden_layers is None else c.decoder_hidden_layers
         if c.kind == "hybrid":
-            self.decoder = PortMetriplecticDecoder(c.latent, c.hidden_layers, c.operator_activation,
+            self.decoder = PortMetriplecticDecoder(c.latent, decoder_layers, c.operator_activation,
                                                    reversible_positions=c.reversible_positions,
                                                    reversible_velocities=c.reversible_velocities,
-                                                   dissipation_init_scale=c.dissipation_init_scale)
+                                                   dissipation_init_scale=c.dissipation_init_scale,
+                                                   split=c.split_decoders)
         else:
-            self.decoder = mlp(c.latent, c.latent, STATE, c.hidden_layers, layer_norm=False)
+            self.decoder = mlp(c.latent, c.latent, STATE, decoder_layers, layer_norm=False)
 
     def graph(self, top: Topology, z, u_now, u_next) -> MultiGraph:
         raw = raw_features(top, z, u_now, u_next)

@@ -16,7 +16,8 @@ move by L dE alone, as a solid's do (q' = dE/dp), and the dissipation acts on ve
 trained hybrids otherwise move their positions partly through M: bench/results/generic_parts_cpu.json).
 With ``reversible_velocities`` too, M acts on the stress alone, as in the ground truth, whose only
 dissipation is the Prony relaxation of the stress (the velocities change by the stress's forces, a
-reversible coupling).
+reversible coupling). With ``split`` the two decoders are four, one MLP each for dE, dS, l and m, as the
+port-metriplectic code of the paper's group has them (the paper: delta_v for (dE, dS), delta_e for (l, m)).
 The degeneracy residuals
 L_ii dS_i and M_ii dE_i are returned for the loss, and the bulk entropy production
 dS_i . M_ii dS_i, which is >= 0 by construction.
@@ -95,10 +96,25 @@ class GenericOutput:
     entropy_production: torch.Tensor  # (N,) dS_i . M_ii dS_i >= 0
 
 
+class Heads(nn.Module):
+    """Several MLPs on the same input, their outputs side by side: one decoder split into one per output group.
+    ``self_loop`` mirrors EdgeMLP.self_loop, so split edge MLPs stand where one EdgeMLP would."""
+
+    def __init__(self, *heads: nn.Module):
+        super().__init__()
+        self.heads = nn.ModuleList(heads)
+
+    def forward(self, *inputs):
+        return torch.cat([h(*inputs) for h in self.heads], -1)
+
+    def self_loop(self, *inputs):
+        return torch.cat([h.self_loop(*inputs) for h in self.heads], -1)
+
+
 class PortMetriplecticDecoder(nn.Module):
     def __init__(self, latent: int, hidden_layers: int = 1, operator_activation: str = "none",
                  reversible_positions: bool = False, reversible_velocities: bool = False,
-                 dissipation_init_scale: float = OPERATOR_INIT_SCALE):
+                 dissipation_init_scale: float = OPERATOR_INIT_SCALE, split: bool = False):
         super().__init__()
         self.activation = OPERATOR_ACTIVATIONS[operator_activation]()
         self.masked = reversible_positions or reversible_velocities
@@ -106,13 +122,18 @@ class PortMetriplecticDecoder(nn.Module):
         rows[POSITION] = 0.0 if reversible_positions else 1.0
         rows[VELOCITY] = 0.0 if reversible_velocities else 1.0
         self.register_buffer("dissipative_rows", rows, persistent=False)  # B's rows kept (1) or zeroed (0)
-        self.delta_v = mlp(latent, latent, 2 * STATE, hidden_layers, layer_norm=False)
-        self.delta_e = EdgeMLP(latent, latent, N_L + N_M, hidden_layers, layer_norm=False)
+        if split:
+            self.delta_v = Heads(*(mlp(latent, latent, STATE, hidden_layers, layer_norm=False) for _ in range(2)))  # dE, dS
+            self.delta_e = Heads(*(EdgeMLP(latent, latent, n, hidden_layers, layer_norm=False) for n in (N_L, N_M)))
+            last_layers = [(head.rest[-1], slice(None)) for head in self.delta_e.heads]
+        else:
+            self.delta_v = mlp(latent, latent, 2 * STATE, hidden_layers, layer_norm=False)
+            self.delta_e = EdgeMLP(latent, latent, N_L + N_M, hidden_layers, layer_norm=False)
+            last_layers = [(self.delta_e.rest[-1], slice(0, N_L)), (self.delta_e.rest[-1], slice(N_L, N_L + N_M))]
         self.self_loop = nn.Parameter(torch.randn(latent) / latent**0.5)  # the learned edge latent x_ii
         self.products = "einsum"  # how (A - A^T) x and B B^T x are computed: set_operator_products
-        with torch.no_grad():  # A's outputs (the first N_L) and B's (the rest) each start at their own scale
-            last = self.delta_e.rest[-1]
-            for outputs, scale in ((slice(0, N_L), OPERATOR_INIT_SCALE), (slice(N_L, N_L + N_M), dissipation_init_scale)):
+        with torch.no_grad():  # A's outputs (l) and B's (m) each start at their own scale (OPERATOR_INIT_SCALE says why)
+            for (last, outputs), scale in zip(last_layers, (OPERATOR_INIT_SCALE, dissipation_init_scale)):
                 last.weight[outputs].mul_(scale)
                 last.bias[outputs].mul_(scale)
 
