@@ -388,7 +388,8 @@ for s in 0 1 2; do
   run vanilla_p5_stable_rot_smooth2e1_g3e1_vel_dec2_s$s --model vanilla --passes 5 --latent 64 --seed $s $STABLE_FLAGS \
     --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity --decoder-hidden-layers 2
 done
-# (M on the stress alone, --reversible-velocities too, is not queued: at toy scale it was worse than --reversible-positions
+# (The ports without position rows or columns, --local-positions, are not queued: at toy scale both seeds were a little worse
+# on L5's q, +1.9 / +1.0 %, bench/results/local_positions_cpu_proxy.json. M on the stress alone, --reversible-velocities too, is not queued: at toy scale it was worse than --reversible-positions
 # alone in all six L5 figures, bench/results/reversible_velocities_cpu_proxy.json. Nor is --mirror: the 30-minute networks
 # score a mirrored L5 only 0.4-4.3 % worse on q than a quarter-turned one (rotation_probe_mirror_cpu.json), and at toy scale
 # it read +2.4 / +1.5 / +1.3 %, no measurable gain: bench/results/mirror_cpu_proxy.json)

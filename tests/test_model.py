@@ -228,15 +228,17 @@ def test_edge_mlp_is_the_mlp_of_the_concatenation(layer_norm):
 
 @pytest.mark.parametrize("products", list(OPERATOR_PRODUCTS))
 @pytest.mark.parametrize("activation", list(OPERATOR_ACTIVATIONS))
-@pytest.mark.parametrize("reversible_positions, reversible_velocities",
-                         [(False, False), (True, False), (False, True), (True, True)])
+@pytest.mark.parametrize("reversible_positions, reversible_velocities, local_positions",
+                         [(False, False, False), (True, False, False), (False, True, False), (True, True, False),
+                          (False, False, True), (True, False, True)])
 @pytest.mark.parametrize("split", [False, True], ids=["two_decoders", "split"])
-def test_generic_decoder_matches_dense_assembly(products, activation, reversible_positions, reversible_velocities, split):
+def test_generic_decoder_matches_dense_assembly(products, activation, reversible_positions, reversible_velocities,
+                                                local_positions, split):
     torch.manual_seed(5)
     F, N = 8, 5
     dec = PortMetriplecticDecoder(F, hidden_layers=2 if split else 1, operator_activation=activation,
                                   reversible_positions=reversible_positions, reversible_velocities=reversible_velocities,
-                                  split=split).double()
+                                  split=split, local_positions=local_positions).double()
     set_operator_products(dec, products)
     edge_mlps = list(dec.delta_e.heads) if split else [dec.delta_e]  # (l, m) from one EdgeMLP or from one each
     with torch.no_grad():  # operator outputs of order 1-10, where tanh is far from linear
@@ -258,7 +260,7 @@ def test_generic_decoder_matches_dense_assembly(products, activation, reversible
         lm_edge = np.concatenate([concatenated_mlp(f, torch.cat([e, x[receivers], x[senders]], -1)).numpy()
                                   for f in edge_mlps], -1)
 
-    def dense(lm):
+    def dense(lm, edges=False):
         lm = np.tanh(lm) if activation == "tanh" else lm
         A = np.zeros((len(lm), 12, 12))
         B = np.zeros((len(lm), 12, 12))
@@ -269,10 +271,13 @@ def test_generic_decoder_matches_dense_assembly(products, activation, reversible
             B[:, :3] = 0.0  # no dissipation in the position rows
         if reversible_velocities:
             B[:, 3:6] = 0.0  # nor in the velocity rows
-        return A - A.transpose(0, 2, 1), B @ B.transpose(0, 2, 1)
+        L, M = A - A.transpose(0, 2, 1), B @ B.transpose(0, 2, 1)
+        if edges and local_positions:  # ports without position rows or columns
+            L[:, :3], L[:, :, :3], M[:, :3], M[:, :, :3] = 0.0, 0.0, 0.0, 0.0
+        return L, M
 
     L_ii, M_ii = dense(lm_self)
-    L_e, M_e = dense(lm_edge)
+    L_e, M_e = dense(lm_edge, edges=True)
     Lbig, Mbig = np.zeros((12 * N, 12 * N)), np.zeros((12 * N, 12 * N))
     for i in range(N):
         Lbig[12 * i:12 * i + 12, 12 * i:12 * i + 12] = L_ii[i]
@@ -291,8 +296,10 @@ def test_generic_decoder_matches_dense_assembly(products, activation, reversible
     constrained = np.array([reversible_positions] * 3 + [reversible_velocities] * 3 + [False] * 6)
     assert (irreversible[:, constrained] == 0).all() and (irreversible[:, ~constrained].abs().amax(0) > 0).all()
     np.testing.assert_allclose(out.zdot[:, constrained].numpy(), reversible[:, constrained].numpy(), rtol=1e-12)
-    # the isolated node only sees its self-loop
+    # the isolated node only sees its self-loop; with local positions every node's positions do
     np.testing.assert_allclose(out.zdot[4].numpy(), L_ii[4] @ dE[4] + M_ii[4] @ dS[4], rtol=1e-10)
+    self_q = np.einsum("nab,nb->na", L_ii, dE)[:, :3] + np.einsum("nab,nb->na", M_ii, dS)[:, :3]
+    assert np.allclose(out.zdot[:, :3].numpy(), self_q, rtol=1e-10, atol=1e-12) == local_positions
 
     LdS = np.einsum("nab,nb->na", L_ii, dS)
     MdE = np.einsum("nab,nb->na", M_ii, dE)

@@ -678,6 +678,16 @@ def test_decoder_flags_reach_the_config():
         train_model_config(parse([*base, "--decoder-hidden-layers", "0"]))
 
 
+def test_local_positions_flag_reaches_the_decoder():
+    parse = build_parser().parse_args
+    base = ["train", "--data", "d", "--out", "o"]
+    assert not train_model_config(parse(base)).local_positions
+    config = train_model_config(parse([*base, "--local-positions", "--passes", "1", "--latent", "8"]))
+    assert config.local_positions and TIGNN(config).decoder.local_positions
+    with pytest.raises(InputError, match="local positions constrain the hybrid's ports"):
+        train_model_config(parse([*base, "--model", "vanilla", "--local-positions"]))
+
+
 # --------------------------------------------------------------------------- bad input
 
 

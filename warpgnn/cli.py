@@ -162,6 +162,7 @@ def train_model_config(args):
                            reversible_positions=args.reversible_positions,
                            reversible_velocities=args.reversible_velocities,
                            decoder_hidden_layers=args.decoder_hidden_layers, split_decoders=args.split_decoders,
+                           local_positions=args.local_positions,
                            **({} if args.dissipation_init_scale is None else
                               {"dissipation_init_scale": args.dissipation_init_scale}))
     except ValueError as exc:
@@ -311,6 +312,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--reversible-velocities", action="store_true",
                    help="the hybrid's velocities move by L dE alone too (with --reversible-positions: M acts on the "
                         "stress alone, as the ground truth's Prony relaxation does; default off)")
+    t.add_argument("--local-positions", action="store_true",
+                   help="the hybrid's ports (mesh edges' L and M) without position rows or columns: each node's positions "
+                        "move by its own self-loop, as a solid's kinematics are local (default off: the paper's ports)")
     t.add_argument("--dissipation-init-scale", type=float, metavar="K",
                    help="the hybrid's B (M = B B^T) starts at K times a default layer's output scale (default 0.05, "
                         "A's: OPERATOR_INIT_SCALE); larger gives the dissipative path more gradient at the start")

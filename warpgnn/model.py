@@ -59,6 +59,10 @@ class ModelConfig:
     # the hybrid's decoder as four MLPs, one each for dE, dS, l and m, as that code has it (the paper: two, delta_v
     # for (dE, dS) and delta_e for (l, m))
     split_decoders: bool = False
+    # the hybrid's ports (mesh edges' L_ij, M_ij) without position rows or columns, so a node's positions move by its own
+    # self-loop: a solid's kinematics are local (q' = v), its nodes coupling through velocity and stress (the paper: no
+    # such constraint; the hybrid's one-step position error is 20-30 % above vanilla's: generic_parts_group_decoder_cpu.json)
+    local_positions: bool = False
 
     def __post_init__(self):
         if self.kind not in ("hybrid", "vanilla"):
@@ -77,6 +81,8 @@ class ModelConfig:
             raise ValueError("an operator activation applies to the hybrid's operators; vanilla has none")
         if self.kind == "vanilla" and (self.reversible_positions or self.reversible_velocities):
             raise ValueError("reversible positions or velocities constrain the hybrid's M; vanilla has none")
+        if self.kind == "vanilla" and self.local_positions:
+            raise ValueError("local positions constrain the hybrid's ports; vanilla has none")
         if not (math.isfinite(self.dissipation_init_scale) and self.dissipation_init_scale > 0):
             raise ValueError(f"the dissipation init scale must be a finite number > 0, got {self.dissipation_init_scale}")
         if self.kind == "vanilla" and self.dissipation_init_scale != OPERATOR_INIT_SCALE:
@@ -119,7 +125,7 @@ class TIGNN(nn.Module):
                                                    reversible_positions=c.reversible_positions,
                                                    reversible_velocities=c.reversible_velocities,
                                                    dissipation_init_scale=c.dissipation_init_scale,
-                                                   split=c.split_decoders)
+                                                   split=c.split_decoders, local_positions=c.local_positions)
         else:
             self.decoder = mlp(c.latent, c.latent, STATE, decoder_layers, layer_norm=False)
 

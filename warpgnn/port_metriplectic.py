@@ -18,6 +18,9 @@ With ``reversible_velocities`` too, M acts on the stress alone, as in the ground
 dissipation is the Prony relaxation of the stress (the velocities change by the stress's forces, a
 reversible coupling). With ``split`` the two decoders are four, one MLP each for dE, dS, l and m, as the
 port-metriplectic code of the paper's group has them (the paper: delta_v for (dE, dS), delta_e for (l, m)).
+With ``local_positions`` the edges' operators have no position rows or columns (L_ij and M_ij act on velocity
+and stress alone): a node's positions move by its own self-loop, as a solid's do (q' = v is local; its nodes
+couple through velocity and stress), and no neighbour's position gradient reaches it through a port.
 The degeneracy residuals
 L_ii dS_i and M_ii dE_i are returned for the loss, and the bulk entropy production
 dS_i . M_ii dS_i, which is >= 0 by construction.
@@ -114,7 +117,8 @@ class Heads(nn.Module):
 class PortMetriplecticDecoder(nn.Module):
     def __init__(self, latent: int, hidden_layers: int = 1, operator_activation: str = "none",
                  reversible_positions: bool = False, reversible_velocities: bool = False,
-                 dissipation_init_scale: float = OPERATOR_INIT_SCALE, split: bool = False):
+                 dissipation_init_scale: float = OPERATOR_INIT_SCALE, split: bool = False,
+                 local_positions: bool = False):
         super().__init__()
         self.activation = OPERATOR_ACTIVATIONS[operator_activation]()
         self.masked = reversible_positions or reversible_velocities
@@ -122,6 +126,10 @@ class PortMetriplecticDecoder(nn.Module):
         rows[POSITION] = 0.0 if reversible_positions else 1.0
         rows[VELOCITY] = 0.0 if reversible_velocities else 1.0
         self.register_buffer("dissipative_rows", rows, persistent=False)  # B's rows kept (1) or zeroed (0)
+        self.local_positions = local_positions
+        port_rows = torch.ones(STATE, 1)  # local_positions: the edges' B rows, A's rows and columns kept (1) or zeroed (0)
+        port_rows[POSITION] = 0.0
+        self.register_buffer("port_rows", port_rows, persistent=False)
         if split:
             self.delta_v = Heads(*(mlp(latent, latent, STATE, hidden_layers, layer_norm=False) for _ in range(2)))  # dE, dS
             self.delta_e = Heads(*(EdgeMLP(latent, latent, n, hidden_layers, layer_norm=False) for n in (N_L, N_M)))
@@ -137,11 +145,15 @@ class PortMetriplecticDecoder(nn.Module):
                 last.weight[outputs].mul_(scale)
                 last.bias[outputs].mul_(scale)
 
-    def operators(self, lm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(E, 144) decoder output -> A (strictly lower) and B (lower), each (E, 12, 12)."""
+    def operators(self, lm: torch.Tensor, edges: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+        """(E, 144) decoder output -> A (strictly lower) and B (lower), each (E, 12, 12); ``edges``: the mesh edges'
+        operators (the ports), else the self-loops'."""
         lm = self.activation(lm)
         A, B = lower_triangular(lm[:, :N_L], strict=True), lower_triangular(lm[:, N_L:], strict=False)
-        return A, B * self.dissipative_rows if self.masked else B  # unmasked: the ops of before, no extra multiply
+        B = B * self.dissipative_rows if self.masked else B  # unmasked: the ops of before, no extra multiply
+        if edges and self.local_positions:  # L = A - A^T without position rows and columns; M = B B^T likewise
+            A, B = A * self.port_rows * self.port_rows.T, B * self.port_rows
+        return A, B
 
     def operator_outputs(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor
                          ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -152,7 +164,7 @@ class PortMetriplecticDecoder(nn.Module):
         """dE, dS (N, 12) and the operators' A, B on the self-loops (N, 12, 12) and on the edges (E, 12, 12)."""
         grads = self.delta_v(x)
         lm_ii, lm_ij = self.operator_outputs(x, e, senders, receivers)
-        return grads[:, :STATE], grads[:, STATE:], *self.operators(lm_ii), *self.operators(lm_ij)
+        return grads[:, :STATE], grads[:, STATE:], *self.operators(lm_ii), *self.operators(lm_ij, edges=True)
 
     def parts(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor
               ) -> tuple[torch.Tensor, torch.Tensor]:
