@@ -61,7 +61,7 @@ class ModelConfig:
     split_decoders: bool = False
     # the hybrid's ports (mesh edges' L_ij, M_ij) without position rows or columns, so a node's positions move by its own
     # self-loop: a solid's kinematics are local (q' = v), its nodes coupling through velocity and stress (the paper: no
-    # such constraint; the hybrid's one-step position error is 20-30 % above vanilla's: generic_parts_group_decoder_cpu.json)
+    # such constraint; the hybrid's one-step position error is 15-32 % above vanilla's: generic_parts_group_decoder_cpu.json)
     local_positions: bool = False
 
     def __post_init__(self):
