@@ -21,6 +21,8 @@
 # process itself: pgrep -f 'warpgnn(.cli)? train.*NAME' with a bracket in NAME (e.g. revq_s[2]), so that the
 # waiting shell's own pattern does not match. Matching the run's name alone also matches the device call's own
 # command line (its train_paper.sh regex holds the name): on 2026-11-26 such a wait lasted until the call ended.
+# The same for any script the call itself names: `while pgrep -f eval_paper` in a call that starts eval_paper.sh waited
+# out its whole limit (2026-11-26, 500 s of device time); run such a script in the foreground, or wait on its pid.
 # Resuming a 12-pass run (last.pt 30 MB, best.pt 10 MB) costs no extra call: put best.pt, log.csv and
 # stdout.txt under an ignored .devout_a/runs/<run>/ and last.pt under .devout_b/runs/<run>/, carry
 # .devout_a with a1 and .devout_b with a2, and cp -r each one's runs/* into the RUNS folder.

@@ -31,8 +31,8 @@ def terms(model, sim) -> tuple[dict, np.ndarray, np.ndarray]:
             rate = model(b.topology, b.z, b.u_now, b.u_next).zdot_standardized
             out = {"target": target, "error": rate - target}
         else:
-            x, e = model.latents(b.topology, b.z, b.u_now, b.u_next)
-            rev, irr = model.decoder.parts(x, e, b.topology.senders, b.topology.receivers)
+            x, e, skip = model.decoder_inputs(b.topology, b.z, b.u_now, b.u_next)
+            rev, irr = model.decoder.parts(x, e, b.topology.senders, b.topology.receivers, skip)
             out = {"target": target, "reversible": rev, "irreversible": irr, "error": rev + irr - target,
                    "error_reversible_only": rev - target}
     phase = np.repeat(np.arange(sim.steps) >= ramp_steps(sim), sim.topology.n_nodes).astype(int)

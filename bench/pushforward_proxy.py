@@ -1,5 +1,6 @@
-"""A CPU-sized probe of training options: the same small hybrid (2 passes, F = 32) trained for
+"""A CPU-sized probe of training options: the same small hybrid (or vanilla, --model; 2 passes, F = 32) trained for
 the same number of steps with --pushforward 0 and K (and optionally --rate-weights, --reversible-positions, --local-positions,
+--state-skip, --model vanilla,
 --rotate, --mirror, --noise-v-add, or each of several --noise-smooth values, each with each --noise-smooth-gamma, with
 --noise-smooth-velocity its take-back also in the target's velocity), from the
 same seed, on a few paper-preset simulations made on the CPU, then rolled out on its training anatomy and an unseen one;
@@ -36,11 +37,12 @@ from warpgnn.model import ModelConfig, TIGNN
 def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1.0), noise_smooth: float = 0.0,
         noise_smooth_gamma: float = 1.0, reversible_positions: bool = False, reversible_velocities: bool = False,
         rotate: bool = False, mirror: bool = False, noise_v_add: float = 0.0, ema=(), lr: float = 1e-3,
-        lr_final: float = 1e-5, noise_smooth_velocity: float = 0.0, local_positions: bool = False) -> dict:
+        lr_final: float = 1e-5, noise_smooth_velocity: float = 0.0, local_positions: bool = False,
+        state_skip: bool = False, kind: str = "hybrid") -> dict:
     torch.manual_seed(seed)
-    model = TIGNN(ModelConfig(kind="hybrid", passes=2, latent=32, rate_weights=rate_weights,
+    model = TIGNN(ModelConfig(kind=kind, passes=2, latent=32, rate_weights=rate_weights,
                               reversible_positions=reversible_positions, reversible_velocities=reversible_velocities,
-                              local_positions=local_positions))
+                              local_positions=local_positions, state_skip=state_skip))
     training.fit_normalizer(model, train, rotate=rotate, mirror=mirror)
     opt = torch.optim.Adam(model.parameters(), lr)
     # a step an "epoch"; TrainConfig also refuses the noise settings warpgnn train would
@@ -61,7 +63,7 @@ def run(train, test, lead: int, seed: int, steps: int, rate_weights=(1.0, 1.0, 1
         opt.step()
         for average in averages.values():
             average.update_parameters(model)
-    out = {"pushforward": lead, "rate_weights": list(rate_weights), "noise_smooth": noise_smooth,
+    out = {"model": kind, "state_skip": state_skip, "pushforward": lead, "rate_weights": list(rate_weights), "noise_smooth": noise_smooth,
            "noise_smooth_gamma": noise_smooth_gamma, "reversible_positions": reversible_positions,
            "reversible_velocities": reversible_velocities, "local_positions": local_positions, "rotate": rotate,
            "mirror": mirror, "noise_v_add": noise_v_add,
@@ -95,6 +97,9 @@ def main():
                     "rows and columns; with --reversible-positions, M on the stress alone (see warpgnn train)")
     ap.add_argument("--local-positions", action="store_true", help="every run's hybrid with ports free of position rows "
                     "and columns (see warpgnn train)")
+    ap.add_argument("--state-skip", action="store_true", help="every run's network with the state skip (see warpgnn "
+                    "train)")
+    ap.add_argument("--model", default="hybrid", choices=["hybrid", "vanilla"], help="the runs' network (default hybrid)")
     ap.add_argument("--rotate", action="store_true", help="every run's samples turned about z (see warpgnn train)")
     ap.add_argument("--mirror", action="store_true", help="every run's samples reflected, half of them (see warpgnn train)")
     ap.add_argument("--noise-v-add", type=float, default=0.0, help="additive velocity noise (see warpgnn train)")
@@ -107,6 +112,8 @@ def main():
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
+    if a.model == "vanilla" and (a.reversible_positions or a.reversible_velocities or a.local_positions):
+        ap.error("--reversible-positions, --reversible-velocities and --local-positions constrain the hybrid's operators")
     torch.set_num_threads(1)
     train, test = load_file(a.train), load_file(a.test)
     runs = []
@@ -119,7 +126,7 @@ def main():
                                     reversible_velocities=a.reversible_velocities, rotate=a.rotate, mirror=a.mirror,
                                     noise_v_add=a.noise_v_add, ema=a.ema, lr=a.lr, lr_final=a.lr_final,
                                     noise_smooth_velocity=a.noise_smooth_velocity if smooth else 0.0,
-                                    local_positions=a.local_positions))
+                                    local_positions=a.local_positions, state_skip=a.state_skip, kind=a.model))
                     print(json.dumps(runs[-1]), flush=True)
     json.dump(provenance.record(a) | {"train": a.train, "test": a.test, "runs": runs}, open(a.json, "w"), indent=1)
 

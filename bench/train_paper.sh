@@ -388,6 +388,19 @@ for s in 0 1 2; do
   run vanilla_p5_stable_rot_smooth2e1_g3e1_vel_dec2_s$s --model vanilla --passes 5 --latent 64 --seed $s $STABLE_FLAGS \
     --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity --decoder-hidden-layers 2
 done
+# The state skip (--state-skip): a linear map, started at zero, from each node's standardised v and sigma into the decoder's
+# outputs. For the hybrid, dE and dS then hold a quadratic energy's and entropy's gradients (the ground truth's to first
+# order: kinetic 1/2 m v^2, elastic 1/2 sigma C^-1 sigma), and its port sums can be linear elastodynamics' discrete
+# q' = v, v' = div sigma, sigma' = C grad v exactly, where from the latent alone the decoder must first rebuild v and sigma
+# (the hybrid's one-step error is 15-32 % above vanilla's: generic_parts_group_decoder_cpu.json). Vanilla gets the same map
+# into its rate. A 24-epoch screen, three seeds each, against the take-back's 24-epoch seeds of both. On nvidia-h200-x2:
+# PER_GPU=3 ... 24e '^(hybrid|vanilla)_p5_stable_rot_smooth2e1_g3e1_vel_skip_s[012]$' puts the hybrids on GPU 0 and the
+# vanillas on GPU 1. Done 2026-11-26 (33 s an epoch for a hybrid, 27 s for a vanilla; bench/results/gnn_state_skip_e24_h200.json):
+# the hybrid +1.0 / +5.5 / -1.4 % (not established; one rollout of seed 2 makes its v), vanilla -0.5 / -2.1 / -3.5 %, the
+# hybrid's gap to vanilla +9.4 / +23.0 / +2.6 % with the skip in both: not queued further. (_skip in these names is the
+# state skip; the rotate arms' _skip above is --skip-imposed-rates)
+seeds stable_rot_smooth2e1_g3e1_vel_skip $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 \
+  --noise-smooth-velocity --state-skip
 # (The ports without position rows or columns, --local-positions, are not queued: at toy scale both seeds were a little worse
 # on L5's q, +1.9 / +1.0 %, bench/results/local_positions_cpu_proxy.json. M on the stress alone, --reversible-velocities too, is not queued: at toy scale it was worse than --reversible-positions
 # alone in all six L5 figures, bench/results/reversible_velocities_cpu_proxy.json. Nor is --mirror: the 30-minute networks

@@ -45,7 +45,9 @@ if [ -n "$OUT" ]; then
   # one archive of every run, in parts of 15 MB (a device call returns at most 8 files of at most 16 MiB each, 64 MiB
   # in all: one tar per run lost runs once there were more than 8); cat runs.tar.* | tar -x. The logs and checkpoints
   # first, so that they come back whole if the rest does not; without rollouts.h5 (~70 MB a set), which an evaluation
-  # cut off before bench/eval_paper.sh removes it leaves behind
+  # cut off before bench/eval_paper.sh removes it leaves behind. OUT may be a folder under $OUT not made yet ($OUT/d):
+  # without it split wrote nothing and a call's runs did not come back (2026-11-26)
+  mkdir -p "$OUT"
   (cd "$RUNS" && tar -cf - --ignore-failed-read --exclude='*.h5' */log.csv */stdout.txt */best.pt */last.pt .eval 2>/dev/null) |
     split -b 15000000 -d - "$OUT/runs.tar."
   bytes=$(cat "$OUT"/runs.tar.* | wc -c)

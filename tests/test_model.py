@@ -169,6 +169,43 @@ def test_permutation_equivariance(kind, actuator_graphs):
         torch.testing.assert_close(out.degeneracy, base.degeneracy[p], rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.parametrize("kind,actuator_graphs", VARIANTS, ids=VARIANT_IDS)
+def test_state_skip_is_linear_in_the_standardised_state(kind, actuator_graphs):
+    # (the single-graph ablation appends the tools' columns to the node features: the skip reads the first nine alone)
+    _, _, top, plain, z, u_now, u_next = setup_case(kind, actuator_graphs)
+    skipping = tiny(kind, actuator_graphs, 0, state_skip=True).double()  # the same seed: every other weight the same
+    skipping.normalizer.load_state_dict(plain.normalizer.state_dict())
+    base = plain(top, z, u_now, u_next)
+    # it starts as the network without it
+    start = skipping(top, z, u_now, u_next)
+    torch.testing.assert_close(start.zdot, base.zdot, rtol=0, atol=0)
+    # and training reaches its weight from there
+    skipping.loss(start, torch.randn(z.shape, generator=torch.Generator().manual_seed(2), dtype=z.dtype))[0].backward()
+    assert skipping.state_skip.weight.grad.abs().min() > 0
+    W = torch.randn(skipping.state_skip.weight.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    with torch.no_grad():
+        skipping.state_skip.weight.copy_(W)
+    out = skipping(top, z, u_now, u_next)
+    norm = plain.normalizer  # by hand: v and sigma standardised with the training set's statistics
+    share = ((z[:, 3:] - norm.node_mean.double()) / norm.node_std.double()) @ W.T
+    if kind == "vanilla":  # added to the rate
+        expected = base.zdot_standardized + share
+    else:  # added to (dE, dS), then through L and M (the dense assembly test checks that sum)
+        x, e = plain.latents(top, z, u_now, u_next)
+        gen_out = plain.decoder(x, e, top.senders, top.receivers, share)
+        expected = gen_out.zdot
+        torch.testing.assert_close(out.entropy_production, gen_out.entropy_production, rtol=1e-10, atol=0)
+        assert (out.entropy_production >= 0).all()
+    torch.testing.assert_close(out.zdot_standardized, expected, rtol=1e-10, atol=1e-12 * expected.abs().max().item())
+    assert (out.zdot - base.zdot).abs().max() > 1e-3 * base.zdot.abs().max()  # not vacuous
+    # positions still enter only through relative vectors
+    shift = torch.tensor([0.31, -0.72, 1.13], dtype=torch.float64)
+    moved_z = z.clone()
+    moved_z[:, :3] += shift
+    moved = skipping(replace(top, rest=top.rest + shift), moved_z, u_now, u_next)
+    torch.testing.assert_close(moved.zdot, out.zdot, rtol=1e-9, atol=1e-9 * out.zdot.abs().max().item())
+
+
 # --------------------------------------------------------- 4. operator structure L, M
 def test_lower_triangular_layout():
     """Row-major fill of the (strict) lower triangle, numpy's tril_indices order."""
@@ -232,8 +269,9 @@ def test_edge_mlp_is_the_mlp_of_the_concatenation(layer_norm):
                          [(False, False, False), (True, False, False), (False, True, False), (True, True, False),
                           (False, False, True), (True, False, True)])
 @pytest.mark.parametrize("split", [False, True], ids=["two_decoders", "split"])
+@pytest.mark.parametrize("skip", [False, True], ids=["latent_grads", "grads_skip"])
 def test_generic_decoder_matches_dense_assembly(products, activation, reversible_positions, reversible_velocities,
-                                                local_positions, split):
+                                                local_positions, split, skip):
     torch.manual_seed(5)
     F, N = 8, 5
     dec = PortMetriplecticDecoder(F, hidden_layers=2 if split else 1, operator_activation=activation,
@@ -250,9 +288,11 @@ def test_generic_decoder_matches_dense_assembly(products, activation, reversible
     gen = torch.Generator().manual_seed(6)
     x = torch.randn(N, F, generator=gen, dtype=torch.float64)
     e = torch.randn(len(senders), F, generator=gen, dtype=torch.float64)
+    # the caller's share of (dE, dS) (TIGNN's state skip) adds to the latent's
+    grads_skip = torch.randn(N, 24, generator=gen, dtype=torch.float64) if skip else None
     with torch.no_grad():
-        out = dec(x, e, senders, receivers)
-        grads = dec.delta_v(x)
+        out = dec(x, e, senders, receivers, grads_skip)
+        grads = dec.delta_v(x) if grads_skip is None else dec.delta_v(x) + grads_skip
         dE, dS = grads[:, :12].numpy(), grads[:, 12:].numpy()
         # delta_e(x_ij, x_i, x_j): edge latent, receiver latent, sender latent
         lm_self = np.concatenate([concatenated_mlp(f, torch.cat([dec.self_loop.expand(N, -1), x, x], -1)).numpy()
@@ -289,7 +329,7 @@ def test_generic_decoder_matches_dense_assembly(products, activation, reversible
     np.testing.assert_allclose(out.zdot.numpy(), zdot, rtol=1e-10, atol=1e-12 * np.abs(zdot).max())
     # its two parts (bench/generic_parts.py): the reversible L dE and the irreversible M dS
     with torch.no_grad():
-        reversible, irreversible = dec.parts(x, e, senders, receivers)
+        reversible, irreversible = dec.parts(x, e, senders, receivers, grads_skip)
     for part, reference in ((reversible, Lbig @ dE.ravel()), (irreversible, Mbig @ dS.ravel())):
         np.testing.assert_allclose(part.numpy(), reference.reshape(N, 12), rtol=1e-10, atol=1e-12 * np.abs(zdot).max())
     # whatever the weights, the constrained rows move by L dE alone and the others dissipate

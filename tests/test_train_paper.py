@@ -176,9 +176,10 @@ def test_wait_runs_evaluates_each_finished_run_once_and_packs_it(tmp_path):
             (f"{runs / name}: best validation mean RRMSE 1.0e-02 at epoch 0 (1 epochs logged)" if line == "summary" else line)
             + "\n" for line in lines))
 
-    def wait(out_name, **env):
+    def wait(out_name, made=True, **env):
         out = tmp_path / out_name
-        out.mkdir()
+        if made:
+            out.mkdir()
         proc = subprocess.run(["bash", str(BENCH / "wait_runs.sh"), str(runs), "600", str(out), str(tmp_path / "data")],
                               capture_output=True, text=True, timeout=120, cwd=BENCH.parent,
                               env=stubbed | env)
@@ -200,7 +201,7 @@ def test_wait_runs_evaluates_each_finished_run_once_and_packs_it(tmp_path):
     wait("out2")
     assert len(log.read_text().splitlines()) == 8  # evaluated once
     (runs / ".eval" / "done_run" / ".done").unlink()  # as if that evaluation had been cut short
-    wait("out3")
+    out, _ = wait("out3/d", made=False)  # a folder under the call's $OUT that nobody made: wait_runs.sh makes it
     calls = log.read_text().splitlines()
     assert len(calls) == 12 and all("/.eval/done_run/" in c for c in calls[8:])
     assert (runs / ".eval" / "done_run" / ".done").exists()

@@ -688,6 +688,15 @@ def test_local_positions_flag_reaches_the_decoder():
         train_model_config(parse([*base, "--model", "vanilla", "--local-positions"]))
 
 
+def test_state_skip_flag_reaches_the_model():
+    parse = build_parser().parse_args
+    base = ["train", "--data", "d", "--out", "o", "--passes", "1", "--latent", "8"]
+    assert not train_model_config(parse(base)).state_skip and TIGNN(train_model_config(parse(base))).state_skip is None
+    for kind, outputs in (("hybrid", 24), ("vanilla", 12)):  # (dE, dS) or the rate, from v and sigma
+        config = train_model_config(parse([*base, "--model", kind, "--state-skip"]))
+        assert config.state_skip and TIGNN(config).state_skip.weight.shape == (outputs, 9)
+
+
 # --------------------------------------------------------------------------- bad input
 
 

@@ -162,7 +162,7 @@ def train_model_config(args):
                            reversible_positions=args.reversible_positions,
                            reversible_velocities=args.reversible_velocities,
                            decoder_hidden_layers=args.decoder_hidden_layers, split_decoders=args.split_decoders,
-                           local_positions=args.local_positions,
+                           local_positions=args.local_positions, state_skip=args.state_skip,
                            **({} if args.dissipation_init_scale is None else
                               {"dissipation_init_scale": args.dissipation_init_scale}))
     except ValueError as exc:
@@ -312,6 +312,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--reversible-velocities", action="store_true",
                    help="the hybrid's velocities move by L dE alone too (with --reversible-positions: M acts on the "
                         "stress alone, as the ground truth's Prony relaxation does; default off)")
+    t.add_argument("--state-skip", action="store_true",
+                   help="a linear map, started at zero, from each node's standardised v and sigma into the decoder's "
+                        "outputs (the hybrid's dE, dS: a quadratic energy's and entropy's gradients; vanilla's rate) "
+                        "(default off: the paper's decoders read the node latent alone)")
     t.add_argument("--local-positions", action="store_true",
                    help="the hybrid's ports (mesh edges' L and M) without position rows or columns: each node's positions "
                         "move by its own self-loop, as a solid's kinematics are local (default off: the paper's ports)")

@@ -63,6 +63,11 @@ class ModelConfig:
     # self-loop: a solid's kinematics are local (q' = v), its nodes coupling through velocity and stress (the paper: no
     # such constraint; the hybrid's one-step position error is 15-32 % above vanilla's: generic_parts_group_decoder_cpu.json)
     local_positions: bool = False
+    # a linear map, started at zero, from each node's standardised state (v, sigma) into its decoder outputs: the hybrid's
+    # (dE, dS), vanilla's standardised rate. For the hybrid the gradients of a quadratic energy and entropy, the ground truth's to first
+    # order (kinetic 1/2 m v^2, elastic 1/2 sigma C^-1 sigma), so its port sums can be the discrete q' = v, v' = div sigma and
+    # sigma' = C grad v of linear elastodynamics exactly (the paper: dE, dS from the node latent alone)
+    state_skip: bool = False
 
     def __post_init__(self):
         if self.kind not in ("hybrid", "vanilla"):
@@ -128,6 +133,11 @@ class TIGNN(nn.Module):
                                                    split=c.split_decoders, local_positions=c.local_positions)
         else:
             self.decoder = mlp(c.latent, c.latent, STATE, decoder_layers, layer_norm=False)
+        # last and zero at the start: a state-skip network starts as the one without, weight for weight (ModelConfig.state_skip)
+        self.state_skip = nn.Linear(FEATURES["node"], 2 * STATE if c.kind == "hybrid" else STATE, bias=False) \
+            if c.state_skip else None
+        if self.state_skip is not None:
+            nn.init.zeros_(self.state_skip.weight)
 
     def graph(self, top: Topology, z, u_now, u_next) -> MultiGraph:
         raw = raw_features(top, z, u_now, u_next)
@@ -144,15 +154,22 @@ class TIGNN(nn.Module):
         return MultiGraph(torch.cat(nodes, -1), mesh, actuator, act_edges)
 
     def latents(self, top: Topology, z, u_now, u_next) -> tuple[torch.Tensor, torch.Tensor]:
-        """The processed node and mesh-edge latents the decoder reads."""
-        return self.core(self.graph(top, z, u_now, u_next))
+        """The processed node and mesh-edge latents, without the state skip: ``decoder_inputs`` reproduces ``forward``."""
+        return self.decoder_inputs(top, z, u_now, u_next)[:2]
+
+    def decoder_inputs(self, top: Topology, z, u_now, u_next) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """The node and mesh-edge latents and the state skip's share of the node outputs (None without one), read from
+        the first FEATURES["node"] columns of the node features: the standardised v and sigma (``graph``)."""
+        g = self.graph(top, z, u_now, u_next)
+        x, e = self.core(g)
+        return x, e, None if self.state_skip is None else self.state_skip(g.node_features[:, :FEATURES["node"]])
 
     def forward(self, top: Topology, z: torch.Tensor, u_now: torch.Tensor, u_next: torch.Tensor) -> Prediction:
-        x, e = self.latents(top, z, u_now, u_next)
+        x, e, skip = self.decoder_inputs(top, z, u_now, u_next)
         if self.config.kind == "vanilla":
-            out = self.decoder(x)
+            out = self.decoder(x) if skip is None else self.decoder(x) + skip
             return Prediction(out * self.normalizer.zdot_scale, out)
-        gen = self.decoder(x, e, top.senders, top.receivers)
+        gen = self.decoder(x, e, top.senders, top.receivers, skip)
         return Prediction(gen.zdot * self.normalizer.zdot_scale, gen.zdot, gen.degeneracy, gen.entropy_production)
 
     @torch.no_grad()

@@ -21,6 +21,7 @@ port-metriplectic code of the paper's group has them (the paper: delta_v for (dE
 With ``local_positions`` the edges' operators have no position rows or columns (L_ij and M_ij act on velocity
 and stress alone): a node's positions move by its own self-loop, as a solid's do (q' = v is local; its nodes
 couple through velocity and stress), and no neighbour's position gradient reaches it through a port.
+The caller may add to (dE, dS) a share of its own (``grads_skip``: TIGNN's state skip, linear in the node's state).
 The degeneracy residuals
 L_ii dS_i and M_ii dE_i are returned for the loss, and the bulk entropy production
 dS_i . M_ii dS_i, which is >= 0 by construction.
@@ -160,26 +161,29 @@ class PortMetriplecticDecoder(nn.Module):
         """delta_e's raw (l, m), before any operator activation: (N, 144) on the self-loops, (E, 144) on the edges."""
         return self.delta_e.self_loop(self.self_loop, x), self.delta_e(e, x, x, receivers, senders)
 
-    def fields(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor):
-        """dE, dS (N, 12) and the operators' A, B on the self-loops (N, 12, 12) and on the edges (E, 12, 12)."""
-        grads = self.delta_v(x)
+    def fields(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor,
+               grads_skip: torch.Tensor | None = None):
+        """dE, dS (N, 12) and the operators' A, B on the self-loops (N, 12, 12) and on the edges (E, 12, 12);
+        ``grads_skip`` (N, 24), if given, is added to (dE, dS)."""
+        grads = self.delta_v(x) if grads_skip is None else self.delta_v(x) + grads_skip
         lm_ii, lm_ij = self.operator_outputs(x, e, senders, receivers)
         return grads[:, :STATE], grads[:, STATE:], *self.operators(lm_ii), *self.operators(lm_ij, edges=True)
 
-    def parts(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor
-              ) -> tuple[torch.Tensor, torch.Tensor]:
+    def parts(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor,
+              grads_skip: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """zdot split into its reversible part L dE (self-loop minus the ports') and its irreversible part M dS;
         they sum to forward's zdot. For probes (bench/generic_parts.py): training needs only the sum."""
         n = x.shape[0]
         apply_L, apply_M = OPERATOR_PRODUCTS[self.products]
-        dE, dS, A_ii, B_ii, A_ij, B_ij = self.fields(x, e, senders, receivers)
+        dE, dS, A_ii, B_ii, A_ij, B_ij = self.fields(x, e, senders, receivers, grads_skip)
         return (apply_L(A_ii, dE) - scatter_sum(apply_L(A_ij, dE[senders]), receivers, n),
                 apply_M(B_ii, dS) - scatter_sum(apply_M(B_ij, dS[senders]), receivers, n))
 
-    def forward(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor) -> GenericOutput:
+    def forward(self, x: torch.Tensor, e: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor,
+                grads_skip: torch.Tensor | None = None) -> GenericOutput:
         n = x.shape[0]
         apply_L, apply_M = OPERATOR_PRODUCTS[self.products]
-        dE, dS, A_ii, B_ii, A_ij, B_ij = self.fields(x, e, senders, receivers)
+        dE, dS, A_ii, B_ii, A_ij, B_ij = self.fields(x, e, senders, receivers, grads_skip)
         port = apply_L(A_ij, dE[senders]) + apply_M(B_ij, dS[senders])
         M_dS = apply_M(B_ii, dS)
         zdot = apply_L(A_ii, dE) + M_dS - scatter_sum(port, receivers, n)
