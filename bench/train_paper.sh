@@ -32,10 +32,14 @@ have_data() {  # the whole dataset, or every GPU's shard of it (a failed shard l
   for g in $(seq 0 $((GPUS - 1))); do [ -f "$DATA/manifest.$g-of-$GPUS.json" ] || return 1; done
 }
 if ! have_data; then  # one shard of the sets per GPU
+  pids=()
   for g in $(seq 0 $((GPUS - 1))); do
     warpgnn generate --preset paper --out "$DATA" --device cuda:$g --shard $g/$GPUS > "$DATA.generate.$g.log" 2>&1 &
+    pids+=($!)
   done
-  failed=0; for job in $(jobs -p); do wait "$job" || failed=1; done
+  # each shard's own pid: `jobs -p` no longer lists a shard that has already ended, so a quick failure went unseen
+  # (tests/test_train_paper.py failed 1 in 3); bash keeps an ended child's status for `wait PID`
+  failed=0; for pid in "${pids[@]}"; do wait "$pid" || failed=1; done
   # a failed generation must not queue every run on data that is not there
   [ "$failed" = 0 ] || { echo "train_paper.sh: generating the paper dataset in $DATA failed (see $DATA.generate.*.log)" >&2; exit 1; }
 fi
