@@ -4,6 +4,8 @@ where it ended, and records per step the RMS velocity of the free nodes, how far
 moved since step 20, and the RMS second difference of their positions, q(t+1) - 2 q(t) + q(t-1)
 (a flip-flop of amplitude a between steps reads 4a; the FEM's smooth motion, dt^2 times its
 acceleration), and at the last snapshot whether those steps flip back and forth (flip_statistics).
+These are means over the simulations; each simulation's speed and drift at the hold's end are recorded
+too, since one simulation blowing up makes the mean.
 The FEM's hold phase sets the scale: its free nodes' snapshot velocity is aliased vibration of
 ~1e-4 m/s, and viscoelastic creep moves them by well under a millimetre.
 A network whose velocity grows step after step here is unstable under the Euler step.
@@ -235,10 +237,14 @@ def main():
             record["networks"][name] = {"checkpoint": path, "tool_velocity_imposed": imposed,
                                         "free_rms_speed": speed.tolist(), "free_rms_moved": moved.tolist(),
                                         "free_rms_second_difference": jump.tolist(), "flip_at_last_snapshot": flip,
-                                        "flip_at_last_snapshot_per_simulation": flips}
+                                        "flip_at_last_snapshot_per_simulation": flips,
+                                        # the means above can be one simulation's: each one's at the hold's end
+                                        "free_rms_speed_end_per_simulation": [float(v[-1]) for v in speeds],
+                                        "free_rms_moved_end_per_simulation": [float(m[-1]) for m in moves]}
             print(f"{name}: free-node RMS speed at steps {steps // 2}, {steps}, {steps + a.hold // 2}, {steps + a.hold}: "
                   + ", ".join(f"{speed[t]:.2e}" for t in (steps // 2, steps, steps + a.hold // 2, steps + a.hold))
-                  + f" m/s; moved {moved[-1] * 1e3:.2f} mm during the hold; RMS second difference of position"
+                  + f" m/s (at the end per simulation {min(v[-1] for v in speeds):.2e} to {max(v[-1] for v in speeds):.2e})"
+                  + f"; moved {moved[-1] * 1e3:.2f} mm during the hold; RMS second difference of position"
                   + f" {jump[steps // 2:steps - 1].mean() * 1e3:.3f} mm in the data's hold (FEM"
                   + f" {np.mean(record['fem_free_rms_second_difference'][steps // 2:]) * 1e3:.3f}),"
                   + f" {jump[steps - 1:].mean() * 1e3:.3f} mm beyond; at the last snapshot: increment cosine"

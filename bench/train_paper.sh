@@ -401,7 +401,8 @@ done
 # PER_GPU=3 ... 24e '^(hybrid|vanilla)_p5_stable_rot_smooth2e1_g3e1_vel_skip_s[012]$' puts the hybrids on GPU 0 and the
 # vanillas on GPU 1. Done 2026-11-26 (33 s an epoch for a hybrid, 27 s for a vanilla; bench/results/gnn_state_skip_e24_h200.json):
 # the hybrid +1.0 / +5.5 / -1.4 % (not established; one rollout of seed 2 makes its v), vanilla -0.5 / -2.1 / -3.5 %, the
-# hybrid's gap to vanilla +9.4 / +23.0 / +2.6 % with the skip in both: not queued further. (_skip in these names is the
+# hybrid's gap to vanilla +9.4 / +23.0 / +2.6 % with the skip in both, and every skip hybrid blows up in 3-4 of 10 L5
+# simulations held 80 steps past the data (long_hold_state_skip_cpu.json): not queued further. (_skip in these names is the
 # state skip; the rotate arms' _skip above is --skip-imposed-rates)
 seeds stable_rot_smooth2e1_g3e1_vel_skip $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 \
   --noise-smooth-velocity --state-skip

@@ -3,6 +3,7 @@ a uniform motion and a constant acceleration; its growth per held step, and benc
 against a linear rate whose Euler step is known in closed form."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -152,17 +153,23 @@ def test_stiffest_mode_steps_from_snapshot_t_to_t_plus_one_and_holds_the_tools_a
         assert mode["dt_mu"]["re"] == pytest.approx(-sim.dt * (30.0 + 1e4 * moved), rel=1e-4)
 
 
-def test_step_stiffness_main_records_each_state_of_each_network_and_refuses_bad_arguments_in_one_line(tmp_path):
-    """bench/step_stiffness.py end to end on a tiny untrained network: one record entry per network (named
-    RESULTS_runs/RUN), one mode per simulation and snapshot, each with its Euler factor |1 + dt mu|; snapshots out of
-    range and two checkpoints of one run end with one usage line and exit 2 (the latter before loading any)."""
-    data = make_dataset(tmp_path, steps=4) / "L1.h5"
+def tiny_run(tmp_path, **dataset) -> tuple[Path, Path]:
+    """A synthetic L1.h5 of 4 steps and an untrained tiny hybrid fitted to it, saved as tiny_runs/net/best.pt."""
+    data = make_dataset(tmp_path, steps=4, **dataset) / "L1.h5"
     torch.manual_seed(0)
     model = TIGNN(ModelConfig(passes=1, latent=8))
     fit_normalizer(model, load_file(data))
     checkpoint = tmp_path / "tiny_runs" / "net" / "best.pt"
     checkpoint.parent.mkdir(parents=True)
     save_atomically(model_payload(model), checkpoint)
+    return data, checkpoint
+
+
+def test_step_stiffness_main_records_each_state_of_each_network_and_refuses_bad_arguments_in_one_line(tmp_path):
+    """bench/step_stiffness.py end to end on a tiny untrained network: one record entry per network (named
+    RESULTS_runs/RUN), one mode per simulation and snapshot, each with its Euler factor |1 + dt mu|; snapshots out of
+    range and two checkpoints of one run end with one usage line and exit 2 (the latter before loading any)."""
+    data, checkpoint = tiny_run(tmp_path)
     out = tmp_path / "stiff.json"
 
     def run(*args):
@@ -189,3 +196,20 @@ def test_step_stiffness_main_records_each_state_of_each_network_and_refuses_bad_
         bad = run(*args)
         assert bad.returncode == 2 and message in bad.stderr.strip().splitlines()[-1] and "Traceback" not in bad.stderr
         assert not out.exists()
+
+
+def test_long_hold_main_records_each_simulations_end_beside_the_mean(tmp_path):
+    """bench/long_hold.py end to end on a tiny untrained network: the per-simulation speeds and drifts at the hold's
+    end average to the mean curves' last points (a mean can be one simulation's; these say which)."""
+    data, checkpoint = tiny_run(tmp_path, sims_per_file=2)
+    out = tmp_path / "hold.json"
+    done = subprocess.run([sys.executable, str(BENCH / "long_hold.py"), str(data), str(checkpoint), "--hold", "3",
+                           "--json", str(out), "--png", str(tmp_path / "hold.png"), "--device", "cpu", "--command", "t"],
+                          capture_output=True, text=True, timeout=300, check=False, env={**os.environ, "MPLBACKEND": "Agg"})
+    assert done.returncode == 0, done.stderr
+    net = json.loads(out.read_text())["networks"]["tiny_runs/net"]
+    for per_simulation, mean in (("free_rms_speed_end_per_simulation", "free_rms_speed"),
+                                 ("free_rms_moved_end_per_simulation", "free_rms_moved")):
+        assert len(net[per_simulation]) == 2
+        assert sum(net[per_simulation]) / 2 == pytest.approx(net[mean][-1], rel=1e-6)
+    assert net["free_rms_moved_end_per_simulation"][0] > 0
