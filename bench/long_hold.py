@@ -224,6 +224,7 @@ def main():
             jump = np.mean([second_difference(z[..., :3]) for z in zs], 0)
             flips = [flip_statistics(z, steps, s.dt) for z, s in zip(zs, sims)]  # at the last snapshot, still in the data
             flip = {k: float(np.mean([f[k] for f in flips])) for k in flips[0]}
+            speed_ends = [float(v[-1]) for v in speeds]  # the means above can be one simulation's: each one's end
             if a.growth and not imposed:  # at the states the plain rollouts reached
                 growth = [held_step_growth(model, s, z) for s, z in zip(sims[:3], z_ends)]
                 record.setdefault("growth", {})[run] = growth
@@ -238,12 +239,11 @@ def main():
                                         "free_rms_speed": speed.tolist(), "free_rms_moved": moved.tolist(),
                                         "free_rms_second_difference": jump.tolist(), "flip_at_last_snapshot": flip,
                                         "flip_at_last_snapshot_per_simulation": flips,
-                                        # the means above can be one simulation's: each one's at the hold's end
-                                        "free_rms_speed_end_per_simulation": [float(v[-1]) for v in speeds],
+                                        "free_rms_speed_end_per_simulation": speed_ends,
                                         "free_rms_moved_end_per_simulation": [float(m[-1]) for m in moves]}
             print(f"{name}: free-node RMS speed at steps {steps // 2}, {steps}, {steps + a.hold // 2}, {steps + a.hold}: "
                   + ", ".join(f"{speed[t]:.2e}" for t in (steps // 2, steps, steps + a.hold // 2, steps + a.hold))
-                  + f" m/s (at the end per simulation {min(v[-1] for v in speeds):.2e} to {max(v[-1] for v in speeds):.2e})"
+                  + f" m/s (at the end per simulation {min(speed_ends):.2e} to {max(speed_ends):.2e})"
                   + f"; moved {moved[-1] * 1e3:.2f} mm during the hold; RMS second difference of position"
                   + f" {jump[steps // 2:steps - 1].mean() * 1e3:.3f} mm in the data's hold (FEM"
                   + f" {np.mean(record['fem_free_rms_second_difference'][steps // 2:]) * 1e3:.3f}),"

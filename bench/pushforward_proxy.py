@@ -112,8 +112,11 @@ def main():
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
-    if a.model == "vanilla" and (a.reversible_positions or a.reversible_velocities or a.local_positions):
-        ap.error("--reversible-positions, --reversible-velocities and --local-positions constrain the hybrid's operators")
+    try:  # ModelConfig's own checks, before the data are loaded (a flag vanilla has no use for)
+        ModelConfig(kind=a.model, reversible_positions=a.reversible_positions, reversible_velocities=a.reversible_velocities,
+                    local_positions=a.local_positions, state_skip=a.state_skip)
+    except ValueError as exc:
+        ap.error(str(exc))
     torch.set_num_threads(1)
     train, test = load_file(a.train), load_file(a.test)
     runs = []
