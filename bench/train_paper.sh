@@ -66,12 +66,13 @@ dispatch() {  # each GPU's queue runs PER_GPU at a time, in a session of its own
     echo $! > "$QUEUE.$g.pid"
   done
 }
-# ARM's 5-pass runs, hybrid and vanilla (or the models of SEED_MODELS) for seeds 0-2, named <model>_p5[_ARM]_s<seed>, with FLAGS
+# ARM's 5-pass runs (SEED_PASSES passes: F = 128 at 12, else 64), hybrid and vanilla (or the models of SEED_MODELS) for
+# seeds 0-2, named <model>_p<passes>[_ARM]_s<seed>, with FLAGS
 seeds() {
-  local arm=$1 s m; shift
+  local arm=$1 s m p=${SEED_PASSES:-5}; shift
   for s in 0 1 2; do
     for m in ${SEED_MODELS:-hybrid vanilla}; do
-      run ${m}_p5${arm:+_$arm}_s$s --model $m --passes 5 --latent 64 --seed $s "$@"
+      run ${m}_p$p${arm:+_$arm}_s$s --model $m --passes $p --latent $([ "$p" = 12 ] && echo 128 || echo 64) --seed $s "$@"
     done
   done
 }
@@ -155,6 +156,14 @@ seeds stable_rot_smooth2e1_g1e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noi
 # too (--noise-smooth-velocity), so that the position moves back at the velocity the state holds; a 4-step lead-in
 # (the trained step then starts where a growing flip has grown, and its target takes it back); G = 0.5 to bracket
 seeds stable_rot_smooth2e1_g3e1_vel $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --noise-smooth-velocity
+# The recipe at one pass, hybrid and vanilla, for the paper's figure of 1 against 5 passes (bench/paper_figures.py):
+# 139e, the epochs of the 5-pass vanilla peer
+SEED_PASSES=1 seeds stable_rot_smooth2e1_g3e1_vel $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 \
+  --noise-smooth-velocity
+# (2026-11-26, nvidia-h200-x4, one run a GPU: PER_GPU=1 OMP_NUM_THREADS=8 EXTRA=--cuda-graphs FALLBACK=--compile ... 139e
+# '^(hybrid|vanilla)_p1_stable_rot_smooth2e1_g3e1_vel_s[01]$', 1124-1190 s each. bench/results/gnn_p1_takeback_e139_h200.json:
+# hybrid 1.153e-2 / 4.356e-2 / 5.872e-2, vanilla 1.211e-2 / 4.400e-2 / 7.106e-2, the hybrid -4.8 / -1.0 / -17.4 % on L5 and
+# ahead on all three on every set; paper_figures_h200.json puts them beside the 5- and 12-pass runs)
 seeds stable_rot_smooth2e1_g3e1_pf4 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.3 --pushforward 4
 seeds stable_rot_smooth2e1_g5e1 $STABLE_FLAGS --rotate --noise-smooth 2e-1 --noise-smooth-gamma 0.5
 # (bench/results/gnn_smooth_flipfix_e24_h100.json, 24e, seed 0, L5 against the recipe's three 24e runs: _vel

@@ -26,23 +26,45 @@ def _save(fig, out):
 def rrmse_boxplot(series: dict[str, list[dict]], out, title: str = "") -> None:
     """One panel per state group; one box per series (label -> per-rollout metric records).
     Series whose label contains 'vanilla' / 'hybrid' get the paper's blue / red."""
+    grouped_rrmse_boxplot({label: {label: records} for label, records in series.items()}, out, title)
+
+
+def grouped_rrmse_boxplot(groups: dict[str, dict[str, list[dict]]], out, title: str = "") -> None:
+    """One panel per state group; along x the categories (e.g. "5 passes" or "Test (L5)"), and in each the boxes of its
+    series side by side (series label -> per-rollout metric records), as the paper's figures set vanilla beside hybrid.
+    Series whose label contains 'vanilla' / 'hybrid' get the paper's blue / red; a series a category lacks leaves a gap."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
 
-    labels = list(series)
-    fig, axes = plt.subplots(1, 3, figsize=(4.2 * 3, 4.2))
+    categories = list(groups)
+    labels = list(dict.fromkeys(label for series in groups.values() for label in series))
+    side_by_side = any(len(series) > 1 for series in groups.values())
+    width = 0.8 / len(labels) if side_by_side else 0.6
+    offset = {label: (i - (len(labels) - 1) / 2) * width if side_by_side else 0.0 for i, label in enumerate(labels)}
+    colour = {label: next((c for name, c in PALETTE.items() if name in label), "#7f7f7f") for label in labels}
+    boxes = len(categories) * (len(labels) if side_by_side else 1)
+    fig, axes = plt.subplots(1, 3, figsize=(3 * max(4.2, 0.45 * boxes), 4.2))
     for ax, g in zip(axes, GROUPS):
-        data = [[r["rrmse"][g] for r in series[k]] for k in labels]
-        box = ax.boxplot(data, patch_artist=True, showfliers=True, widths=0.6)
-        for patch, k in zip(box["boxes"], labels):
-            colour = next((c for name, c in PALETTE.items() if name in k), "#7f7f7f")
-            patch.set(facecolor=colour, alpha=0.55)
-        ax.set_xticks(range(1, len(labels) + 1), labels, rotation=30, ha="right", fontsize=8)
+        for label in labels:
+            at = [(x, groups[c][label]) for x, c in enumerate(categories, 1) if label in groups[c]]
+            box = ax.boxplot([[r["rrmse"][g] for r in records] for _, records in at],
+                             positions=[x + offset[label] for x, _ in at], widths=0.9 * width,
+                             patch_artist=True, showfliers=True, manage_ticks=False)
+            for patch in box["boxes"]:
+                patch.set(facecolor=colour[label], alpha=0.55)
+        if side_by_side:
+            ax.set_xticks(range(1, len(categories) + 1), categories, fontsize=9)
+        else:  # one box a category, named by its (often long) label
+            ax.set_xticks(range(1, len(categories) + 1), categories, rotation=30, ha="right", fontsize=8)
+        ax.set_xlim(0.5, len(categories) + 0.5)
         ax.set_yscale("log")
         ax.set_title(f"RRMSE {g if g != 'sigma' else 'σ'}")
         ax.grid(alpha=0.3, which="both")
+    if side_by_side:
+        axes[-1].legend([Patch(facecolor=colour[label], alpha=0.55) for label in labels], labels, fontsize=8)
     fig.suptitle(title)
     fig.tight_layout()
     _save(fig, out)
