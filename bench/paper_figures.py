@@ -10,7 +10,6 @@ and, at each depth with both models, the hybrid against vanilla (percent and Wel
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import provenance  # bench/, beside this script
@@ -20,11 +19,18 @@ from warpgnn.graphs import GROUPS
 from warpgnn.plots import grouped_rrmse_boxplot
 
 TEST = "L5"
+CONFIG = ("model", "passes", "latent", "actuator_graphs")  # what makes runs seeds of one arm
+
+
+def refuse(message: str):
+    raise SystemExit(f"paper_figures: {message}")
 
 
 def read_runs(ev: Path) -> dict:
-    """Every run of EVAL with an L5 evaluation: its model, depth and, per set, the aggregate metrics and the per-rollout
-    RRMSE (4 significant digits: box plots, not a record of the rollouts)."""
+    """Every run of EVAL with an L5 evaluation: its configuration and, per set, the aggregate metrics and the per-rollout
+    RRMSE (4 significant digits: box plots, not a record of the rollouts); ``missing_sets`` names the sets it lacks."""
+    if not ev.is_dir():
+        refuse(f"{ev} is not a folder of evaluations (EVAL/<run>/<set>/metrics.json)")
     runs = {}
     for d in sorted(p for p in ev.iterdir() if p.is_dir()):
         if not (d / TEST / "metrics.json").exists():
@@ -34,27 +40,50 @@ def read_runs(ev: Path) -> dict:
         for s in SETS:
             if not (d / s / "metrics.json").exists():
                 print(f"{d.name}: no {s} evaluation, left out of that set")
+                entry.setdefault("missing_sets", []).append(s)
                 continue
             m = json.loads((d / s / "metrics.json").read_text())
-            entry |= {"model": m["model"]["kind"], "passes": m["model"]["passes"], "parameters": m["model"]["parameters"],
-                      "trained_epochs": m.get("trained_epochs")}
+            c = m["model"]
+            entry |= {"model": c["kind"], "passes": c["passes"], "latent": c["latent"], "actuator_graphs": c["actuator_graphs"],
+                      "parameters": c["parameters"], "trained_epochs": m.get("trained_epochs")}
             entry["sets"][s] = {k: m[k] for k in ("rmse", "rrmse")} | {
                 "negative_entropy_rollouts": m.get("negative_entropy_rollouts"),
                 "per_rollout_rrmse": {g: [float(f"{r['rrmse'][g]:.4g}") for r in m["per_rollout"]] for g in GROUPS}}
         runs[d.name] = entry
     if not runs:
-        raise SystemExit(f"paper_figures: no run of {ev} has an {TEST} evaluation (EVAL/<run>/{TEST}/metrics.json)")
+        refuse(f"no run of {ev} has an {TEST} evaluation (EVAL/<run>/{TEST}/metrics.json)")
     return runs
 
 
+def arms_by_depth(runs: dict) -> dict:
+    """(passes, model) -> (arm name, its seeds' entries), the arms being run names without _sN (gnn_report.arms_of). A
+    box pools one arm, so two arms of one model at one depth (another recipe, the single-graph ablation) are refused,
+    as is an arm whose runs are not one configuration."""
+    out = {}
+    for arm, entries in arms_of(runs).items():
+        configs = {tuple(e[k] for k in CONFIG) for e in entries}
+        if len(configs) > 1:
+            refuse(f"the runs of {arm} differ in {', '.join(CONFIG)}: {sorted(configs)}")
+        key = (entries[0]["passes"], entries[0]["model"])
+        if key in out:
+            refuse(f"{arm} and {out[key][0]} are both {key[1]} at {depth(key[0])}: evaluate one recipe at a time")
+        out[key] = (arm, entries)
+    return out
+
+
+def depth(passes: int) -> str:
+    return f"{passes} pass{'es' if passes > 1 else ''}"
+
+
 def hybrid_against_vanilla(runs: dict) -> dict:
-    """At each depth with one hybrid and one vanilla arm of two seeds or more: the hybrid's seed means against vanilla's."""
-    arms = {arm: entries for arm, entries in arms_of(runs).items() if len(entries) >= 2}
-    by_depth = {}
-    for arm, entries in arms.items():
-        by_depth.setdefault(entries[0]["passes"], {}).setdefault(entries[0]["model"], []).append(arm)
-    pairs = [(depth(p), models["hybrid"][0], models["vanilla"][0]) for p, models in sorted(by_depth.items())
-             if len(models.get("hybrid", [])) == 1 and len(models.get("vanilla", [])) == 1]
+    """At each depth with a hybrid and a vanilla arm of two seeds or more: the hybrid's seed means against vanilla's."""
+    arms, pairs = arms_by_depth(runs), []
+    for p in sorted({p for p, _ in arms}):
+        seeds = {m: len(arms[p, m][1]) if (p, m) in arms else 0 for m in ("hybrid", "vanilla")}
+        if min(seeds.values()) >= 2:
+            pairs.append((depth(p), arms[p, "hybrid"][0], arms[p, "vanilla"][0]))
+        else:
+            print(f"{depth(p)}: no hybrid against vanilla (seeds: {seeds})")
     return compare_arms(runs, pairs) if pairs else {}
 
 
@@ -64,52 +93,61 @@ def per_rollout(entries: list[dict], s: str) -> list[dict]:
             for values in zip(*(e["sets"][s]["per_rollout_rrmse"][g] for g in GROUPS))]
 
 
-def depth(passes: int) -> str:
-    return f"{passes} pass{'es' if passes > 1 else ''}"
-
-
 def draw(record: dict, prefix: str) -> list[str]:
     """{prefix}_passes.png: vanilla beside the hybrid at each depth on L5; {prefix}_sets_p<P>.png: the two on every set,
-    one figure a depth. Each box pools the rollouts of an arm's seeds."""
-    arms = {}  # (passes, model) -> its seeds' entries
-    for e in record["runs"].values():
-        arms.setdefault((e["passes"], e["model"]), []).append(e)
+    one figure a depth. Each box pools the rollouts of an arm's seeds (those evaluated on its set)."""
+    arms = arms_by_depth(record["runs"])
     depths = sorted({p for p, _ in arms})
     models = {p: [m for m in ("vanilla", "hybrid") if (p, m) in arms] for p in depths}
 
-    def seeds(p):  # of the depth's models, in the legend's order
-        return "seeds " + " + ".join(str(len(arms[p, m])) for m in models[p])
+    def seeds(p, s=TEST):  # how many seeds each box of depth p on set s pools, in the legend's order
+        return " + ".join(str(sum(s in e["sets"] for e in arms[p, m][1])) for m in models[p])
 
     outputs = [f"{prefix}_passes.png"]
-    grouped_rrmse_boxplot({f"{depth(p)}\n{seeds(p)}": {m: per_rollout(arms[p, m], TEST) for m in models[p]}
+    grouped_rrmse_boxplot({f"{depth(p)}\nseeds {seeds(p)}": {m: per_rollout(arms[p, m][1], TEST) for m in models[p]}
                            for p in depths}, outputs[0], f"per-rollout RRMSE on the unseen anatomy {TEST}, seeds pooled")
     for p in depths:
         outputs.append(f"{prefix}_sets_p{p}.png")
-        grouped_rrmse_boxplot({SETS[s]: {m: per_rollout(arms[p, m], s) for m in models[p]
-                                         if any(s in e["sets"] for e in arms[p, m])} for s in SETS},
-                              outputs[-1], f"per-rollout RRMSE by set, {depth(p)} ({seeds(p)}, pooled)")
+        grouped_rrmse_boxplot({f"{SETS[s]}\nseeds {seeds(p, s)}": {m: per_rollout(arms[p, m][1], s) for m in models[p]
+                                                                   if any(s in e["sets"] for e in arms[p, m][1])}
+                               for s in SETS}, outputs[-1],
+                              f"per-rollout RRMSE by set, {depth(p)}, {' and '.join(models[p])}, seeds pooled")
     return outputs
 
 
+def load_record(path: str) -> dict:
+    try:
+        record = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        refuse(f"cannot read the record {path}: {e}")
+    runs = record.get("runs") if isinstance(record, dict) else None
+    if not runs or not all(k in e for e in runs.values() for k in (*CONFIG, "sets")) or not all(
+            "per_rollout_rrmse" in v for e in runs.values() for v in e["sets"].values()):
+        refuse(f"{path} is not a record of bench/paper_figures.py (its runs' configuration and per-rollout RRMSE)")
+    return record
+
+
 def main():
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("eval", nargs="?", help="EVAL/<run>/<set>/metrics.json (bench/eval_paper.sh)")
-    ap.add_argument("out_prefix", nargs="?")
-    ap.add_argument("--redraw", metavar="RECORD", help="draw the figures of an earlier record again, beside it")
-    if "--redraw" in sys.argv:
-        a = ap.parse_args()
-        record = json.loads(Path(a.redraw).read_text())
-        print("\n".join(draw(record, str(Path(a.redraw).with_suffix("")))))
+    # --redraw RECORD stands alone: parsed first, so that the figures need no --device or --command
+    redraw = argparse.ArgumentParser(add_help=False)
+    redraw.add_argument("--redraw", metavar="RECORD")
+    known, rest = redraw.parse_known_args()
+    if known.redraw:
+        if rest:
+            refuse(f"--redraw takes no other arguments, got {' '.join(rest)}")
+        print("\n".join(draw(load_record(known.redraw), known.redraw.removesuffix(".json"))))
         return
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("eval", help="EVAL/<run>/<set>/metrics.json (bench/eval_paper.sh)")
+    ap.add_argument("out_prefix", help="writes OUT_PREFIX.json and OUT_PREFIX_*.png")
+    ap.add_argument("--redraw", metavar="RECORD", help="draw the figures of an earlier record again, beside it (alone)")
     provenance.add_arguments(ap)
     a = ap.parse_args()
-    if not (a.eval and a.out_prefix):
-        ap.error("give EVAL and OUT_PREFIX (or --redraw RECORD)")
     runs = read_runs(Path(a.eval))
     record = provenance.record(a) | {"runs": runs}
     record["seed_means_L5"] = seed_means(runs)
     record["hybrid_against_vanilla"] = hybrid_against_vanilla(runs)
-    out = Path(a.out_prefix).with_suffix(".json")
+    out = Path(a.out_prefix + ".json")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(record, indent=1))
     print("\n".join([str(out), *draw(record, a.out_prefix)]))

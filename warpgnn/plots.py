@@ -50,6 +50,8 @@ def grouped_rrmse_boxplot(groups: dict[str, dict[str, list[dict]]], out, title: 
     for ax, g in zip(axes, GROUPS):
         for label in labels:
             at = [(x, groups[c][label]) for x, c in enumerate(categories, 1) if label in groups[c]]
+            if not at:
+                continue
             box = ax.boxplot([[r["rrmse"][g] for r in records] for _, records in at],
                              positions=[x + offset[label] for x, _ in at], widths=0.9 * width,
                              patch_artist=True, showfliers=True, manage_ticks=False)
