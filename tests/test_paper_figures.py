@@ -17,7 +17,7 @@ from warpgnn.plots import grouped_rrmse_boxplot
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"
 sys.path.insert(0, str(BENCH))
-import paper_figures  # noqa: E402  (bench/, not a package)
+import paper_figures  # bench/, not a package
 
 ENV = os.environ | {"MPLBACKEND": "Agg"}
 # (model, passes, seed) -> the L5 RRMSE of every group; L1 reads 10x it. No 5-pass vanilla: a depth with one model
