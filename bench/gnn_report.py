@@ -46,20 +46,14 @@ def main():
     record = provenance.record(a) | {"paper_L5_5pass": PAPER_L5_5PASS,
                                      "target_hybrid_5pass_rrmse": TARGET_HYBRID_5PASS, "runs": {}}
     per = {}
-    for run in sorted(p.name for p in ev.iterdir() if p.is_dir()):
-        if not (ev / run / "L5" / "metrics.json").exists():  # the table, the seed means and the test plot are L5's
-            print(f"{run}: no L5 evaluation, left out")
-            continue
+    for run, metrics, missing in evaluated_runs(ev):
         log = read_log(runs / run)
         best = best_epoch(log)
         entry = {"epochs": len(log), "training_seconds": float(log[-1]["seconds"]),
                  "best_epoch": int(best["epoch"]), "seconds_to_best": float(best["seconds"]), "sets": {}}
-        for s in SETS:
-            if not (ev / run / s / "metrics.json").exists():  # e.g. an evaluation cut off by the device call's end
-                entry.setdefault("missing_sets", []).append(s)
-                print(f"{run}: no {s} evaluation, left out of its figures")
-                continue
-            m = json.load(open(ev / run / s / "metrics.json"))
+        if missing:
+            entry["missing_sets"] = missing
+        for s, m in metrics.items():
             entry["parameters"] = m["model"]["parameters"]
             entry["sets"][s] = {k: m[k] for k in ("rmse", "rrmse")} | {
                 k: m[k] for k in ("entropy_production_min", "negative_entropy_rollouts", "rollout_seconds",
@@ -103,6 +97,21 @@ def main():
     for arm, e in record["seed_means_L5"].items():
         print(f"{arm} ({e['seeds']} seeds) L5 RRMSE mean " + " ".join(
             f"{g} {e['rrmse']['mean'][g]:.2e} +- {e['rrmse']['std'][g]:.1e}" for g in e["rrmse"]["mean"]))
+
+
+def evaluated_runs(ev: Path):
+    """(run, {set: its metrics.json}, the sets it lacks) of every run of EVAL (EVAL/<run>/<set>/metrics.json) evaluated on
+    L5, in name order. A run without L5 is left out (the tables, the seed means and the test plots are L5's), and a missing
+    set (e.g. an evaluation cut off by the device call's end) is left out of that run's figures; both are reported."""
+    for d in sorted(p for p in ev.iterdir() if p.is_dir()):
+        if not (d / "L5" / "metrics.json").exists():
+            print(f"{d.name}: no L5 evaluation, left out")
+            continue
+        metrics = {s: json.loads((d / s / "metrics.json").read_text()) for s in SETS if (d / s / "metrics.json").exists()}
+        missing = [s for s in SETS if s not in metrics]
+        for s in missing:
+            print(f"{d.name}: no {s} evaluation, left out of its figures")
+        yield d.name, metrics, missing
 
 
 def arms_of(runs: dict) -> dict:

@@ -13,7 +13,7 @@ import json
 from pathlib import Path
 
 import provenance  # bench/, beside this script
-from gnn_report import SETS, arms_of, compare_arms, seed_means
+from gnn_report import SETS, arms_of, compare_arms, evaluated_runs, seed_means
 
 from warpgnn.graphs import GROUPS
 from warpgnn.plots import grouped_rrmse_boxplot
@@ -32,24 +32,16 @@ def read_runs(ev: Path) -> dict:
     if not ev.is_dir():
         refuse(f"{ev} is not a folder of evaluations (EVAL/<run>/<set>/metrics.json)")
     runs = {}
-    for d in sorted(p for p in ev.iterdir() if p.is_dir()):
-        if not (d / TEST / "metrics.json").exists():
-            print(f"{d.name}: no {TEST} evaluation, left out")
-            continue
-        entry = {"sets": {}}
-        for s in SETS:
-            if not (d / s / "metrics.json").exists():
-                print(f"{d.name}: no {s} evaluation, left out of that set")
-                entry.setdefault("missing_sets", []).append(s)
-                continue
-            m = json.loads((d / s / "metrics.json").read_text())
+    for run, metrics, missing in evaluated_runs(ev):
+        entry = {"sets": {}} | ({"missing_sets": missing} if missing else {})
+        for s, m in metrics.items():
             c = m["model"]
             entry |= {"model": c["kind"], "passes": c["passes"], "latent": c["latent"], "actuator_graphs": c["actuator_graphs"],
                       "parameters": c["parameters"], "trained_epochs": m.get("trained_epochs")}
             entry["sets"][s] = {k: m[k] for k in ("rmse", "rrmse")} | {
                 "negative_entropy_rollouts": m.get("negative_entropy_rollouts"),
                 "per_rollout_rrmse": {g: [float(f"{r['rrmse'][g]:.4g}") for r in m["per_rollout"]] for g in GROUPS}}
-        runs[d.name] = entry
+        runs[run] = entry
     if not runs:
         refuse(f"no run of {ev} has an {TEST} evaluation (EVAL/<run>/{TEST}/metrics.json)")
     return runs
