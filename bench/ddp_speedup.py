@@ -1,6 +1,7 @@
 """Data-parallel speed-up of `warpgnn train` on the GPUs of one machine: the same epochs of
 the 5-pass hybrid on one GPU, then under torchrun on all of them (DistributedDataParallel,
-NCCL; each process takes an equal share of every epoch at the same per-process batch).
+NCCL; each process takes an equal share of every epoch at the same per-process batch). Both train the paper's
+recipe eagerly (`--recipe paper --no-cuda-graphs`: CUDA graphs run on one GPU only, so the peer would differ).
 
     python bench/ddp_speedup.py DATA --json OUT.json [--epochs 3] [--batch 32]
 
@@ -23,10 +24,10 @@ from warpgnn.run_log import epoch_seconds, read_log
 
 
 def train(data, out, epochs, batch, gpus):
-    args = ["train", "--data", data, "--out", out, "--model", "hybrid", "--passes", "5", "--latent", "64",
-            "--epochs", str(epochs), "--batch", str(batch)]
-    cmd = ([sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={gpus}", "-m", "warpgnn.cli"]
-           if gpus > 1 else [sys.executable, "-m", "warpgnn.cli"]) + args
+    args = ["train", "--data", data, "--out", out, "--recipe", "paper", "--no-cuda-graphs", "--model", "hybrid",
+            "--passes", "5", "--latent", "64", "--epochs", str(epochs), "--batch", str(batch)]
+    launcher = ["-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={gpus}"] if gpus > 1 else []
+    cmd = [sys.executable, *launcher, "-m", "warpgnn.cli", *args]
     env = {**os.environ, "NCCL_NVLS_ENABLE": "0", "TORCH_SYMM_MEM_DISABLE_MULTICAST": "1", "NVSHMEM_DISABLE_NVLS": "1"}
     subprocess.run(cmd, check=True, env=env)
     return epoch_seconds(read_log(out))
@@ -46,7 +47,7 @@ def main():
     t1, tn = statistics.median(one[1:]), statistics.median(many[1:])
     rec = {"device": f"{gpus} x {torch.cuda.get_device_name()}", "date": datetime.date.today().isoformat(),
            "command": f"python bench/ddp_speedup.py DATA --epochs {a.epochs} --batch {a.batch}",
-           "model": "hybrid, 5 passes, F = 64", "batch_per_process": a.batch,
+           "model": "hybrid, 5 passes, F = 64", "recipe": "paper, eager", "batch_per_process": a.batch,
            "peer": "the same training on one GPU, same run",
            "epoch_seconds_1_gpu": one, f"epoch_seconds_{gpus}_gpus": many,
            "median_epoch_seconds_1_gpu": t1, f"median_epoch_seconds_{gpus}_gpus": tn, "speedup": t1 / tn}

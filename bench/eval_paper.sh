@@ -5,7 +5,7 @@
 # only those runs of RUNS.
 #   usage: bench/eval_paper.sh DATA RUNS EVAL [NAME ...]
 set -uo pipefail
-source "$(dirname "$0")/help.sh" "$@"
+case ${1:-} in -h | --help) sed -n '2,/^[^#]/s/^# \{0,1\}//p' "$0"; exit 0 ;; esac  # the header above: its usage
 DATA=$1; RUNS=$2; EVAL=$3; shift 3
 one() {
   local run=$1 name failed=0; name=$(basename "$1")
@@ -13,7 +13,7 @@ one() {
     warpgnn eval --checkpoint "$run/best.pt" --data "$DATA/$set.h5" --out "$EVAL/$name/$set" --no-plots \
       > "$EVAL/$name.$set.log" 2>&1 || { echo "eval failed: $name $set"; failed=1; }
   done
-  python3 bench/extract_rollout.py "$EVAL/$name/L5" "$DATA/L5.h5" "$EVAL/$name/L5_median.npz"
+  python3 "$(dirname "$0")/gnn_report.py" --extract-median "$EVAL/$name/L5" "$DATA/L5.h5" "$EVAL/$name/L5_median.npz"
   rm -f "$EVAL/$name"/*/rollouts.h5  # large; the metrics and the extracted rollout travel
   [ "$failed" = 1 ] || touch "$EVAL/$name/.done"
 }

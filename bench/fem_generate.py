@@ -13,7 +13,7 @@ Measures, in one run:
 Writes one JSON record (device, date, command, figures) to --json.
 
     python bench/fem_generate.py --device cuda:0 --anatomies ANAT --json bench/results/fem_generate_h200.json
-    python bench/fem_generate.py --compare bench/results/fem_generate_h200.cuda_trajectories.npz \
+    python bench/fem_generate.py --compare bench/results/fem_generate_h200.cuda_trajectories.npz
         --anatomies ANAT --json bench/results/fem_generate_h200.json
 """
 
@@ -101,7 +101,8 @@ def solver_peer(device, mesh, count: int, module: str, repeats: int = 3) -> dict
     for _ in range(repeats):
         runs["this"].append(time_solver(BatchedExplicitSolver, device, mesh, cases))
         runs[module].append(time_solver(peer, device, mesh, cases))
-    out = {k: {"us_per_step_median": float(np.median([r["us_per_step"] for r in v])), "runs": v} for k, v in runs.items()}
+    out = {k: {"us_per_step_median": float(np.median([r["us_per_step"] for r in v])), "runs": v}
+           for k, v in runs.items()}
     out["this_over_peer"] = out["this"]["us_per_step_median"] / out[module]["us_per_step_median"]
     return out
 

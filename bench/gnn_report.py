@@ -1,11 +1,12 @@
-"""Tables and figures of the GNN runs: reads eval directories (EVAL/<run>/<set>/metrics.json,
-EVAL/<run>/L5_median.npz from bench/extract_rollout.py) and training logs (RUNS/<run>/log.csv),
-writes one JSON record, box plots like the paper's, final-step renders and a node history.
+"""Tables and figures of the GNN runs: reads eval directories (EVAL/<run>/<set>/metrics.json and
+EVAL/<run>/L5_median.npz, which bench/eval_paper.sh extracts with --extract-median) and training logs
+(RUNS/<run>/log.csv), writes one JSON record, box plots like the paper's, final-step renders and a node history.
 Runs of earlier records (--peers RECORD.json REGEX, e.g. a committed bench/results/gnn_*.json whose
 eval directories are gone) join the table and the seed means with their recorded figures, marked
 with the record they came from; the plots show only the runs evaluated here.
 
     python bench/gnn_report.py EVAL RUNS OUT_PREFIX --device "NVIDIA H200" --command "..."
+    python bench/gnn_report.py --extract-median EVAL/<run>/L5 DATA/L5.h5 EVAL/<run>/L5_median.npz
 """
 
 import argparse
@@ -13,9 +14,10 @@ import json
 import re
 from pathlib import Path
 
+import h5py
 import numpy as np
-
 import provenance  # bench/, beside this script
+
 from warpgnn.graphs import GROUPS
 from warpgnn.mesh import TetMesh
 from warpgnn.plots import node_history, rrmse_boxplot
@@ -30,16 +32,44 @@ PAPER_L5_5PASS = {"hybrid": {"rrmse": {"q": 1.2713e-3, "v": 5.18567e-2, "sigma":
 TARGET_HYBRID_5PASS = {"q": 1.0e-3, "v": 4.0e-2, "sigma": 2.2e-2}
 
 
+def extract_median_rollout(evaluation: Path, data: Path, out: Path) -> None:
+    """The median rollout by q RRMSE of one `warpgnn eval` directory (its pick for final_step_median.png), predicted
+    and true, with its mesh, into a small .npz: rendered here later without the ~70 MB rollouts.h5 (the GPU
+    host has no pyvista)."""
+    per = json.loads((evaluation / "metrics.json").read_text())["per_rollout"]
+    pick = per[int(np.argsort([p["rrmse"]["q"] for p in per])[len(per) // 2])]["name"].split("/")[-1]
+    with h5py.File(evaluation / "rollouts.h5", "r") as p, h5py.File(data, "r") as r:
+
+        def state(g):
+            return np.concatenate([g[k][()] for k in GROUPS], -1)
+
+        np.savez_compressed(out, name=pick, pred=state(p[f"sims/{pick}"]), ref=state(r[f"sims/{pick}"]),
+                            loaded=r[f"sims/{pick}/loaded"][()], nodes=r["mesh/nodes"][()], tets=r["mesh/tets"][()],
+                            fixed=r["mesh/fixed"][()], dt=r.attrs["dt"])
+
+
 def main():
-    ap = argparse.ArgumentParser()
+    # --extract-median stands alone (bench/eval_paper.sh runs it on the GPU host): parsed first, needing no --device
+    extract = argparse.ArgumentParser(add_help=False)
+    extract.add_argument("--extract-median", nargs=3)
+    known, rest = extract.parse_known_args()
+    if known.extract_median:
+        if rest:
+            raise SystemExit(f"gnn_report: --extract-median takes no other arguments, got {' '.join(rest)}")
+        extract_median_rollout(*map(Path, known.extract_median))
+        return
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("eval")
     ap.add_argument("runs")
     ap.add_argument("out_prefix")
     ap.add_argument("--peers", nargs=2, action="append", default=[], metavar=("RECORD", "REGEX"),
                     help="add the runs of an earlier record whose names match REGEX (repeatable)")
     ap.add_argument("--compare", nargs=3, action="append", default=[], metavar=("NAME", "ARM_A", "ARM_B"),
-                    help="record arm A's seed means of RRMSE against arm B's on each set as NAME: percent = 100 (mean A / "
-                         "mean B - 1), Welch t with sample variances (repeatable; an arm is a run name without _sN)")
+                    help="record arm A's seed means of RRMSE against arm B's on each set as NAME: percent = "
+                         "100 (mean A / mean B - 1), Welch t with sample variances (repeatable; an arm is a run "
+                         "name without _sN)")
+    ap.add_argument("--extract-median", nargs=3, metavar=("EVAL_SET", "DATA_FILE", "OUT_NPZ"),
+                    help="only write the median rollout of one evaluation as OUT_NPZ (alone)")
     provenance.add_arguments(ap)
     a = ap.parse_args()
     ev, runs, prefix = Path(a.eval), Path(a.runs), Path(a.out_prefix)
@@ -62,7 +92,7 @@ def main():
         record["runs"][run] = entry
     evaluated = list(record["runs"])
     for path, pattern in a.peers:
-        earlier = json.load(open(path))["runs"]
+        earlier = json.loads(Path(path).read_text())["runs"]
         record["runs"] |= {run: e | {"from_record": Path(path).name}
                            for run, e in earlier.items() if re.search(pattern, run) and run not in evaluated}
     record["seed_means_L5"] = seed_means(record["runs"])
@@ -79,7 +109,7 @@ def main():
                           f"{run}: per-rollout RRMSE by set")
     for run in evaluated:
         if not (ev / run / "L5_median.npz").exists():
-            print(f"{run}: no L5_median.npz (bench/extract_rollout.py), no render or node history")
+            print(f"{run}: no L5_median.npz (--extract-median), no render or node history")
             continue
         d = np.load(ev / run / "L5_median.npz")
         mesh = TetMesh(d["nodes"], d["tets"], d["fixed"])
@@ -100,14 +130,16 @@ def main():
 
 
 def evaluated_runs(ev: Path):
-    """(run, {set: its metrics.json}, the sets it lacks) of every run of EVAL (EVAL/<run>/<set>/metrics.json) evaluated on
-    L5, in name order. A run without L5 is left out (the tables, the seed means and the test plots are L5's), and a missing
-    set (e.g. an evaluation cut off by the device call's end) is left out of that run's figures; both are reported."""
+    """(run, {set: its metrics.json}, the sets it lacks) of every run of EVAL (EVAL/<run>/<set>/metrics.json)
+    evaluated on L5, in name order. A run without L5 is left out (the tables, the seed means and the test plots are
+    L5's), and a missing set (e.g. an evaluation cut off by the device call's end) is left out of that run's figures;
+    both are reported."""
     for d in sorted(p for p in ev.iterdir() if p.is_dir()):
         if not (d / "L5" / "metrics.json").exists():
             print(f"{d.name}: no L5 evaluation, left out")
             continue
-        metrics = {s: json.loads((d / s / "metrics.json").read_text()) for s in SETS if (d / s / "metrics.json").exists()}
+        metrics = {s: json.loads((d / s / "metrics.json").read_text())
+                   for s in SETS if (d / s / "metrics.json").exists()}
         missing = [s for s in SETS if s not in metrics]
         for s in missing:
             print(f"{d.name}: no {s} evaluation, left out of its figures")
@@ -141,12 +173,14 @@ def compare_arms(runs: dict, comparisons) -> dict:
             if not all(s in e["sets"] for e in arms[arm_a] + arms[arm_b]):
                 print(f"--compare {name}: no {s} (not every seed evaluated on it)")
                 continue
-            values = [np.array([[e["sets"][s]["rrmse"][g] for g in GROUPS] for e in arms[arm]]) for arm in (arm_a, arm_b)]
+            values = [np.array([[e["sets"][s]["rrmse"][g] for g in GROUPS] for e in arms[arm]])
+                      for arm in (arm_a, arm_b)]
             (mean_a, var_a, n_a), (mean_b, var_b, n_b) = ((v.mean(0), v.var(0, ddof=1), len(v)) for v in values)
             with np.errstate(divide="ignore", invalid="ignore"):
                 percent = 100 * (mean_a / mean_b - 1)
-                t = (mean_a - mean_b) / np.sqrt(var_a / n_a + var_b / n_b)
-                df = (var_a / n_a + var_b / n_b) ** 2 / ((var_a / n_a) ** 2 / (n_a - 1) + (var_b / n_b) ** 2 / (n_b - 1))
+                se_a, se_b = var_a / n_a, var_b / n_b  # each mean's squared standard error
+                t = (mean_a - mean_b) / np.sqrt(se_a + se_b)
+                df = (se_a + se_b) ** 2 / (se_a ** 2 / (n_a - 1) + se_b ** 2 / (n_b - 1))
             out.setdefault(s, {})[name] = {g: {k: float(x[i]) if np.isfinite(x[i]) else None
                                                for k, x in (("percent", percent), ("welch_t", t), ("welch_df", df))}
                                            for i, g in enumerate(GROUPS)}

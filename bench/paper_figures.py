@@ -27,8 +27,9 @@ def refuse(message: str):
 
 
 def read_runs(ev: Path) -> dict:
-    """Every run of EVAL with an L5 evaluation: its configuration and, per set, the aggregate metrics and the per-rollout
-    RRMSE (4 significant digits: box plots, not a record of the rollouts); ``missing_sets`` names the sets it lacks."""
+    """Every run of EVAL with an L5 evaluation: its configuration and, per set, the aggregate metrics and the
+    per-rollout RRMSE (4 significant digits: box plots, not a record of the rollouts); ``missing_sets`` names the sets
+    it lacks."""
     if not ev.is_dir():
         refuse(f"{ev} is not a folder of evaluations (EVAL/<run>/<set>/metrics.json)")
     runs = {}
@@ -36,8 +37,9 @@ def read_runs(ev: Path) -> dict:
         entry = {"sets": {}} | ({"missing_sets": missing} if missing else {})
         for s, m in metrics.items():
             c = m["model"]
-            entry |= {"model": c["kind"], "passes": c["passes"], "latent": c["latent"], "actuator_graphs": c["actuator_graphs"],
-                      "parameters": c["parameters"], "trained_epochs": m.get("trained_epochs")}
+            entry |= {"model": c["kind"], "passes": c["passes"], "latent": c["latent"],
+                      "actuator_graphs": c["actuator_graphs"], "parameters": c["parameters"],
+                      "trained_epochs": m.get("trained_epochs")}
             entry["sets"][s] = {k: m[k] for k in ("rmse", "rrmse")} | {
                 "negative_entropy_rollouts": m.get("negative_entropy_rollouts"),
                 "per_rollout_rrmse": {g: [float(f"{r['rrmse'][g]:.4g}") for r in m["per_rollout"]] for g in GROUPS}}
@@ -97,7 +99,8 @@ def draw(record: dict, prefix: str) -> list[str]:
 
     outputs = [f"{prefix}_passes.png"]
     grouped_rrmse_boxplot({f"{depth(p)}\nseeds {seeds(p)}": {m: per_rollout(arms[p, m][1], TEST) for m in models[p]}
-                           for p in depths}, outputs[0], f"per-rollout RRMSE on the unseen anatomy {TEST}, seeds pooled")
+                           for p in depths}, outputs[0],
+                          f"per-rollout RRMSE on the unseen anatomy {TEST}, seeds pooled")
     for p in depths:
         outputs.append(f"{prefix}_sets_p{p}.png")
         grouped_rrmse_boxplot({f"{SETS[s]}\nseeds {seeds(p, s)}": {m: per_rollout(arms[p, m][1], s) for m in models[p]

@@ -36,7 +36,7 @@ def parse_checkpoints_then_data(ap: argparse.ArgumentParser, need_checkpoint: bo
     checkpoints = [p for p in a.paths if p.endswith(".pt")]
     data = [p for p in a.paths if not p.endswith(".pt")]
     if (need_checkpoint and not checkpoints) or not data:
-        ap.error("give " + ("at least one checkpoint (*.pt) and " if need_checkpoint else "") + "at least one data file")
+        ap.error(f"give {'at least one checkpoint (*.pt) and ' if need_checkpoint else ''}at least one data file")
     return a, checkpoints, data
 
 

@@ -5,9 +5,9 @@ a JSON record and markdown tables.
 Each arm is scored either by its best validation rollouts (20 % of L5) from RUNS/<run>/log.csv
 (--runs), or by its test score, all 190 L5 rollouts, from records written by bench/gnn_report.py
 (--reports; a run in several records is taken from the first). --recipe picks the arms that
-bench/train_paper.sh trains with that recipe's flags (default: the paper's). An arm that no record
-holds is an error, unless --partial: then it is listed under "missing", left out of the plots and
-marked "not run" in the tables.
+bench/train_paper.sh trains with that recipe (default: the best, `warpgnn train`'s defaults; stable: the
+README's study figures). An arm that no record holds is an error, unless --partial: then it is listed
+under "missing", left out of the plots and marked "not run" in the tables.
 
     python bench/study_report.py OUT_PREFIX (--runs RUNS | --reports A.json [B.json ...])
         [--recipe stable] [--partial] --device "..." --command "..." [--note "..."]
@@ -18,15 +18,15 @@ import json
 from pathlib import Path
 
 import matplotlib.pyplot as plt
-
 import provenance  # bench/, beside this script
+
 from warpgnn.run_log import best_epoch, read_log
 
 GROUPS = ("q", "v", "sigma")
 
 
 def study_arms(recipe: str) -> dict[str, dict[tuple[str, int], str]]:
-    """Run names of each study's arms as bench/train_paper.sh names them for RECIPE ('' = the paper's):
+    """Run names of each study's arms as bench/train_paper.sh names them for RECIPE ('' = the best recipe):
     the multi-graph 5/12-pass and 100 % arms are the recipe's seed-0 main runs."""
     sfx = f"_{recipe}" if recipe else ""
     ablation = {("multi", 1): f"ablation_multi_p1{sfx}", ("multi", 5): f"hybrid_p5{sfx}_s0",
@@ -97,7 +97,7 @@ def main():
         where = "log under --runs" if a.runs else "record among --reports"
         raise SystemExit(f"study_report: no {where} holds {', '.join(missing)} (--partial reports without them)")
     ablation, scarcity = studies["ablation"], studies["scarcity"]
-    record = provenance.record(a) | {"score": score_name, "recipe": a.recipe or "paper",
+    record = provenance.record(a) | {"score": score_name, "recipe": a.recipe or "best",
                                      "ablation": {f"{arm}_p{p}": v for (arm, p), v in ablation.items()},
                                      "scarcity": {f"{arm}_{pct}pct": v for (arm, pct), v in scarcity.items()},
                                      "missing": missing}

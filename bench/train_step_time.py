@@ -2,7 +2,7 @@
 against torch.compile (the peer, same run), with CUDA events, medians over repeated steps after
 a warm-up; batch stacking (host work, overlapped by training) is timed separately.
 
-    python bench/train_step_time.py DATA --json OUT.json [--batch 32] [--steps 30] [--tf32]
+    python bench/train_step_time.py DATA --json OUT.json [--batch 32] [--steps 30]
                                     [--modes eager,compiled,graphs,eager-bf16,compiled-bf16] [--profile]
                                     [--pushforward 0,2] [--lead-in compiled,eager]
 
@@ -15,8 +15,8 @@ Modes ending in -bf16 run the step under torch.autocast(bfloat16) (a timing prob
 stays fp32 until its accuracy under bf16 is measured). --profile adds, per record, the ten CUDA
 kernels that take most of the step's time (torch.profiler over five steps). The hybrid decoder's
 operator products (A - A^T) x and B B^T x run as `warpgnn train` runs them: broadcast
-multiply-sums in the graphs modes, einsums (batched gemv) otherwise
-(port_metriplectic.set_operator_products); a -bcast or -einsum suffix picks one instead.
+multiply-sums in the graphs modes, einsums (batched gemv) otherwise (the decoder's fused_products);
+a -bcast or -einsum suffix picks one instead.
 
 --pushforward K[,K...] times each mode with K lead-in steps (`warpgnn train --pushforward K`:
 K network steps without gradient before the trained one); 0, the default, is one-step training.
@@ -33,15 +33,21 @@ import datetime
 import json
 import statistics
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from warpgnn.data import BatchShape, load_file, make_batch
-from warpgnn.model import ModelConfig, TIGNN
-from warpgnn.port_metriplectic import set_operator_products
-from warpgnn.training import (compiled, fit_normalizer, lead_in_rate, operator_products, train_step, warm_up,
-                              warm_up_batches)
+from warpgnn.model import TIGNN, ModelConfig
+from warpgnn.training import (
+    compiled,
+    fit_normalizer,
+    lead_in_rate,
+    train_step,
+    warm_up,
+    warm_up_batches,
+)
 
 CONFIGS = [("hybrid", 5, 64), ("vanilla", 5, 64), ("hybrid", 12, 128), ("vanilla", 12, 128), ("hybrid", 1, 64)]
 
@@ -96,7 +102,6 @@ def main():
     ap.add_argument("--json", required=True)
     ap.add_argument("--batch", type=int, default=32)
     ap.add_argument("--steps", type=int, default=30)
-    ap.add_argument("--tf32", action="store_true")
     ap.add_argument("--files", default="L1", help="dataset files to draw snapshots from (L1,L2,L3,L4: the "
                     "training set's mix of meshes, which sets how much padding the graphs mode carries)")
     ap.add_argument("--configs", default="all", help="comma-separated kind:passes:latent, or all")
@@ -106,7 +111,6 @@ def main():
     ap.add_argument("--pushforward", default="0", help="comma-separated lead-in steps to time each mode with")
     ap.add_argument("--lead-in", default="compiled", help="comma-separated: compiled and/or eager lead-in steps")
     a = ap.parse_args()
-    torch.backends.cuda.matmul.allow_tf32 = a.tf32
     configs = CONFIGS if a.configs == "all" else [(k, int(p), int(f)) for k, p, f in
                                                    (c.split(":") for c in a.configs.split(","))]
     dev = torch.device("cuda")
@@ -129,11 +133,13 @@ def main():
             torch.manual_seed(0)
             model = TIGNN(ModelConfig(kind=kind, passes=passes, latent=latent)).to(dev)
             graphs = mode.startswith("graphs")
-            products = operator_products(graphs, "broadcast" if "-bcast" in mode else "einsum" if "-einsum" in mode else None)
-            set_operator_products(model, products)
+            if kind == "hybrid":  # as `warpgnn train` sets it, unless the mode names the form
+                model.decoder.fused_products = "-bcast" in mode or (graphs and "-einsum" not in mode)
             fit_normalizer(model, sims[:8])
             net = compiled(model, cuda_graphs=graphs) if mode.startswith(("compiled", "graphs")) else model
-            shape = ((BatchShape.fitting(sims, a.batch),) if "-single" in mode else BatchShape.ladder(sims, a.batch)) if graphs else None
+            shape = None
+            if graphs:  # padded to the ladder's shapes, as training pads them (-single: all to one shape)
+                shape = (BatchShape.fitting(sims, a.batch),) if "-single" in mode else BatchShape.ladder(sims, a.batch)
             precision = ((lambda: torch.autocast("cuda", dtype=torch.bfloat16)) if "-bf16" in mode
                          else contextlib.nullcontext)
             torch.cuda.reset_peak_memory_stats()
@@ -146,9 +152,12 @@ def main():
                         warm_up(net, first_batch, lead_rate=lead_rate)
             recording = time.perf_counter() - t0
             gpu, host, first, b, opt = time_steps(net, model, chunks, sims, gen, precision, shape, lead, lead_rate)
+            products = ("broadcast" if model.decoder.fused_products else "einsum") if kind == "hybrid" else None
+            lead_in_taken = lead_in if lead_rate or lead_in == "eager" else "eager (compiled refused)"
             r = {"model": kind, "passes": passes, "latent": latent, "parameters": model.n_parameters(),
-                 "mode": mode, "operator_products": products if kind == "hybrid" else None, "pushforward": lead, "lead_in": (lead_in if lead_rate or lead_in == "eager" else "eager (compiled refused)") if lead else None,
-                 "tf32": a.tf32, "batch": a.batch, "shapes": [dataclasses.astuple(s) for s in shape or ()],
+                 "mode": mode, "operator_products": products, "pushforward": lead,
+                 "lead_in": lead_in_taken if lead else None,
+                 "batch": a.batch, "shapes": [dataclasses.astuple(s) for s in shape or ()],
                  "nodes_per_batch": int(b.topology.n_nodes),
                  "mesh_edges_per_batch": int(b.topology.senders.numel()),
                  "median_step_ms": statistics.median(gpu[warm:]), "min_step_ms": min(gpu[warm:]),
@@ -166,7 +175,8 @@ def write_json(a, warm, records):
     """All ``records`` so far, with the device, date and command, into --json."""
     out = {"device": torch.cuda.get_device_name(), "date": datetime.date.today().isoformat(),
            "command": f"python bench/train_step_time.py DATA --batch {a.batch} --steps {a.steps}"
-                      + (" --tf32" if a.tf32 else "") + (f" --files {a.files}" if a.files != "L1" else "") + (f" --configs {a.configs}" if a.configs != "all" else "")
+                      + (f" --files {a.files}" if a.files != "L1" else "")
+                      + (f" --configs {a.configs}" if a.configs != "all" else "")
                       + f" --modes {a.modes}" + (" --profile" if a.profile else "")
                       + (f" --pushforward {a.pushforward} --lead-in {a.lead_in}" if a.pushforward != "0" else ""),
            "note": "one training step alone on the GPU (forward, backward, Adam), CUDA events, median after "
@@ -178,7 +188,7 @@ def write_json(a, warm, records):
                    "pushforward K: K lead-in network steps (no gradient) before the trained step, eager or through "
                    "their own compiled graph (lead_in).",
            "records": records}
-    open(a.json, "w").write(json.dumps(out, indent=1))
+    Path(a.json).write_text(json.dumps(out, indent=1))
 
 
 if __name__ == "__main__":

@@ -3,12 +3,11 @@
 # printing each run's latest epoch line every minute. With DATA, each run that has finished
 # (its stdout.txt ends with warpgnn train's summary line) is evaluated as soon as it is
 # (bench/eval_paper.sh, into RUNS/.eval; retried if it did not complete) while at least
-# EVAL_SECONDS (default 240) are left. With
-# OUT (the device call's $OUT), it then packs every run's checkpoints and logs, and the
-# evaluations, into OUT/runs.tar.NN, so that whatever the call ends with comes back even if the
-# machine is released before the next call.
+# EVAL_SECONDS (default 240) are left. With OUT (the device call's $OUT), it then packs every
+# run's checkpoints and logs, and the evaluations, into OUT/runs.tar.NN, so that whatever the
+# call ends with comes back even if the machine is released before the next call.
 #   usage: bench/wait_runs.sh RUNS SECONDS [OUT [DATA]]
-source "$(dirname "$0")/help.sh" "$@"
+case ${1:-} in -h | --help) sed -n '2,/^[^#]/s/^# \{0,1\}//p' "$0"; exit 0 ;; esac  # the header above: its usage
 RUNS=$1; LIMIT=$2; OUT=${3:-}; DATA=${4:-}; EVAL_SECONDS=${EVAL_SECONDS:-240}; t0=$SECONDS
 BENCH=$(dirname "$0")
 # without warpgnn every evaluation fails, silently, until the call ends: on the device machine each call must
@@ -36,19 +35,21 @@ evaluate_finished() {  # each finished run once, while there is time for it; tho
 while pgrep -f "warpgnn(.cli)? train" > /dev/null && [ $((SECONDS - t0)) -lt "$LIMIT" ]; do
   sleep $(( LIMIT - (SECONDS - t0) < 60 ? LIMIT - (SECONDS - t0) : 60 ))
   echo "--- $((SECONDS - t0)) s"
-  for d in "$RUNS"/*/; do printf '%-22s %s\n' "$(basename "$d")" "$(grep -a '^epoch' "$d/stdout.txt" | tail -n 1 | cut -c1-150)"; done
+  for d in "$RUNS"/*/; do
+    printf '%-22s %s\n' "$(basename "$d")" "$(grep -a '^epoch' "$d/stdout.txt" | tail -n 1 | cut -c1-150)"
+  done
   evaluate_finished
 done
 pgrep -f "warpgnn(.cli)? train" > /dev/null && echo "still running" || echo "all runs finished"
 evaluate_finished
 if [ -n "$OUT" ]; then
   # one archive of every run, in parts of 15 MB (a device call returns at most 8 files of at most 16 MiB each, 64 MiB
-  # in all: one tar per run lost runs once there were more than 8); cat runs.tar.* | tar -x. The logs and checkpoints
-  # first, so that they come back whole if the rest does not; without rollouts.h5 (~70 MB a set), which an evaluation
-  # cut off before bench/eval_paper.sh removes it leaves behind. OUT may be a folder under $OUT not made yet ($OUT/d):
-  # without it split wrote nothing and a call's runs did not come back (2026-11-26)
+  # in all); cat runs.tar.* | tar -x. The logs and checkpoints first, so that they come back whole if the rest does
+  # not; without rollouts.h5 (~70 MB a set), which an evaluation cut off before bench/eval_paper.sh removes it leaves
+  # behind. OUT may be a folder under $OUT not made yet ($OUT/d; split does not make it)
   mkdir -p "$OUT"
-  (cd "$RUNS" && tar -cf - --ignore-failed-read --exclude='*.h5' */log.csv */stdout.txt */best.pt */last.pt .eval 2>/dev/null) |
+  (cd "$RUNS" && tar -cf - --ignore-failed-read --exclude='*.h5' */log.csv */stdout.txt */best.pt */last.pt .eval \
+    2>/dev/null) |
     split -b 15000000 -d - "$OUT/runs.tar."
   bytes=$(cat "$OUT"/runs.tar.* | wc -c)
   [ "$bytes" -le $((64 * 1048576)) ] ||

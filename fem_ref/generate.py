@@ -4,7 +4,8 @@ One HDF5 file per set (L1..L5, Extra on a training anatomy, Extra* with four too
 Every simulation's load case is drawn from its own random stream seeded by
 (seed, set, simulation, attempt), so shards and resumed runs draw exactly the same cases. A
 simulation that inverts an element, goes non-finite or breaks an element's CFL condition is
-reported and redrawn with the next attempt; only finished simulations are ever written (atomically, see warpgnn.dataset).
+reported and redrawn with the next attempt; only finished simulations are ever written
+(atomically, see warpgnn.dataset).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +23,7 @@ from tqdm.auto import tqdm
 from warpgnn import dataset
 from warpgnn.mesh import TetMesh
 
-from .loads import LoadSampler
+from .loads import MAX_DISPLACEMENT, MIN_DISPLACEMENT, LoadSampler
 from .material import OgdenProny
 from .solver import BatchedExplicitSolver, SolverConfig
 
@@ -41,6 +43,7 @@ class SimulationSet:
 class Preset:
     sets: list[SimulationSet]
     solver: SolverConfig = field(default_factory=SolverConfig)
+    displacement_range: tuple[float, float] = (MIN_DISPLACEMENT, MAX_DISPLACEMENT)  # m, of each tool
 
 
 def _paper() -> Preset:
@@ -50,11 +53,13 @@ def _paper() -> Preset:
 
 
 def _smoke() -> Preset:
-    """Every set of the paper preset (L3 and L4 are the same kind as L1 and L2), one simulation
-    each, half the simulated time: about two minutes on a 2-core CPU."""
-    sets = [SimulationSet("L1", "L1", 1), SimulationSet("L2", "L2", 1), SimulationSet("L5", "L5", 1),
-            SimulationSet("extra", "L1", 1), SimulationSet("extra_star", "L5", 1, n_loads=4)]
-    return Preset(sets, SolverConfig(duration=0.5))
+    """Tiny, for CI: one simulation of every set of the paper preset (train, its validation on L5
+    and eval of each set all run), 0.1 s tool jabs of at most 1.25 cm in 5 snapshots. A tenth of
+    the paper's simulated time is a tenth of its explicit steps, half its largest load keeps redraws
+    rare, a quarter of its snapshots is a quarter of the samples a training epoch takes."""
+    sets = [SimulationSet(f"L{i}", f"L{i}", 1) for i in range(1, 6)]
+    sets += [SimulationSet("extra", "L1", 1), SimulationSet("extra_star", "L5", 1, n_loads=4)]
+    return Preset(sets, SolverConfig(duration=0.1, snapshots=5), (MIN_DISPLACEMENT, 0.0125))
 
 
 PRESETS = {"paper": _paper, "smoke": _smoke}
@@ -98,7 +103,7 @@ def generate_set(out_dir: Path, spec: SimulationSet, set_index: int, preset: Pre
              "steps": 0, "element_updates": 0}
     if not todo:
         return stats
-    sampler = LoadSampler(mesh)
+    sampler = LoadSampler(mesh, displacement_range=preset.displacement_range)
     speculate = wp.get_device(device).is_cuda
     bar = tqdm(total=len(todo) * config.snapshots, desc=f"{spec.name} ({len(todo)} sims)", unit="snap", leave=False)
     t0 = time.perf_counter()
@@ -112,7 +117,7 @@ def generate_set(out_dir: Path, spec: SimulationSet, set_index: int, preset: Pre
         cases = [sampler.sample(np.random.default_rng([seed, set_index, i, attempt]), spec.n_loads)
                  for i, attempt in batch]
         solver = BatchedExplicitSolver(mesh, cases, material, config, device=device)
-        res = solver.run(progress=lambda: bar.update(len(pending)))
+        res = solver.run(progress=partial(bar.update, len(pending)))
         stats["steps"] += res.steps
         stats["element_updates"] += res.steps * len(batch) * len(mesh.tets)
         finished = {}
@@ -129,9 +134,9 @@ def generate_set(out_dir: Path, spec: SimulationSet, set_index: int, preset: Pre
                 raise RuntimeError(f"{spec.name}/{sim_name(i)} failed {MAX_ATTEMPTS} times: {res.failures[slots[-1]]}")
             else:
                 todo[i] = first + tries
-                bar.update(-config.snapshots)
+                bar.update(-(res.steps // solver.substeps))  # the snapshots it ran
 
-        def fill(f):
+        def fill(f, finished=finished):
             dataset.write_header(f, mesh, spec.anatomy, config.snapshot_dt, material.as_attrs(), seed)
             for name, sim in sorted(finished.items()):
                 dataset.write_simulation(f, name, sim)
@@ -169,7 +174,8 @@ def generate(out_dir, preset: str = "paper", seed: int = 0, device=None, shard: 
     stats = [generate_set(out_dir, spec, k, p, seed, device, max_batch, log)
              for k, spec in enumerate(p.sets) if k % n == i]
     summary = {"preset": preset, "seed": seed, "shard": f"{i}/{n}", "device": str(wp.get_device(device)),
-               "solver": asdict(p.solver), "sets": stats, "seconds": time.perf_counter() - t0}
+               "solver": asdict(p.solver), "displacement_range": p.displacement_range, "sets": stats,
+               "seconds": time.perf_counter() - t0}
     manifest = out_dir / (f"manifest.{i}-of-{n}.json" if n > 1 else "manifest.json")
     dataset.write_text_atomically(manifest, json.dumps(summary, indent=2))
     return summary

@@ -85,10 +85,12 @@ class LoadSampler:
     """Draws random load cases on one mesh: 1-3 loaded surface nodes (or exactly ``n_loads``),
     footprints disjoint from each other and from the fixed face, tools at least
     ``min_separation`` apart and ``MIN_FIXED_DISTANCE`` from the fixed face, magnitude uniform
-    in [0.5, 2.5] cm, traction or compression."""
+    in ``displacement_range`` (default [0.5, 2.5] cm), traction or compression."""
 
-    def __init__(self, mesh: TetMesh, spread: bool = True, min_separation: float = 0.02):
+    def __init__(self, mesh: TetMesh, spread: bool = True, min_separation: float = 0.02,
+                 displacement_range: tuple[float, float] = (MIN_DISPLACEMENT, MAX_DISPLACEMENT)):
         self.mesh, self.spread, self.min_separation = mesh, spread, min_separation
+        self.displacement_range = displacement_range
         self.neighbours = mesh.neighbours()
         self.normals = mesh.vertex_normals()
         surface = mesh.surface_nodes()
@@ -110,7 +112,7 @@ class LoadSampler:
             gaps = np.linalg.norm(x[:, None] - x[None], axis=-1)[np.triu_indices(k, 1)]
             if (gaps < self.min_separation).any():
                 continue
-            magnitude = rng.uniform(MIN_DISPLACEMENT, MAX_DISPLACEMENT, size=k)
+            magnitude = rng.uniform(*self.displacement_range, size=k)
             sign = np.where(rng.random(k) < 0.5, 1.0, -1.0)  # +1 traction, -1 compression
             disp = (sign * magnitude)[:, None] * self.normals[nodes]
             try:

@@ -530,12 +530,16 @@ class BatchedExplicitSolver:
         self.snapshots_done += 1
 
     def run(self, progress=None) -> SimulationResult:
-        """Run all remaining snapshot intervals; ``progress`` is called after each."""
-        while self.snapshots_done < self.config.snapshots:
+        """Run all remaining snapshot intervals, or until every simulation has failed (the rest
+        would only be discarded); ``progress`` is called after each."""
+        while self.snapshots_done < self.config.snapshots and not self.all_failed():
             self.step()
             if progress is not None:
                 progress()
         return self.result()
+
+    def all_failed(self) -> bool:
+        return bool(((self.failure.numpy() != NO_FAILURE) | (self.unstable.numpy() != NO_FAILURE)).all())
 
     def failures(self) -> list:
         fail, unstable = self.failure.numpy(), self.unstable.numpy()

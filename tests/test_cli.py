@@ -1,5 +1,6 @@
 """The command line: the happy path of `warpgnn fem`, and bad input ending in one clear line."""
 
+import argparse
 import subprocess
 import sys
 
@@ -8,11 +9,12 @@ import meshio
 import numpy as np
 import pytest
 
+from warpgnn.cli import build_parser
 from warpgnn.mesh import box_tet_mesh
 
 
 def run_cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "warpgnn.cli", *map(str, args)], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "warpgnn.cli", *map(str, args)], check=False, capture_output=True,
                           text=True, cwd=cwd, timeout=600)
 
 
@@ -114,3 +116,68 @@ def test_inverting_load_is_reported_and_nothing_written(bar, tmp_path):
                    "--single-node", "--duration", 0.2, "--snapshots", 2, "--device", "cpu", "--out", out)
     assert_one_line_error(proc, "simulation failed", "element")
     assert not out.exists()
+
+
+def test_overlapping_tool_footprints_point_to_single_node(bar, tmp_path):
+    """Every node of the bar's free end face as a tool: each tip's ring takes its neighbours. The refusal says
+    that --single-node drives the listed nodes alone, and with it the same face is driven."""
+    mesh, path = bar
+    face = np.flatnonzero(np.isclose(mesh.nodes[:, 0], 0.04))
+    np.savetxt(tmp_path / "face.txt", face, fmt="%d")
+    args = ["fem", "--mesh", path, "--load", tmp_path / "face.txt", "--displacement", 0.002, 0, 0,
+            "--duration", 0.05, "--snapshots", 2, "--device", "cpu", "--out", tmp_path / "o.h5"]
+    assert_one_line_error(run_cli(*args), "tool footprints overlap", "--single-node", "alone")
+    assert not (tmp_path / "o.h5").exists()
+    proc = run_cli(*args, "--single-node")
+    assert proc.returncode == 0, proc.stderr
+    with h5py.File(tmp_path / "o.h5") as f:
+        g = f["sims/run"]
+        assert sorted(g["loaded"][()]) == sorted(face)
+        assert np.allclose(g["q"][-1][face] - mesh.nodes[face], [0.002, 0, 0], atol=1e-6)
+
+
+NUMBER_FORMS = ("-1.33e-02", "-1E-2", "-.5", "-5.", "+1e-3", "1e+2", "-7", "-0")
+
+
+def test_fem_takes_a_displacement_pasted_in_exponent_form(bar, tmp_path):
+    _, path = bar
+    out = tmp_path / "run.h5"
+    proc = run_cli("fem", "--mesh", path, "--load", tmp_path / "load.txt", "--displacement", "-1.5e-03", "-0.",
+                   "+2E-3", "--duration", "5.e-2", "--snapshots", 2, "--device", "cpu", "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    with h5py.File(out) as f:
+        assert np.allclose(f["sims/run/u"][-1, 0], [-1.5e-3, 0.0, 2e-3], atol=1e-9)
+
+
+def required_filler(parser, skip):
+    """Arguments that satisfy ``parser``'s required options (and required exclusive groups) other than ``skip``."""
+    argv = []
+    for group in parser._mutually_exclusive_groups:
+        if group.required and skip not in group._group_actions:
+            action = next(a for a in group._group_actions if a.type in (None, str) and not a.choices)
+            argv += [action.option_strings[0], "x"]
+    for action in parser._actions:
+        if action.required and action is not skip and action.option_strings:
+            count = action.nargs if isinstance(action.nargs, int) else 1
+            argv += [action.option_strings[0], *(["1"] * count)]
+    return argv
+
+
+def test_every_numeric_option_takes_every_number_form():
+    """argparse alone reads -1.33e-02 or -5. after an option as an unknown option ("expected 3 arguments")."""
+    parser = build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    checked = 0
+    for command, sub in commands.items():
+        for action in sub._actions:
+            if action.type not in (int, float) or action.choices or not action.option_strings:
+                continue
+            forms = NUMBER_FORMS if action.type is float else ("-7", "+3", "-0")
+            count = action.nargs if isinstance(action.nargs, int) else 1
+            for form in forms:
+                argv = [command, *required_filler(sub, action), action.option_strings[0], *[form] * count]
+                value = getattr(parser.parse_args(argv), action.dest)
+                expected = action.type(form)
+                assert value == ([expected] * count if isinstance(action.nargs, int) else expected), argv
+            checked += 1
+    assert checked >= 10  # the numeric options of fem, generate, train and eval at least

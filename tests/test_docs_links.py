@@ -1,6 +1,7 @@
 """The Markdown documents' relative links: every file of the repository they point at exists and
-every #anchor names a heading of its document (GitHub's slugs), so moving a section or renaming a
-heading cannot silently break the README's references into the experiment journal."""
+every #anchor names a heading of its document (GitHub's slugs), so moving a file or renaming a
+heading cannot silently break a reference; and every repository path the documents quote as code
+(`bench/studies/long_hold.py`) still exists."""
 
 import re
 from pathlib import Path
@@ -10,6 +11,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 DOCUMENTS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 LINK = re.compile(r"\]\(([^)\s]+)\)")
+# a code span that is one path under a top-level folder of the repository (not `git show REV:path`)
+CODE_PATH = re.compile(r"`((?:bench|docs|fem_ref|kernels|tests|warpgnn)/[\w./-]*)`")
 
 
 def slug(title: str) -> str:
@@ -50,3 +53,19 @@ def test_relative_links_resolve(document):
         elif anchor and path.suffix == ".md" and anchor not in anchors(path):
             broken.append(target)
     assert not broken, f"{document.name}: broken links {broken}"
+
+
+@pytest.mark.parametrize("document", DOCUMENTS, ids=lambda p: p.name)
+def test_quoted_paths_exist(document):
+    missing = [p for p in CODE_PATH.findall(document.read_text()) if not (ROOT / p).exists()]
+    assert not missing, f"{document.name}: quoted paths that are not in the repository {missing}"
+
+
+def test_code_path_pattern():
+    text = "run `bench/studies/long_hold.py`, not `git show ae2f903:bench/initial_loss.py` nor `bench/x.py --y`"
+    assert CODE_PATH.findall(text) == ["bench/studies/long_hold.py"]
+
+
+def test_readme_stays_a_short_guide():
+    """The README is a user's guide (issue 55: at most 12 kB); the detail belongs in docs/."""
+    assert len((ROOT / "README.md").read_bytes()) <= 12_000

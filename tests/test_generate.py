@@ -107,3 +107,20 @@ def test_parse_shard():
     for bad in ("4/4", "x/2", "1"):
         with pytest.raises(ValueError):
             parse_shard(bad)
+
+
+def test_smoke_preset_has_every_file_train_and_eval_read():
+    """`warpgnn train --data DIR` reads L1..L4 and validates on every fifth simulation of L5."""
+    from warpgnn.data import TEST_FILE, TRAIN_FILES, VALIDATION_EVERY
+
+    counts = {s.name: s.count for s in gen.PRESETS["smoke"]().sets}
+    assert all(counts.get(stem, 0) >= 1 for stem in (*TRAIN_FILES, TEST_FILE))
+    assert len(range(counts[TEST_FILE])[::VALIDATION_EVERY]) >= 1
+
+
+def test_paper_preset_is_the_papers():
+    paper = gen.PRESETS["paper"]()
+    assert [(s.name, s.anatomy, s.count, s.n_loads) for s in paper.sets] == [
+        *[(f"L{i}", f"L{i}", 190, None) for i in range(1, 6)], ("extra", "L1", 33, None), ("extra_star", "L5", 10, 4)]
+    assert (paper.solver.duration, paper.solver.snapshots, paper.solver.viscosity) == (1.0, 20, True)
+    assert paper.displacement_range == (0.005, 0.025)

@@ -8,9 +8,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
+from synthetic import make_dataset
 
+from warpgnn import dataset
 from warpgnn.graphs import GROUPS
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"
@@ -50,7 +53,8 @@ def run_report(tmp_path: Path, prefix: Path, *extra: str) -> subprocess.Complete
     """bench/gnn_report.py on tmp_path's eval and runs folders, off-screen; it must succeed."""
     proc = subprocess.run([sys.executable, str(BENCH / "gnn_report.py"), str(tmp_path / "eval"), str(tmp_path / "runs"),
                            str(prefix), *extra, "--device", "cpu", "--command", "t"], capture_output=True, text=True,
-                          env=os.environ | {"MPLBACKEND": "Agg", "PYVISTA_OFF_SCREEN": "true"}, timeout=300, check=False)
+                          env=os.environ | {"MPLBACKEND": "Agg", "PYVISTA_OFF_SCREEN": "true"}, timeout=300,
+                          check=False)
     assert proc.returncode == 0, proc.stderr
     return proc
 
@@ -125,7 +129,8 @@ def test_compare_records_percent_and_welch_t_of_two_arms(tmp_path):
     earlier = tmp_path / "earlier.json"  # L5 4, 5, 6: mean 5, sample variance 1; every other set 9.0
     earlier.write_text(json.dumps({"runs": {f"vanilla_x_s{i}": peer_entry(v) for i, v in enumerate((4.0, 5.0, 6.0))}}))
     prefix = tmp_path / "out" / "rep"
-    proc = run_report(tmp_path, prefix, "--peers", str(earlier), "^vanilla_x", "--compare", "h_vs_v", "hybrid_x", "vanilla_x")
+    proc = run_report(tmp_path, prefix, "--peers", str(earlier), "^vanilla_x",
+                      "--compare", "h_vs_v", "hybrid_x", "vanilla_x")
     comparisons = json.loads(prefix.with_suffix(".json").read_text())["comparisons_rrmse_means"]
     assert set(comparisons) == set(SETS) and "--compare" not in proc.stdout
     for g, k in scale.items():
@@ -147,5 +152,33 @@ def test_compare_refuses_arms_without_two_seeds_and_repeated_names(tmp_path, com
         write_evaluated_run(tmp_path, name, 1.0)
     proc = subprocess.run([sys.executable, str(BENCH / "gnn_report.py"), str(tmp_path / "eval"), str(tmp_path / "runs"),
                            str(tmp_path / "rep"), "--compare", *compare, "--device", "cpu", "--command", "t"],
-                          capture_output=True, text=True, env=os.environ | {"MPLBACKEND": "Agg"}, timeout=300, check=False)
+                          capture_output=True, text=True, env=os.environ | {"MPLBACKEND": "Agg"}, timeout=300,
+                          check=False)
     assert proc.returncode != 0 and message in proc.stderr and not (tmp_path / "rep.json").exists()
+
+
+def test_extract_median_writes_the_median_rollout_beside_its_truth_and_mesh(tmp_path):
+    """--extract-median EVAL/<run>/L5 DATA/L5.h5 OUT.npz (bench/eval_paper.sh, on the GPU host): the rollout of
+    median q RRMSE (three rollouts: the one in the middle, whatever their order), its prediction from
+    rollouts.h5 and its truth, loaded nodes and mesh from the data file, all a render needs."""
+    data = make_dataset(tmp_path / "data", sims_per_file=3) / "L5.h5"
+    evaluation = tmp_path / "eval" / "run" / "L5"
+    evaluation.mkdir(parents=True)
+    q_rrmse = {"sim_0000": 3.0, "sim_0001": 1.0, "sim_0002": 2.0}  # the median: sim_0002
+    (evaluation / "metrics.json").write_text(json.dumps(
+        {"per_rollout": [{"name": f"L5/{n}", "rrmse": {"q": r, "v": 0.0, "sigma": 0.0}} for n, r in q_rrmse.items()]}))
+    with h5py.File(evaluation / "rollouts.h5", "w") as f:
+        for i, name in enumerate(q_rrmse):
+            for g in GROUPS:
+                f[f"sims/{name}/{g}"] = dataset.read_simulation(data, name)[g] + (i + 1)  # each rollout its own offset
+    out = tmp_path / "median.npz"
+    proc = subprocess.run([sys.executable, str(BENCH / "gnn_report.py"), "--extract-median", str(evaluation), str(data),
+                           str(out)], capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr
+    d = np.load(out)
+    truth, mesh = dataset.read_simulation(data, "sim_0002"), dataset.read_mesh(data)
+    assert str(d["name"]) == "sim_0002"
+    assert np.array_equal(d["ref"], dataset.state(truth)) and np.array_equal(d["pred"], dataset.state(truth) + 3)
+    assert np.array_equal(d["loaded"], truth["loaded"]) and float(d["dt"]) == pytest.approx(0.05)
+    assert np.array_equal(d["nodes"], mesh.nodes) and np.array_equal(d["tets"], mesh.tets)
+    assert np.array_equal(d["fixed"], mesh.fixed)

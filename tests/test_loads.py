@@ -70,3 +70,15 @@ def test_failures_are_reported_per_simulation_and_frozen(block):
     assert 0.0 < times[0] < cfg.duration * cfg.ramp_fraction and times[1] == 0.0
     for b in (1, 2):
         assert np.array_equal(res.q[b, -1], res.q[b, -2])  # frozen
+    # once every simulation of a batch has failed, the rest of its steps would only be discarded
+    both = BatchedExplicitSolver(block, cases[1:], config=cfg, device="cpu", q0=q0[1:]).run()
+    assert both.failures == res.failures[1:]
+    assert both.steps <= alone.steps / 2  # both failed in the ramp, the first half
+
+
+def test_sampler_draws_magnitudes_in_its_range(block):
+    low, high = 0.004, 0.006
+    sampler = LoadSampler(block, displacement_range=(low, high))
+    mags = np.concatenate([np.linalg.norm(sampler.sample(np.random.default_rng(i)).displacement, axis=1)
+                           for i in range(20)])
+    assert ((mags >= low) & (mags <= high)).all() and np.ptp(mags) > 0.5 * (high - low)

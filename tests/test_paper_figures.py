@@ -32,7 +32,8 @@ def write_run(ev: Path, name: str, model: str, passes: int, l5: float, sets=("L5
         d.mkdir(parents=True)
         per = [{"rrmse": dict.fromkeys(GROUPS, value * (1 + i / 3))} for i in range(3)]  # 1/3 is cut to 4 digits
         (d / "metrics.json").write_text(json.dumps({
-            "model": {"kind": model, "passes": passes, "latent": 64, "actuator_graphs": True, "parameters": 100 * passes},
+            "model": {"kind": model, "passes": passes, "latent": 64, "actuator_graphs": True,
+                      "parameters": 100 * passes},
             "trained_epochs": 7, "rmse": dict.fromkeys(GROUPS, 2 * value), "rrmse": dict.fromkeys(GROUPS, value),
             "per_rollout": per, "negative_entropy_rollouts": 0 if model == "hybrid" else None}))
 
@@ -156,5 +157,6 @@ def test_grouped_boxes_sit_side_by_side_in_their_category(tmp_path, monkeypatch)
     grouped_rrmse_boxplot({"1 pass": {"vanilla": rollouts(4, 5), "hybrid": rollouts(1, 2)},
                            "12 passes": {"hybrid": rollouts(7, 8, 9)}}, tmp_path / "g.png")
     # per panel: vanilla's one box left of category 1, hybrid's two boxes right of categories 1 and 2, each its own data
-    assert seen[:2] == [([[4, 5]], [pytest.approx(0.8)]), ([[1, 2], [7, 8, 9]], [pytest.approx(1.2), pytest.approx(2.2)])]
+    assert seen[:2] == [([[4, 5]], [pytest.approx(0.8)]),
+                        ([[1, 2], [7, 8, 9]], [pytest.approx(1.2), pytest.approx(2.2)])]
     assert len(seen) == 2 * len(GROUPS) and (tmp_path / "g.png").exists()

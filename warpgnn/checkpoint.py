@@ -12,10 +12,15 @@ import torch
 from .errors import InputError
 from .model import TIGNN, ModelConfig
 
-# The network shipped with the package: the 5-pass hybrid of our best recipe (pushforward, additive
-# velocity noise, --rotate, the velocity take-back of smooth displacements), 30 minutes on H200s; seed 1,
-# the best validation of three, of bench/results/gnn_smooth_vel1800_s12_h200.json
+# The network shipped with the package: the 5-pass hybrid of the best recipe (training.RECIPES), seed 1 of
+# the record bench/results/gnn_smooth_vel1800_s12_h200.json
 PRETRAINED_HYBRID = Path(__file__).with_name("weights") / "hybrid_p5_takeback.pt"
+# ModelConfig options removed in issue 55 (their code is last in commit ae2f903), at the values that give
+# today's model: a checkpoint holding one at that value loads, at any other it is refused
+REMOVED_OPTIONS = {"rate_weights": (1.0, 1.0, 1.0), "tip_weight": 1.0, "imposed_in_loss": True,
+                   "operator_activation": "none", "reversible_positions": False, "reversible_velocities": False,
+                   "dissipation_init_scale": 0.05, "decoder_hidden_layers": None, "split_decoders": False,
+                   "local_positions": False, "state_skip": False}
 
 
 def save_atomically(payload: dict, path) -> None:
@@ -38,7 +43,7 @@ def read(path, map_location="cpu") -> dict:
         raise InputError(f"checkpoint not found: {path}")
     try:
         payload = torch.load(path, map_location=map_location, weights_only=False)
-    except Exception as exc:  # torch raises RuntimeError, EOFError, UnpicklingError... on bad files
+    except Exception as exc:  # noqa: BLE001 (torch raises RuntimeError, EOFError, UnpicklingError... on bad files)
         raise InputError(f"checkpoint {path} is truncated or corrupt ({type(exc).__name__})") from None
     if not isinstance(payload, dict) or "model_config" not in payload or "model" not in payload:
         raise InputError(f"{path} is not a warpgnn checkpoint")
@@ -48,11 +53,24 @@ def read(path, map_location="cpu") -> dict:
     return payload
 
 
+def model_config(saved: dict, path) -> ModelConfig:
+    """The ModelConfig of a checkpoint's saved ``model_config``, removed options at their neutral values dropped."""
+    for name in REMOVED_OPTIONS.keys() & saved.keys():
+        value = saved[name]
+        if (tuple(value) if isinstance(value, list) else value) != REMOVED_OPTIONS[name]:
+            raise InputError(f"checkpoint {path} was trained with {name} = {value!r}, an option removed from "
+                             "warpgnn (last in commit ae2f903)")
+    try:
+        return ModelConfig(**{k: v for k, v in saved.items() if k not in REMOVED_OPTIONS})
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"checkpoint {path} does not match this warpgnn's model: {exc}") from None
+
+
 def load_model(path, device="cpu") -> tuple[TIGNN, dict]:
     payload = read(path, map_location=device)
+    model = TIGNN(model_config(payload["model_config"], path))
     try:
-        model = TIGNN(ModelConfig(**payload["model_config"]))
         model.load_state_dict(payload["model"])
-    except (TypeError, ValueError, RuntimeError) as exc:
+    except RuntimeError as exc:
         raise InputError(f"checkpoint {path} does not match this warpgnn's model: {str(exc).splitlines()[0]}") from None
     return model.to(device).eval(), payload

@@ -137,7 +137,7 @@ class BatchShape:
     prescribed: int
 
     @classmethod
-    def holding(cls, counts) -> "BatchShape":
+    def holding(cls, counts) -> BatchShape:
         """The shape for ``counts`` real (nodes, edges, tools, actuator edges, prescribed), plus the sinks."""
         n, e, k, a, p = (int(c) for c in counts)
         return cls(nodes=n + 1, edges=e, tools=k + 1, actuator_edges=a, prescribed=p)
@@ -151,13 +151,13 @@ class BatchShape:
         return all(c <= m for c, m in zip(_counts(top), self.capacity))
 
     @classmethod
-    def fitting(cls, sims: list[Simulation], batch_size: int) -> "BatchShape":
+    def fitting(cls, sims: list[Simulation], batch_size: int) -> BatchShape:
         """The largest batch of ``batch_size`` snapshots: each size of the largest simulation, times batch_size."""
         return cls.holding(batch_size * np.array([_counts(s.topology) for s in sims]).max(0))
 
     @classmethod
     def ladder(cls, sims: list[Simulation], batch_size: int, quantiles=(0.5, 0.999), draws: int = 4000
-               ) -> tuple["BatchShape", ...]:
+               ) -> tuple[BatchShape, ...]:
         """Shapes from small to large, each size at these quantiles of random batches (``draws``
         batches of ``batch_size`` snapshots drawn as an epoch draws them, with a fixed seed), then
         ``fitting``, which every batch fits. A batch is padded to the first it fits
@@ -226,7 +226,8 @@ def rotate_states(z: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
 
 def vertical_rotations(angles: torch.Tensor, mirror: torch.Tensor | None = None) -> torch.Tensor:
     """(S, 3, 3) rotations by ``angles`` about the z axis; with ``mirror`` (S signs, +-1) each after
-    x -> mirror x, R diag(mirror, 1, 1): a reflection through a vertical plane where the sign is -1."""
+    x -> mirror x, R diag(mirror, 1, 1): a reflection through a vertical plane where the sign is -1 (the
+    mirrored livers of bench/studies/rotation_probe.py)."""
     c, s, zero, one = angles.cos(), angles.sin(), torch.zeros_like(angles), torch.ones_like(angles)
     m = one if mirror is None else mirror.to(angles)
     return torch.stack([c * m, -s, zero, s * m, c, zero, zero, zero, one], -1).reshape(-1, 3, 3)
@@ -259,44 +260,26 @@ def smooth_displacements(rest: torch.Tensor, sizes: torch.Tensor, weight: torch.
 def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: float = 0.0,
                generator: torch.Generator | None = None, shape: BatchShape | Sequence[BatchShape] | None = None,
                lead: int = 0, noise_v_add: float = 0.0, rotate: bool = False, noise_smooth: float = 0.0,
-               noise_smooth_gamma: float = 1.0, noise_smooth_velocity: float = 0.0,
-               noise_smooth_share: float = 1.0, mirror: bool = False, noise_v_add_gamma: float = 1.0) -> Batch:
+               noise_smooth_gamma: float = 1.0, noise_smooth_velocity: float = 0.0) -> Batch:
     """Stack the steps t -> t+1 of ``samples`` = [(simulation index, t), ...] into one graph,
     padded to ``shape`` if given, or to the first of several shapes that it fits (the real nodes,
-    their noise and targets are the same either way).
+    their noise and targets are the same either way). The target is built from the state the
+    network is given, so it leads back from any noise to the ground truth's next state.
 
     Noise (paper appendix A): q' = q + mean_edge * eps * noise_q on free nodes, v' = v (1 + eps
-    noise_v), sigma' = sigma (1 + eps noise_v), eps ~ U(-1, 1); the target is built from z'.
-    ``noise_v_add`` > 0 adds v' += mean_edge / dt * eps' * noise_v_add on free nodes (own draws):
-    relative noise vanishes where v does (once the tools stop), additive noise does not.
-    ``noise_v_add_gamma`` G is the fraction of that additive velocity noise the target's velocity takes back per step
-    the network takes: it keeps (1 - G)^(k + 1) of it after the k lead-in steps a sample has (1, the default: all of it
-    in one step, a deadbeat response dt mu = -1 that trained networks overshoot toward explicit Euler's bound -2,
-    bench/results/step_stiffness_cpu.json; G asks for dt mu = -G of the velocity's response to it, though G = 0.5 did
-    not move the networks' stiffest damping, bench/results/step_stiffness_vg5e1_cpu.json). The target's
-    position stays the ground truth's, as for the plain additive noise: the kept velocity is one its position rate
-    does not follow.
+    noise_v), sigma' = sigma (1 + eps noise_v), eps ~ U(-1, 1).
+    ``noise_v_add``: v' += mean_edge / dt * eps' * noise_v_add on free nodes (own draws); relative
+    noise vanishes where v does (once the tools stop), additive noise does not.
     ``rotate`` turns each sample as a whole (rest shape, states, target, tools' path) by its own random
-    angle about the vertical z axis, before the noise is added (the angles are drawn after the noise's
-    draws, which keeps the noise's random stream): without gravity and with an isotropic material a
-    rotated simulation is another exact one (the fixed visceral face stays a z plane).
-    ``mirror`` reflects each sample with probability 1/2 through the vertical plane x = 0 (before its turn, if
-    ``rotate``: together, through a random vertical plane; the draws follow the angles'): the reflected
-    simulation is exact too (the same FEM of the mirrored liver, tests/test_fem_physics.py) and a new anatomy,
-    its lobes swapped. Every input is a true vector or tensor, so a reflection needs no other sign change.
-    ``noise_smooth`` > 0 adds to the free nodes' positions a random quadratic field of the rest
-    coordinates (``smooth_displacements``, N(0, 1) coefficients drawn after the other noises), of RMS
-    mean_edge * noise_smooth * U(0, 1) over them: per-node noise leaves alone the smooth error a rollout carries.
-    ``noise_smooth_gamma`` is the fraction of that displacement the target takes back per step the network
-    takes (MeshGraphNets' noise_gamma): the target keeps (1 - gamma)^(k + 1) of it after the k lead-in steps
-    a sample has (1: all of it back in the trained step; 0: the target ignores it).
-    ``noise_smooth_velocity`` is the share S of that take-back the target's velocity carries too,
-    v - S gamma (1 - gamma)^k d / dt: at 1 the position moves back at the velocity the state holds, at 0 (the
-    default) at a rate the velocity does not carry (networks trained so flip nodes back and forth once the
-    tools stop: bench/long_hold.py).
-    ``noise_smooth_share`` P < 1 displaces each sample with probability P only (its own draw, after the others),
-    leaving the rest clean: a network that never sees a clean state learns a take-back there too, a pull toward a
-    wrong rest point (bench/results/perturbation_recovery_vel1800_cpu.json).
+    angle about the vertical z axis: without gravity and with an isotropic material a turned simulation
+    is another exact one (the fixed visceral face stays a z plane).
+    ``noise_smooth``: the free nodes' positions move by a random quadratic field of the rest coordinates
+    (``smooth_displacements``) of RMS mean_edge * noise_smooth * U(0, 1): per-node noise leaves alone the
+    smooth error a rollout carries. The target takes back the share ``noise_smooth_gamma`` of what is left
+    of it per step the network takes (MeshGraphNets' noise_gamma), and its velocity carries the share
+    ``noise_smooth_velocity`` of that take-back: v - S gamma (1 - gamma)^k d / dt after k lead-in steps.
+    Every draw comes in a fixed order (the paper's noise, the additive noise, the angles, the smooth field),
+    each only when its option is on, so turning one on leaves the earlier ones' streams as they were.
     With ``lead`` > 0 (pushforward training) ``z`` is the (noisy) state min(lead, t) snapshots
     before t, ``lead_u`` the tools' path from there to t (its first entries repeat the start when
     t < lead) and ``lead_active`` which nodes each lead step moves (none of the padding).
@@ -325,12 +308,8 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
     dt = host[:, :1]
     # the tools' path t - lead .. t + 1 of each sample, held at its start before t = 0
     u = torch.stack([torch.cat([sims[i].u[max(t - lead + j, 0)] for i, t in samples]) for j in range(lead + 2)])
-    if rotate or mirror:
-        S = len(samples)
-        angles = (torch.rand(S, generator=generator, dtype=torch.float64) * 2 * math.pi if rotate
-                  else torch.zeros(S, dtype=torch.float64))
-        signs = torch.where(torch.rand(S, generator=generator) < 0.5, -1.0, 1.0) if mirror else None  # after the angles
-        R = vertical_rotations(angles, signs)
+    if rotate:
+        R = vertical_rotations(torch.rand(len(samples), generator=generator, dtype=torch.float64) * 2 * math.pi)
         R_node = R.repeat_interleave(sizes, 0).to(device, z.dtype)
         z, z_next = rotate_states(z, R_node), rotate_states(z_next, R_node)
         rest = torch.einsum("nij,nj->ni", R_node.to(top.rest.dtype), top.rest[:real_nodes])
@@ -342,26 +321,18 @@ def make_batch(sims: list[Simulation], samples, noise_q: float = 0.0, noise_v: f
         amp, eps = host[:, 1:2], host[:, 2:14]
         z = torch.cat([z[:, :3] + free * amp * eps[:, :3], z[:, 3:] * (1 + eps[:, 3:] * noise_v)], -1)
         if noise_v_add > 0:
-            added = free * host[:, 14:15] * host[:, 15:18]
-            z[:, 3:6] += added
+            z[:, 3:6] += free * host[:, 14:15] * host[:, 15:18]
     active = None
     if lead:  # lead step j moves a sample's nodes once its path has begun (j >= lead - t)
         first = torch.tensor([max(lead - t, 0) for _, t in samples]).repeat_interleave(sizes)
         active = (torch.arange(lead)[:, None] >= first[None]).to(device)
-    # the lead-in steps each node takes before the trained step
-    led = torch.as_tensor(active.sum(0) if lead else 0, device=device, dtype=z.dtype).reshape(-1, 1)
-    if noise_v_add > 0 and noise_v_add_gamma != 1:  # the target's velocity keeps what it does not take back yet
-        kept = (1 - noise_v_add_gamma) ** (led + 1) * added
-        z_next = torch.cat([z_next[:, :3], z_next[:, 3:6] + kept, z_next[:, 6:]], -1)
     if noise_smooth > 0:  # drawn last: the other noises' and the angles' streams stay as they were
         coefficients = torch.randn((len(samples), 10, 3), generator=generator, dtype=torch.float64)
         amplitude = torch.tensor([s.mean_edge * noise_smooth for s, _ in picked], dtype=torch.float64)
         amplitude = amplitude * torch.rand(len(samples), generator=generator, dtype=torch.float64)
-        if noise_smooth_share < 1:  # drawn only then: P = 1 keeps the stream of the runs before it
-            displaced = torch.rand(len(samples), generator=generator, dtype=torch.float64) < noise_smooth_share
-            amplitude = amplitude * displaced
         d = smooth_displacements(top.rest[:real_nodes], sizes, free[:, 0], amplitude, coefficients).to(z.dtype)
         z = torch.cat([z[:, :3] + d, z[:, 3:]], -1)
+        led = torch.as_tensor(active.sum(0) if lead else 0, device=device, dtype=z.dtype).reshape(-1, 1)  # lead-in steps
         left = (1 - noise_smooth_gamma) ** led * d  # what is left of it when the trained step starts
         q_next, v_next = z_next[:, :3] + (1 - noise_smooth_gamma) * left, z_next[:, 3:6]
         if noise_smooth_velocity:

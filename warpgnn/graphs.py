@@ -132,14 +132,6 @@ def raw_features(top: Topology, z: torch.Tensor, u_now: torch.Tensor, u_next: to
     }
 
 
-def imposed_components(node_type: torch.Tensor) -> torch.Tensor:
-    """(N, 12) True where ``apply_boundary_conditions`` overwrites the state whatever the rate:
-    q and v of fixed nodes, q of tool-driven ones (their v and every sigma are predicted)."""
-    fixed, driven = node_type == NODE_FIXED, node_type == NODE_PRESCRIBED
-    q, v = (fixed | driven)[:, None].expand(-1, 3), fixed[:, None].expand(-1, 3)
-    return torch.cat([q, v, torch.zeros_like(q), torch.zeros_like(q)], -1)
-
-
 def apply_boundary_conditions(top: Topology, z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """Fixed nodes at rest with zero velocity; tool-driven nodes at rest + weight * u_tool."""
     fixed = (top.node_type == NODE_FIXED)[:, None]

@@ -45,7 +45,7 @@ class Normalizer(nn.Module):
         self.register_buffer("zdot_scale", torch.ones(12))
         self.register_buffer("fitted", torch.tensor(False))
 
-    def fit(self, samples) -> "Normalizer":
+    def fit(self, samples) -> Normalizer:
         """``samples`` yields (raw feature dict, zdot) pairs of the training set."""
         stats = {name: RunningStats() for name in FEATURES}
         zdot = RunningStats()

@@ -30,9 +30,10 @@ def rrmse_boxplot(series: dict[str, list[dict]], out, title: str = "") -> None:
 
 
 def grouped_rrmse_boxplot(groups: dict[str, dict[str, list[dict]]], out, title: str = "") -> None:
-    """One panel per state group; along x the categories (e.g. "5 passes" or "Test (L5)"), and in each the boxes of its
-    series side by side (series label -> per-rollout metric records), as the paper's figures set vanilla beside hybrid.
-    Series whose label contains 'vanilla' / 'hybrid' get the paper's blue / red; a series a category lacks leaves a gap."""
+    """One panel per state group; along x the categories (e.g. "5 passes" or "Test (L5)"), and in each the boxes of
+    its series side by side (series label -> per-rollout metric records), as the paper's figures set vanilla beside
+    hybrid. Series whose label contains 'vanilla' / 'hybrid' get the paper's blue / red; a series a category lacks
+    leaves a gap."""
     import matplotlib
 
     matplotlib.use("Agg")

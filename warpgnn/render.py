@@ -98,13 +98,13 @@ def anatomy_table(meshes: dict[str, TetMesh]) -> str:
 
 def render_simulation(mesh: TetMesh, sim: dict, out_png, title: str = "") -> None:
     """Off-screen PNG of one ground-truth simulation (a ``dataset.read_simulation`` record):
-    the deformed surface at the end of the ramp and at the last snapshot, coloured by the
-    displacement magnitude [mm] and by the von Mises stress [kPa], over the rest shape
-    (grey wireframe), with the tools' loaded nodes as red spheres."""
+    the deformed surface at the end of the ramp (the first snapshot at or past half the simulated
+    time) and at the last snapshot, coloured by the displacement magnitude [mm] and by the von
+    Mises stress [kPa], over the rest shape (grey wireframe), with the tools' loaded nodes as red spheres."""
     import pyvista as pv
 
     q, sigma = sim["q"], sim["sigma"].astype(np.float64)
-    steps = (len(q) - 1) // 2, len(q) - 1
+    steps = len(q) // 2, len(q) - 1
     xx, yy, zz, xy, yz, xz = sigma.transpose(2, 0, 1)
     von_mises = np.sqrt(0.5 * ((xx - yy) ** 2 + (yy - zz) ** 2 + (zz - xx) ** 2) + 3 * (xy**2 + yz**2 + xz**2))
     fields = (("|u| [mm]", 1e3 * np.linalg.norm(q - mesh.nodes[None], axis=-1)), ("von Mises [kPa]", 1e-3 * von_mises))

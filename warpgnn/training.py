@@ -1,6 +1,7 @@
 """``warpgnn train``: one-step training on snapshot pairs, early stopping on rollouts.
 
-Adam; the learning rate drops on a plateau of the training loss (the paper), or decays
+Two recipes (RECIPES): the paper's, and the best we measured, which trained the shipped network
+and which `warpgnn train` runs unless told otherwise. Adam; the learning rate drops on a plateau of the training loss (the paper), or decays
 exponentially over a fixed training-time budget (``lr_schedule="exponential"``, for runs that
 must fit a time slot: the rate is set at each epoch's start from the seconds already spent, so
 a resumed run continues the same curve), or without a budget over the epochs (runs compared at
@@ -30,100 +31,74 @@ from tqdm.auto import tqdm
 from . import checkpoint, metrics
 from .data import Batch, BatchShape, all_samples, load_splits, make_batch, smallest
 from .errors import InputError
-from .model import ModelConfig, TIGNN
-from .port_metriplectic import OPERATOR_PRODUCTS, set_operator_products
+from .model import TIGNN, ModelConfig
+from .port_metriplectic import PortMetriplecticDecoder
 from .rollout import rollout
 from .run_log import write_log
-
 
 # the settings that shape what a run learns (its samples, noise, targets and schedule), which a resume may change
 # on purpose (a longer lead-in, say) but rarely should: each change is noted. Their flags are --name-with-dashes,
 # but for those _FLAG_NAMES names
-TRAINING_SETTINGS = ("batch_size", "lr", "lr_schedule", "lr_final", "weight_decay", "noise_q", "noise_v", "noise_v_add",
-                     "noise_v_add_gamma",
-                     "noise_smooth", "noise_smooth_gamma", "noise_smooth_velocity", "noise_smooth_share", "pushforward", "rotate",
-                     "mirror", "train_fraction", "seed")
+TRAINING_SETTINGS = ("batch_size", "lr", "lr_schedule", "lr_final", "noise_q", "noise_v", "noise_v_add", "noise_smooth",
+                     "noise_smooth_gamma", "noise_smooth_velocity", "pushforward", "rotate", "train_fraction", "seed")
 _FLAG_NAMES = {"batch_size": "--batch"}
+# training settings removed in issue 55 (their code is last in commit ae2f903) and the values that training has now:
+# a run resumed from before then continues with these (noted)
+REMOVED_SETTINGS = {"weight_decay": 0.0, "noise_v_add_gamma": 1.0, "noise_smooth_share": 1.0, "mirror": False}
 
 
 @dataclass
 class TrainConfig:
+    """Defaults: the paper's recipe (its appendix A); ``recipe("best")`` is the shipped network's."""
+
     data: str = "data"
     out: str = "run"
     model: ModelConfig = field(default_factory=ModelConfig)
     epochs: int = 1000
     batch_size: int = 16  # snapshots per step (per process under torchrun)
     lr: float = 1e-3
-    # plateau (the paper) | exponential (from lr to lr_final over time_budget, or over epochs without one)
+    # plateau (the paper) | exponential (from lr to lr_final over time_budget, or over the epochs without one)
     lr_schedule: str = "plateau"
     lr_factor: float = 0.5
     lr_patience: int = 5  # epochs without a lower training loss
     min_lr: float = 1e-6
     lr_final: float = 1e-5  # exponential schedule: the rate when time_budget (or the epochs) are spent
-    # Adam's L2 penalty on every parameter (0: the paper's text names none; the public port-metriplectic code of
-    # the paper's group trains with 1e-4)
-    weight_decay: float = 0.0
-    # epochs without a better validation rollout before stopping; None: 30 under the plateau schedule
-    # (the paper), never under the exponential one, whose budget ends the run: while its rate is still
-    # high the validation error is noisy (an H100 run's best of epoch 7 stood until epoch 37 at a rate of
-    # 2.8e-4 and a patience of 30 stopped it there; resumed, its best ended 36 % lower: gnn_solo1800_h100.json)
+    # epochs without a better validation rollout before stopping; None: 30 under the plateau schedule (the
+    # paper), never under the exponential one, whose budget ends the run (its early validation is noisy)
     patience: int | None = None
     noise_q: float = 1e-4  # times the mean edge length (paper appendix A)
     noise_v: float = 1e-3  # relative, on v and sigma
-    # additive velocity noise on free nodes, times mean edge / dt (0: the paper). The relative noise
-    # vanishes once the tools stop and v does; a hybrid trained without it grew an unstable velocity
-    # mode near the tool in the hold phase (bench/long_hold.py)
+    # additive velocity noise on free nodes, times mean edge / dt: the relative noise vanishes once the
+    # tools stop and v does, and a network trained without it can grow an unstable mode in the hold
     noise_v_add: float = 0.0
-    # the fraction of that noise the target's velocity takes back per step (1: all in one step, dt mu = -1, which the
-    # networks overshoot toward explicit Euler's bound: bench/results/step_stiffness_cpu.json; 0.5 moved neither that
-    # overshoot nor the accuracy at 24 epochs: gnn_noise_v_gamma_e24_h200.json, step_stiffness_vg5e1_cpu.json)
-    noise_v_add_gamma: float = 1.0
-    # a random smooth (quadratic) displacement of the free nodes, RMS up to this times the mean edge (0: the paper). The
-    # far field's rollout error is smooth and no per-node noise teaches a network to pull it back
-    # (bench/results/perturbation_recovery_cpu.json)
+    # a random smooth (quadratic) displacement of the free nodes, RMS up to this times the mean edge: per-node
+    # noise does not teach a network to pull back the smooth error its rollouts carry
     noise_smooth: float = 0.0
-    # the fraction of that displacement the target takes back per step (MeshGraphNets' noise_gamma; 1: all in one
-    # step). At 2e-1 a full take-back is a position rate of up to ~1.8 mm / 0.05 s = 36 mm/s, as fast as the tools
-    noise_smooth_gamma: float = 1.0
-    # the share of that take-back the target's velocity carries too (0: the position alone, at a rate v does not
-    # carry; the networks trained so flip a few nodes back and forth once the tools stop:
-    # bench/results/long_hold_smooth_gamma_cpu.json; 1 removes the flips: long_hold_flipfix_cpu.json)
+    noise_smooth_gamma: float = 1.0  # the share of it the target takes back per step (MeshGraphNets' noise_gamma)
+    # the share of that take-back the target's velocity carries too (0: a position rate v does not carry,
+    # which makes networks flip nodes back and forth once the tools stop)
     noise_smooth_velocity: float = 0.0
-    # the share of the samples that get the smooth displacement, the rest left clean (1: all). Trained on displaced
-    # states only, a network takes back, from a clean state, the displacement it expects there: a pull toward a
-    # wrong rest point (bench/results/perturbation_recovery_vel1800_cpu.json)
-    noise_smooth_share: float = 1.0
     # steps the network takes (without gradient) from the true state before the trained step, whose
     # target then leads from its own rollout back to the ground truth (0: the paper's one-step training)
     pushforward: int = 0
-    # each training sample turned by a random angle about the vertical z axis (False: the paper). A rotated
-    # simulation is an exact one (no gravity, isotropic material); the network is not rotation-invariant
-    # (its edge features are vectors) and four training anatomies show it few tool orientations
+    # each training sample turned by a random angle about the vertical z axis: an exact new simulation (no gravity,
+    # isotropic material) for a network that is not rotation-invariant and sees few tool orientations
     rotate: bool = False
-    # each training sample reflected through a vertical plane with probability 1/2 (False: the paper): as exact as
-    # a turn, and a mirrored liver (its lobes swapped) is an anatomy the four training ones do not show
-    mirror: bool = False
     train_fraction: float = 1.0  # data-scarcity study
     seed: int = 0
     resume: bool = False
     time_limit: float | None = None  # seconds of this invocation; stop after the epoch that passes it (resume later)
     # seconds of training in all, across resumes (a resumed run's warm-up not counted); the run ends when spent
     time_budget: float | None = None
-    tf32: bool = False  # CUDA matmuls in TF32 (measured no faster at these widths: train_step_time_h200.json)
     compile: bool = False  # torch.compile the training forward (and backward), dynamic shapes
-    cuda_graphs: bool = False  # batches padded to a few fixed shapes, compiled and replayed as CUDA graphs
-    # the hybrid decoder's (A - A^T) x and B B^T x: einsum | broadcast; None: operator_products' rule
-    operator_products: str | None = None
+    # batches padded to a few fixed shapes, compiled and replayed as CUDA graphs; None: on a single CUDA device
+    # unless --compile
+    cuda_graphs: bool | None = None
     device: str | None = None
 
     def __post_init__(self):
         if self.lr_schedule not in ("plateau", "exponential"):
             raise ValueError(f"lr_schedule must be plateau or exponential, got {self.lr_schedule!r}")
-        if not 0 <= self.noise_v_add_gamma <= 1:
-            raise ValueError(f"--noise-v-add-gamma must be in [0, 1], got {self.noise_v_add_gamma}")
-        if self.noise_v_add_gamma != 1 and not self.noise_v_add:
-            raise ValueError("--noise-v-add-gamma sets how much of --noise-v-add's velocity noise the target takes "
-                             "back: give --noise-v-add too")
         if not 0 <= self.noise_smooth_gamma <= 1:
             raise ValueError(f"--noise-smooth-gamma must be in [0, 1], got {self.noise_smooth_gamma}")
         if self.noise_smooth_gamma != 1 and not self.noise_smooth:
@@ -134,21 +109,14 @@ class TrainConfig:
         if self.noise_smooth_velocity and not self.noise_smooth:
             raise ValueError("--noise-smooth-velocity puts --noise-smooth's take-back in the target's velocity: "
                              "give --noise-smooth too")
-        if not 0 < self.noise_smooth_share <= 1:
-            raise ValueError(f"--noise-smooth-share must be in (0, 1], got {self.noise_smooth_share}")
-        if self.noise_smooth_share != 1 and not self.noise_smooth:
-            raise ValueError("--noise-smooth-share is the share of the samples --noise-smooth displaces: "
-                             "give --noise-smooth too")
         if self.pushforward < 0:
             raise ValueError("--pushforward must be >= 0")
-        if self.weight_decay < 0:
-            raise ValueError(f"--weight-decay must be >= 0, got {self.weight_decay}")
         if self.patience is not None and self.patience < 1:
             raise ValueError("--patience must be >= 1")
+        if not 0 < self.train_fraction <= 1:
+            raise ValueError("--train-fraction must be in (0, 1]")
         if self.cuda_graphs and self.compile:
             raise ValueError("--cuda-graphs compiles the network itself (static shapes): drop --compile")
-        if self.operator_products not in (None, *OPERATOR_PRODUCTS):
-            raise ValueError(f"--operator-products {self.operator_products}: expected one of {', '.join(OPERATOR_PRODUCTS)}")
 
     @property
     def stop_patience(self) -> float:
@@ -166,6 +134,27 @@ class TrainConfig:
         return None
 
 
+# What `warpgnn train --recipe NAME` starts from, every flag given overriding it: the paper's settings (TrainConfig's
+# defaults) and the best we measured, the shipped network's (checkpoint.PRETRAINED_HYBRID; docs/gnn-findings.md)
+RECIPES = {
+    "best": {"batch_size": 32, "lr": 1e-3, "lr_schedule": "exponential", "lr_final": 1e-5, "time_budget": 1800.0,
+             "noise_q": 3e-3, "noise_v": 1e-2, "noise_v_add": 1e-2, "noise_smooth": 0.2, "noise_smooth_gamma": 0.3,
+             "noise_smooth_velocity": 1.0, "pushforward": 2, "rotate": True},
+    "paper": {},
+}
+
+
+def recipe(name: str = "best", **settings) -> TrainConfig:
+    """The TrainConfig of recipe ``name`` (RECIPES), ``settings`` overriding it. An epoch count given without a
+    time budget replaces the recipe's budget: the run then ends, and its rate decays, over those epochs."""
+    if name not in RECIPES:
+        raise ValueError(f"recipe {name!r}: expected one of {', '.join(RECIPES)}")
+    base = dict(RECIPES[name])
+    if "epochs" in settings and "time_budget" not in settings:
+        base.pop("time_budget", None)
+    return TrainConfig(**{**base, **settings})
+
+
 def budget_spent(cfg: TrainConfig, history: list[dict]) -> bool:
     """Whether --time-budget leaves no room for another epoch as long as the last one: a run ends
     within its budget rather than one epoch past it (a best epoch there would miss a 30-minute target)."""
@@ -173,13 +162,6 @@ def budget_spent(cfg: TrainConfig, history: list[dict]) -> bool:
         return False
     last = history[-1]["seconds"] - (history[-2]["seconds"] if len(history) > 1 else 0.0)
     return history[-1]["seconds"] + last > cfg.time_budget
-
-
-def operator_products(cuda_graphs: bool, choice: str | None = None) -> str:
-    """How training computes the hybrid decoder's (A - A^T) x and B B^T x: ``choice`` if given, else
-    the broadcast form that inductor fuses under --cuda-graphs' static shapes, the einsums otherwise
-    (port_metriplectic)."""
-    return choice or ("broadcast" if cuda_graphs else "einsum")
 
 
 def unwrapped(model) -> TIGNN:
@@ -259,7 +241,7 @@ def train_step(model, batch: Batch, lead_rate=None) -> tuple[torch.Tensor, dict]
     if batch.lead_u is not None:
         batch = pushed_forward(model, batch, lead_rate)
     p = model(batch.topology, batch.z, batch.u_now, batch.u_next)
-    loss, parts = core.loss(p, batch.zdot, batch.node_mask, batch.topology.node_type)
+    loss, parts = core.loss(p, batch.zdot, batch.node_mask)
     loss.backward()
     return loss.detach(), parts
 
@@ -284,9 +266,8 @@ def warm_up_batches(sims, shapes, batch_size: int, lead: int) -> list[Batch]:
     return [make_batch(sims, samples, shape=s, lead=lead) for s in shapes]
 
 
-def fit_normalizer(model: TIGNN, sims, batch_size: int = 64, rotate: bool = False, mirror: bool = False) -> None:
-    """Standardisation statistics of the training steps (turned and reflected as training does with ``rotate``
-    and ``mirror``)."""
+def fit_normalizer(model: TIGNN, sims, batch_size: int = 64, rotate: bool = False) -> None:
+    """Standardisation statistics of the training steps (turned as training does with ``rotate``)."""
     from .graphs import raw_features
 
     samples = all_samples(sims)
@@ -294,14 +275,14 @@ def fit_normalizer(model: TIGNN, sims, batch_size: int = 64, rotate: bool = Fals
 
     def stream():
         for i in range(0, len(samples), batch_size):
-            b = make_batch(sims, samples[i:i + batch_size], generator=gen, rotate=rotate, mirror=mirror)
+            b = make_batch(sims, samples[i:i + batch_size], generator=gen, rotate=rotate)
             yield raw_features(b.topology, b.z, b.u_now, b.u_next), b.zdot
 
     model.normalizer.fit(stream())
 
 
 def validate(model: TIGNN, sims) -> dict:
-    rolls = rollout(model, sims)
+    rolls = rollout(model.eval(), sims)
     per = [metrics.rollout_metrics(r.z, s.z.cpu().numpy()) for r, s in zip(rolls, sims)]
     return metrics.set_metrics(per, [s.topology.n_nodes for s in sims])
 
@@ -366,12 +347,12 @@ def _from_rank0(value: float, world: int, device) -> float:
 
 
 def changed_training_settings(saved: dict, cfg: TrainConfig) -> list[tuple[str, object, object]]:
-    """(flag, value in the checkpoint, value now) for each of TRAINING_SETTINGS that differs; a setting added
-    since the checkpoint was written counts as its default then."""
-    defaults = TrainConfig()
-    return [(_FLAG_NAMES.get(name, "--" + name.replace("_", "-")), before, getattr(cfg, name))
-            for name in TRAINING_SETTINGS
-            if (before := saved.get(name, getattr(defaults, name))) != getattr(cfg, name)]
+    """(flag, value in the checkpoint, value now) for each of TRAINING_SETTINGS and REMOVED_SETTINGS that differs; a
+    setting added since the checkpoint was written counts as its default then."""
+    now = {**{name: getattr(cfg, name) for name in TRAINING_SETTINGS}, **REMOVED_SETTINGS}
+    defaults = {**asdict(TrainConfig()), **REMOVED_SETTINGS}
+    return [(_FLAG_NAMES.get(name, "--" + name.replace("_", "-")), before, value) for name, value in now.items()
+            if (before := saved.get(name, defaults[name])) != value]
 
 
 def train(cfg: TrainConfig, log=print) -> dict:
@@ -379,6 +360,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
         raise InputError("--cuda-graphs trains on one GPU; under torchrun use --compile")
     rank, world = _distributed()
     device = _device(cfg.device, rank, world)
+    if cfg.cuda_graphs is None:
+        cfg = replace(cfg, cuda_graphs=device.type == "cuda" and world == 1 and not cfg.compile)
     out = Path(cfg.out)
     last = out / "last.pt"
     state = checkpoint.read(last, map_location=device) if cfg.resume and last.exists() else None
@@ -393,24 +376,22 @@ def train(cfg: TrainConfig, log=print) -> dict:
         if rank == 0:
             log(f"{out}: had stopped ({state['stopped']}); the new --patience / --time-budget let it go on")
     # (settings added since a checkpoint was written take their defaults)
-    if state is not None and {**asdict(ModelConfig()), **state["model_config"]} != asdict(cfg.model):
+    if state is not None and checkpoint.model_config(state["model_config"], last) != cfg.model:
         raise InputError(f"{out} was trained with model settings {state['model_config']}; resume it with the same flags")
     if "OMP_NUM_THREADS" not in os.environ:
         # CPU ops (batch stacking) of several processes on one host oversubscribe the cores
         # with torch's default thread count: 3 runs sharing an H200 ran 2-3x slower.
         torch.set_num_threads(max(1, min(4, (os.cpu_count() or 1) // world)))
-    if device.type == "cuda":
-        torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
     torch.manual_seed(cfg.seed)
     splits = load_splits(cfg.data, device, cfg.train_fraction, cfg.seed)
     train_sims, val_sims = splits["train"], splits["val"]
     model = TIGNN(cfg.model).to(device)
     if state is None:
-        fit_normalizer(model, train_sims, rotate=cfg.rotate, mirror=cfg.mirror)
+        fit_normalizer(model, train_sims, rotate=cfg.rotate)
     else:
         model.load_state_dict(state["model"])
     # fused: one kernel for the whole update instead of a few per parameter group (CUDA only)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, fused=device.type == "cuda")
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, fused=device.type == "cuda")
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=cfg.lr_factor, patience=cfg.lr_patience,
                                                        min_lr=cfg.min_lr)
     history, best, best_epoch, start = [], math.inf, -1, 0
@@ -419,12 +400,13 @@ def train(cfg: TrainConfig, log=print) -> dict:
             log(f"note: {out} was trained with {flag} {before}; it continues with {now}")
     if state is not None:
         opt.load_state_dict(state["optimizer"])
-        for group in opt.param_groups:  # the saved groups carry the old decay; a resume's flag decides (noted above)
-            group["weight_decay"] = cfg.weight_decay
+        for group in opt.param_groups:  # a run from before issue 55 may carry the removed --weight-decay (noted above)
+            group["weight_decay"] = REMOVED_SETTINGS["weight_decay"]
         sched.load_state_dict(state["scheduler"])
         history, best, best_epoch, start = state["history"], state["best"], state["best_epoch"], state["epoch"] + 1
     net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
-    set_operator_products(model, operator_products(cfg.cuda_graphs, cfg.operator_products))
+    if isinstance(model.decoder, PortMetriplecticDecoder):
+        model.decoder.fused_products = cfg.cuda_graphs
     if cfg.compile or cfg.cuda_graphs:
         net = compiled(net, cuda_graphs=cfg.cuda_graphs)
     shapes = BatchShape.ladder(train_sims, cfg.batch_size) if cfg.cuda_graphs else None
@@ -468,11 +450,9 @@ def train(cfg: TrainConfig, log=print) -> dict:
         model.train()
         sums, n = {}, 0
         chunks = [mine[i:i + cfg.batch_size] for i in range(0, len(mine), cfg.batch_size)]
-        batches = prefetched(lambda c: make_batch(train_sims, c, cfg.noise_q, cfg.noise_v, gen, shapes, cfg.pushforward,
-                                                  cfg.noise_v_add, cfg.rotate, cfg.noise_smooth, cfg.noise_smooth_gamma,
-                                                  cfg.noise_smooth_velocity, cfg.noise_smooth_share, cfg.mirror,
-                                                  noise_v_add_gamma=cfg.noise_v_add_gamma),
-                                     chunks)
+        batches = prefetched(lambda c, gen=gen: make_batch(
+            train_sims, c, cfg.noise_q, cfg.noise_v, gen, shapes, cfg.pushforward, cfg.noise_v_add, cfg.rotate,
+            cfg.noise_smooth, cfg.noise_smooth_gamma, cfg.noise_smooth_velocity), chunks)
         bar = tqdm(batches, total=len(chunks), desc=f"epoch {epoch}", leave=False, disable=True if rank else None)
         for b in bar:
             opt.zero_grad(set_to_none=True)

@@ -11,15 +11,19 @@ free nodes whose hold speed ever exceeds --node-share times the ramp's largest, 
 largest hold speed against its largest position rate |q(t+1) - q(t)| / dt there. A simulation whose
 ratio exceeds --ratio is listed as ringing.
 
-    python bench/hold_ringing.py DATA.h5 [...] --json OUT.json --device "..." --command "..."
+    python bench/studies/hold_ringing.py DATA.h5 [...] --json OUT.json --device "..." --command "..."
 """
 
 import argparse
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
-import provenance  # bench/, beside this script
-from error_breakdown import ramp_steps  # likewise
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/: provenance.py
+import provenance
+from error_breakdown import ramp_steps  # beside this script
 
 from warpgnn.data import load_file
 from warpgnn.errors import InputError
@@ -57,7 +61,8 @@ def main():
     ap.add_argument("--node-share", type=float, default=0.1,
                     help="a node rings if its hold speed exceeds this share of the ramp's largest (default 0.1)")
     ap.add_argument("--ratio", type=float, default=0.25,
-                    help="a simulation rings if its hold's largest speed exceeds this share of the ramp's (default 0.25)")
+                    help="a simulation rings if its hold's largest speed exceeds this share of the ramp's "
+                         "(default 0.25)")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
@@ -66,9 +71,10 @@ def main():
     except InputError as exc:  # a missing file or field: one line
         ap.error(str(exc))
     for path, r in files.items():
-        print(f"{path}: {len(r['ringing'])} of {len(r['simulations'])} simulations ring: " + ", ".join(
-            f"{n} (hold {r['simulations'][n]['hold_max_speed']:.3f} m/s, {r['simulations'][n]['hold_over_ramp']:.2f}x the ramp's, "
-            f"{len(r['simulations'][n]['ringing_nodes'])} nodes)" for n in r["ringing"]))
+        ringing = {n: r["simulations"][n] for n in r["ringing"]}
+        print(f"{path}: {len(ringing)} of {len(r['simulations'])} simulations ring: " + ", ".join(
+            f"{n} (hold {s['hold_max_speed']:.3f} m/s, {s['hold_over_ramp']:.2f}x the ramp's, "
+            f"{len(s['ringing_nodes'])} nodes)" for n, s in ringing.items()))
     record = provenance.record(a) | {"node_share": a.node_share, "ratio": a.ratio, "files": files}
     with open(a.json, "w") as out:
         json.dump(record, out, indent=1)

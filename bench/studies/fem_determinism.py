@@ -6,13 +6,12 @@ which the v RRMSE divides by), and each generation's seconds (the first includes
 cache holds it). All generations simulate one mesh of the anatomy (--anatomies, or built once here).
 
 The solver sums into the nodes by gathers in a fixed order (fem_ref/solver.py), so nothing should differ, and on an
-H200 nothing did (bench/results/fem_determinism_gathers_h200.json). Until
-2026-11-26 it summed with float atomics, and two such generations of L5 on an H200 differed in all 190
-simulations (bench/results/fem_determinism_h200.json, keys atomic_order / order_independent: the latter Warp's
-deterministic mode, 12-14x slower, which the gathers replaced). Motivation: docs/gnn-experiments.md, "The ground
-truth's hold velocity rings in a few simulations".
+H200 nothing did (bench/results/fem_determinism_gathers_h200.json). Until 2026-11-26 it summed with float atomics,
+and two such generations of L5 on an H200 differed in all 190 simulations (bench/results/fem_determinism_h200.json,
+keys atomic_order / order_independent: the latter Warp's deterministic mode, 12-14x slower, which the gathers
+replaced). Why it matters: docs/determinism.md.
 
-    python bench/fem_determinism.py --anatomies /opt/data/anatomies --set L5 --count 190 --device cuda:0 \
+    python bench/studies/fem_determinism.py --anatomies /opt/data/anatomies --set L5 --count 190 --device cuda:0
         --json bench/results/fem_determinism_gathers_h200.json   (2026-11-26: 0 of 190 differ, both pairs)
 """
 
@@ -52,12 +51,13 @@ def differences(path_a: Path, path_b: Path) -> dict:
             continue
         d = {f: float(np.abs(a[f].astype(np.float64) - b[f]).max()) for f in FIELDS}
         if any(d.values()):
-            per[name] = d | {"v_normaliser_a": float(np.abs(a["v"]).max()), "v_normaliser_b": float(np.abs(b["v"]).max())}
+            per[name] = d | {"v_normaliser_a": float(np.abs(a["v"]).max()),
+                             "v_normaliser_b": float(np.abs(b["v"]).max())}
     return {"simulations": len(names_a | names_b), "differing": len(per), "identical": not per, "per_simulation": per}
 
 
 def set_arguments(p: argparse.ArgumentParser, count: int, device: str) -> None:
-    """The options naming one set's first simulations on one device (shared with bench/fem_rounding_floor.py)."""
+    """The options naming one set's first simulations on one device (shared with fem_rounding_floor.py)."""
     p.add_argument("--anatomies", help="folder of L1..L5.vtu made beforehand (a GPU host without tetgen)")
     p.add_argument("--set", default="L5", help="a set of the paper preset")
     p.add_argument("--count", type=int, default=count, help="its first COUNT simulations")

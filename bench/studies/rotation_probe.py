@@ -6,17 +6,21 @@ the same RMSE on all of them. Turns about z keep the fixed visceral face a z pla
 turns about x put it elsewhere; 'm' turns reflect x -> -x first (the mirrored liver, exact as well).
 The RRMSE normalisers (max |component|) change with the turn.
 
-    python bench/rotation_probe.py DATA_FILE.h5 CHECKPOINT [...] --json OUT.json --device "..." --command "..."
+    python bench/studies/rotation_probe.py DATA_FILE.h5 CHECKPOINT [...] --json OUT.json --device "..." --command "..."
 """
 
 import argparse
 import json
 import math
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import torch
 
-import provenance  # bench/, beside this script
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/: provenance.py
+import provenance
+
 from warpgnn.checkpoint import load_model
 from warpgnn.data import load_file, rotate_states, vertical_rotations
 from warpgnn.metrics import rollout_metrics, set_metrics
@@ -32,7 +36,8 @@ def rotation(turn: str) -> torch.Tensor:
     except (IndexError, ValueError):
         axis = None
     if axis in ("z", "m"):
-        return vertical_rotations(torch.tensor([a], dtype=torch.float64), torch.tensor([-1.0 if axis == "m" else 1.0]))[0]
+        reflect = torch.tensor([-1.0 if axis == "m" else 1.0])
+        return vertical_rotations(torch.tensor([a], dtype=torch.float64), reflect)[0]
     if axis == "x":
         c, s = math.cos(a), math.sin(a)
         return torch.tensor([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]], dtype=torch.float64)

@@ -1,6 +1,6 @@
-"""bench/long_hold.py's flip measures against motions whose answer is known by hand: a period-2 flip,
-a uniform motion and a constant acceleration; its growth per held step, and bench/step_stiffness.py's stiffest mode (and its command line, end to end),
-against a linear rate whose Euler step is known in closed form."""
+"""bench/studies/long_hold.py's flip measures against motions whose answer is known by hand: a period-2 flip,
+a uniform motion and a constant acceleration; its growth per held step, and bench/studies/step_stiffness.py's
+stiffest mode (and its command line, end to end), against a linear rate whose Euler step is known in closed form."""
 
 import json
 import os
@@ -18,9 +18,15 @@ from warpgnn.data import load_file
 from warpgnn.model import TIGNN, ModelConfig
 from warpgnn.training import fit_normalizer
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
-sys.path.insert(0, str(BENCH))
-from long_hold import flip_statistics, held_step_growth, second_difference
+STUDIES = Path(__file__).resolve().parents[2] / "bench" / "studies"
+sys.path.insert(0, str(STUDIES))
+from long_hold import (
+    flip_statistics,
+    held_step_growth,
+    second_difference,
+    tool_velocity,
+    with_tool_velocity,
+)
 from step_stiffness import stiffest_mode
 
 STEPS, NODES, DT = 8, 20, 0.05
@@ -166,14 +172,14 @@ def tiny_run(tmp_path, **dataset) -> tuple[Path, Path]:
 
 
 def test_step_stiffness_main_records_each_state_of_each_network_and_refuses_bad_arguments_in_one_line(tmp_path):
-    """bench/step_stiffness.py end to end on a tiny untrained network: one record entry per network (named
+    """bench/studies/step_stiffness.py end to end on a tiny untrained network: one record entry per network (named
     RESULTS_runs/RUN), one mode per simulation and snapshot, each with its Euler factor |1 + dt mu|; snapshots out of
     range and two checkpoints of one run end with one usage line and exit 2 (the latter before loading any)."""
     data, checkpoint = tiny_run(tmp_path)
     out = tmp_path / "stiff.json"
 
     def run(*args):
-        return subprocess.run([sys.executable, str(BENCH / "step_stiffness.py"), str(data), *args, "--json", str(out),
+        return subprocess.run([sys.executable, str(STUDIES / "step_stiffness.py"), str(data), *args, "--json", str(out),
                                "--iterations", "5", "--ritz", "3", "--device", "cpu", "--command", "t"],
                               capture_output=True, text=True, timeout=300, check=False)
 
@@ -189,7 +195,8 @@ def test_step_stiffness_main_records_each_state_of_each_network_and_refuses_bad_
         assert m["step_dominant"]["modulus"] > 0 and sum(m["share"].values()) == pytest.approx(1.0, abs=1e-6)
     out.unlink()
     for args, message in (((str(checkpoint), "--snapshots", "9"), "--snapshots must lie in 0 .. 4"),
-                          ((str(checkpoint), str(checkpoint), "--snapshots", "2"), "two checkpoints of one run (tiny_runs/net)"),
+                          ((str(checkpoint), str(checkpoint), "--snapshots", "2"),
+                           "two checkpoints of one run (tiny_runs/net)"),
                           # refused before any checkpoint is loaded: these do not exist
                           (("gone_runs/net/best.pt", "gone_runs/net/best.pt", "--snapshots", "2"),
                            "two checkpoints of one run (gone_runs/net)")):
@@ -199,17 +206,42 @@ def test_step_stiffness_main_records_each_state_of_each_network_and_refuses_bad_
 
 
 def test_long_hold_main_records_each_simulations_end_beside_the_mean(tmp_path):
-    """bench/long_hold.py end to end on a tiny untrained network: the per-simulation speeds and drifts at the hold's
-    end average to the mean curves' last points (a mean can be one simulation's; these say which)."""
+    """bench/studies/long_hold.py end to end on a tiny untrained network: the per-simulation speeds and drifts at the
+    hold's end average to the mean curves' last points (a mean can be one simulation's; these say which); with
+    --impose-tool-velocity a second rollout of the network beside the first."""
     data, checkpoint = tiny_run(tmp_path, sims_per_file=2)
     out = tmp_path / "hold.json"
-    done = subprocess.run([sys.executable, str(BENCH / "long_hold.py"), str(data), str(checkpoint), "--hold", "3",
-                           "--json", str(out), "--png", str(tmp_path / "hold.png"), "--device", "cpu", "--command", "t"],
-                          capture_output=True, text=True, timeout=300, check=False, env={**os.environ, "MPLBACKEND": "Agg"})
+    done = subprocess.run([sys.executable, str(STUDIES / "long_hold.py"), str(data), str(checkpoint), "--hold", "3",
+                           "--impose-tool-velocity", "--json", str(out), "--png", str(tmp_path / "hold.png"),
+                           "--device", "cpu", "--command", "t"],
+                          capture_output=True, text=True, timeout=300, check=False,
+                          env={**os.environ, "MPLBACKEND": "Agg"})
     assert done.returncode == 0, done.stderr
-    net = json.loads(out.read_text())["networks"]["tiny_runs/net"]
+    networks = json.loads(out.read_text())["networks"]
+    assert {k: v["tool_velocity_imposed"] for k, v in networks.items()} == {
+        "tiny_runs/net": False, "tiny_runs/net, tool velocity imposed": True}
+    net = networks["tiny_runs/net"]
     for per_simulation, mean in (("free_rms_speed_end_per_simulation", "free_rms_speed"),
                                  ("free_rms_moved_end_per_simulation", "free_rms_moved")):
         assert len(net[per_simulation]) == 2
         assert sum(net[per_simulation]) / 2 == pytest.approx(net[mean][-1], rel=1e-6)
     assert net["free_rms_moved_end_per_simulation"][0] > 0
+
+
+def test_imposed_tool_velocity_is_the_central_difference_of_the_tools_path_on_every_tip_node():
+    """--impose-tool-velocity: tools on the path u(t) = t^2 c move at 2 (t + 1) c / dt at snapshot t + 1 (the central
+    difference is exact for a parabola), one-sided at the last snapshot; each tip node takes its weight times its
+    tool's velocity, and nothing else in the state changes."""
+    steps, c = 5, torch.tensor([[1e-3, 0.0, -2e-3], [0.0, 4e-3, 1e-3]], dtype=torch.float64)
+    sim = SimpleNamespace(u=torch.arange(steps + 1, dtype=torch.float64)[:, None, None] ** 2 * c, dt=DT, steps=steps)
+    for t in range(steps - 1):
+        assert torch.allclose(tool_velocity(sim, t), 2 * (t + 1) * c / DT)
+    assert torch.allclose(tool_velocity(sim, steps - 1), (2 * steps - 1) * c / DT)
+    top = SimpleNamespace(prescribed=torch.tensor([3, 5, 6]), prescribed_tool=torch.tensor([0, 1, 1]),
+                          prescribed_weight=torch.tensor([1.0, 0.5, 0.25], dtype=torch.float64))
+    z = torch.randn(8, 12, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    v_tool = torch.tensor([[1.0, 2.0, 3.0], [-4.0, 8.0, 12.0]], dtype=torch.float64)
+    imposed = with_tool_velocity(top, z, v_tool)
+    expected = z.clone()
+    expected[3, 3:6], expected[5, 3:6], expected[6, 3:6] = v_tool[0], 0.5 * v_tool[1], 0.25 * v_tool[1]
+    assert torch.equal(imposed, expected)

@@ -15,12 +15,13 @@ the growth comes from the tip's own predicted velocity. --growth adds each netwo
 step: the largest eigenvalue modulus of its held Euler step's Jacobian at its own state at the
 last snapshot (power iteration, forward-mode derivatives), and where that mode lives.
 
-    python bench/long_hold.py DATA_FILE.h5 CHECKPOINT [...] --hold 80 [--impose-tool-velocity] \
+    python bench/studies/long_hold.py DATA_FILE.h5 CHECKPOINT [...] --hold 80 [--impose-tool-velocity]
         [--growth] --json OUT.json --png OUT.png --device "..." --command "..."
 """
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import matplotlib
@@ -28,14 +29,28 @@ import numpy as np
 import torch
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
 
-import provenance  # bench/, beside this script
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/: provenance.py
+import provenance
+
 from warpgnn.checkpoint import load_model
 from warpgnn.data import load_file
 from warpgnn.graphs import GROUPS, NODE_FREE, apply_boundary_conditions
 from warpgnn.metrics import second_difference_norms
-from tool_velocity_oracle import tool_velocity, with_tool_velocity
+
+
+def tool_velocity(sim, t: int) -> torch.Tensor:
+    """(K, 3) velocity of each tool at snapshot t + 1: the central difference of its imposed displacements
+    (what a host that knows only the tools' positions could impose)."""
+    after = min(t + 2, sim.steps)
+    return (sim.u[after] - sim.u[t]) / (sim.dt * (after - t))
+
+
+def with_tool_velocity(top, z: torch.Tensor, v_tool: torch.Tensor) -> torch.Tensor:
+    """``z`` with every tool-tip node's velocity set to its weight x its tool's velocity ``v_tool`` (K, 3)."""
+    v_tip = top.prescribed_weight[:, None] * v_tool[top.prescribed_tool]
+    return torch.cat([z[:, :3], z[:, 3:6].index_put((top.prescribed,), v_tip), z[:, 6:]], -1)
 
 
 @torch.no_grad()
@@ -52,7 +67,7 @@ def free_node_history(model, sim, hold: int, impose_tool_velocity: bool
         if t:
             z = model.step(top, z, u[t - 1], u[t], sim.dt)
             if impose_tool_velocity:
-                v_tool = tool_velocity(sim, t - 1, "central") if t <= sim.steps else torch.zeros_like(sim.u[0])
+                v_tool = tool_velocity(sim, t - 1) if t <= sim.steps else torch.zeros_like(sim.u[0])
                 z = with_tool_velocity(top, z, v_tool)
         if t == sim.steps:
             z_end = z
@@ -83,7 +98,8 @@ def flip_statistics(z: torch.Tensor, t: int, dt: float) -> dict:
     def rms(x):  # over those 10 nodes
         return x[largest].norm(dim=1).pow(2).mean().sqrt()
 
-    return {"increment_cosine": torch.nn.functional.cosine_similarity(step_in.flatten(), step_out.flatten(), dim=0).item(),
+    cosine = torch.nn.functional.cosine_similarity(step_in.flatten(), step_out.flatten(), dim=0)
+    return {"increment_cosine": cosine.item(),
             "share_10_largest_nodes": (node[largest].sum() / node.sum().clamp_min(1e-30)).item(),
             "largest_node_m": node[largest[0]].sqrt().item(),
             "rate_over_velocity_10_largest": (rms(step_out) / dt / rms(v[t + 1]).clamp_min(1e-30)).item()}
@@ -207,8 +223,8 @@ def main():
     record = provenance.record(a) | {"data": a.data, "simulations": len(sims), "hold_steps": a.hold,
                                      "fem_free_rms_speed": np.mean([fem_speed(s) for s in sims], 0).tolist(),
                                      "fem_free_rms_second_difference": np.mean(
-                                         [second_difference(s.z[:, s.topology.node_type == NODE_FREE, :3]) for s in sims],
-                                         0).tolist(),
+                                         [second_difference(s.z[:, s.topology.node_type == NODE_FREE, :3])
+                                          for s in sims], 0).tolist(),
                                      "networks": {}}
     fig, (ax_v, ax_q, ax_j) = plt.subplots(1, 3, figsize=(17, 5.6))
     t_axis = np.arange(steps + a.hold + 1)
@@ -222,7 +238,8 @@ def main():
             speeds, moves, zs, z_ends = zip(*(free_node_history(model, s, a.hold, imposed) for s in sims))
             speed, moved = np.mean(speeds, 0), np.mean(moves, 0)
             jump = np.mean([second_difference(z[..., :3]) for z in zs], 0)
-            flips = [flip_statistics(z, steps, s.dt) for z, s in zip(zs, sims)]  # at the last snapshot, still in the data
+            # at the last snapshot, still in the data
+            flips = [flip_statistics(z, steps, s.dt) for z, s in zip(zs, sims)]
             flip = {k: float(np.mean([f[k] for f in flips])) for k in flips[0]}
             speed_ends = [float(v[-1]) for v in speeds]  # the means above can be one simulation's: each one's end
             if a.growth and not imposed:  # at the states the plain rollouts reached
@@ -231,9 +248,9 @@ def main():
                 print(f"{run}: growth per held step " + ", ".join(f"{g['growth_per_step']:.3f}" for g in growth)
                       + f" (first {len(growth)} simulations); mode shares q/v/sigma "
                       + "/".join(f"{growth[0]['share'][k]:.2f}" for k in GROUPS) + "; dominant mode's decay / "
-                      + "angular frequency " + ", ".join(f"{g['linearised_rate']['decay_per_s']:.2f} 1/s / "
-                                                         f"{g['linearised_rate']['angular_frequency_rad_per_s']:.2f} rad/s"
-                                                         for g in growth))
+                      + "angular frequency " + ", ".join(
+                          f"{g['linearised_rate']['decay_per_s']:.2f} 1/s / "
+                          f"{g['linearised_rate']['angular_frequency_rad_per_s']:.2f} rad/s" for g in growth))
             name = run + (", tool velocity imposed" if imposed else "")
             record["networks"][name] = {"checkpoint": path, "tool_velocity_imposed": imposed,
                                         "free_rms_speed": speed.tolist(), "free_rms_moved": moved.tolist(),
@@ -241,8 +258,9 @@ def main():
                                         "flip_at_last_snapshot_per_simulation": flips,
                                         "free_rms_speed_end_per_simulation": speed_ends,
                                         "free_rms_moved_end_per_simulation": [float(m[-1]) for m in moves]}
-            print(f"{name}: free-node RMS speed at steps {steps // 2}, {steps}, {steps + a.hold // 2}, {steps + a.hold}: "
-                  + ", ".join(f"{speed[t]:.2e}" for t in (steps // 2, steps, steps + a.hold // 2, steps + a.hold))
+            marks = (steps // 2, steps, steps + a.hold // 2, steps + a.hold)
+            print(f"{name}: free-node RMS speed at steps {', '.join(map(str, marks))}: "
+                  + ", ".join(f"{speed[t]:.2e}" for t in marks)
                   + f" m/s (at the end per simulation {min(speed_ends):.2e} to {max(speed_ends):.2e})"
                   + f"; moved {moved[-1] * 1e3:.2f} mm during the hold; RMS second difference of position"
                   + f" {jump[steps // 2:steps - 1].mean() * 1e3:.3f} mm in the data's hold (FEM"
@@ -251,7 +269,7 @@ def main():
                   + f" {flip['increment_cosine']:.2f}, 10 nodes carry {flip['share_10_largest_nodes']:.0%},"
                   + f" largest {flip['largest_node_m'] * 1e3:.2f} mm, their position rate"
                   + f" {flip['rate_over_velocity_10_largest']:.1f} x their velocity")
-            style = dict(color=colour, ls="--" if imposed else "-")  # one colour per network
+            style = {"color": colour, "ls": "--" if imposed else "-"}  # one colour per network
             ax_v.plot(t_axis, speed, label=name, **style)
             ax_q.plot(t_axis[steps:], moved[steps:] * 1e3, **style)
             ax_j.plot(t_axis[1:-1], jump * 1e3, **style)

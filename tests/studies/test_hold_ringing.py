@@ -1,4 +1,4 @@
-"""bench/hold_ringing.py against hand-made snapshots on a small box mesh (a dataset file in the DESIGN.md
+"""bench/studies/hold_ringing.py against hand-made snapshots on a small box mesh (a dataset file in the DESIGN.md
 schema, read by warpgnn.data.load_file): free nodes that stop with the tools, one that creeps, and one
 that keeps vibrating in place (its stored velocity large, its position still), while the fixed face and
 the tool's tip, whose motion is imposed, are ignored whatever their velocity."""
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from synthetic import box, write_file
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench" / "studies"))
 from hold_ringing import file_ringing, sim_ringing
 
 STEPS, DT = 20, 0.05  # 21 snapshots; the paper preset's ramp stops the tools at snapshot 10

@@ -4,18 +4,22 @@ a few bad rollouts can carry it; this says, for each peer, on what share of the 
 candidate is lower, the median of its per-rollout ratio, and the change of the pooled mean square
 split between the peer's worst tenth of rollouts and the rest (each as a share of the peer's).
 
-    python bench/paired_rollouts.py EVAL CANDIDATE PEER [...] --set L5 --json OUT.json [--boxplot OUT.png] --device "..." --command "..."
+    python bench/studies/paired_rollouts.py EVAL CANDIDATE PEER [...] --set L5 --json OUT.json [--boxplot OUT.png]
+        --device "..." --command "..."
 
 EVAL/<run>/<set>/metrics.json as `warpgnn eval` (bench/eval_paper.sh) writes them.
 """
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 
-import provenance  # bench/, beside this script
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/: provenance.py
+import provenance
+
 from warpgnn.graphs import GROUPS
 from warpgnn.metrics import set_metrics
 from warpgnn.plots import rrmse_boxplot

@@ -1,19 +1,29 @@
 """How a trained hybrid builds its rate: zdot = L dE (reversible) + M dS (irreversible), each part's RMS
 beside the true rate's, from the true states of a data file (no noise), in standardised units, by node
-class (bench/error_breakdown.py's: tool tip, fixed face, free within 2 cm of a tool, free far field), by
+class (error_breakdown.py's: tool tip, fixed face, free within 2 cm of a tool, free far field), by
 phase (ramp: the tools move; hold: they stand) and by group (q, v, sigma). Also the one-step error of
 the sum and of the reversible part alone: what M dS adds to the fit. Parts much larger than their sum
 cancel each other, a rate built as a small difference of large terms. A vanilla network, which has no
 parts, gets its target and error only: the same cells, its peer's one-step error.
 
-    python bench/generic_parts.py DATA_FILE.h5 CHECKPOINT.pt [...] --json OUT.json --device "..." --command "..."
+    python bench/studies/generic_parts.py DATA_FILE.h5 CHECKPOINT.pt [...] --json OUT.json
+        --device "..." --command "..."
 """
 
+import sys
+from pathlib import Path
 
 import numpy as np
-import provenance  # bench/, beside this script
 import torch
-from error_breakdown import CLASSES, node_classes, ramp_steps, true_states  # likewise
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/: provenance.py
+import provenance
+from error_breakdown import (  # beside this script
+    CLASSES,
+    node_classes,
+    ramp_steps,
+    true_states,
+)
 
 from warpgnn.graphs import GROUPS
 
@@ -31,8 +41,8 @@ def terms(model, sim) -> tuple[dict, np.ndarray, np.ndarray]:
             rate = model(b.topology, b.z, b.u_now, b.u_next).zdot_standardized
             out = {"target": target, "error": rate - target}
         else:
-            x, e, skip = model.decoder_inputs(b.topology, b.z, b.u_now, b.u_next)
-            rev, irr = model.decoder.parts(x, e, b.topology.senders, b.topology.receivers, skip)
+            x, e = model.latents(b.topology, b.z, b.u_now, b.u_next)
+            rev, irr = model.decoder.parts(x, e, b.topology.senders, b.topology.receivers)
             out = {"target": target, "reversible": rev, "irreversible": irr, "error": rev + irr - target,
                    "error_reversible_only": rev - target}
     phase = np.repeat(np.arange(sim.steps) >= ramp_steps(sim), sim.topology.n_nodes).astype(int)

@@ -1,4 +1,4 @@
-"""bench/paired_rollouts.py: two evaluated networks compared rollout by rollout, against values
+"""bench/studies/paired_rollouts.py: two evaluated networks compared rollout by rollout, against values
 computed by hand, and its bad input (different rollouts, rollouts weighing differently) ending in
 one clear line."""
 
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
+STUDIES = Path(__file__).resolve().parents[2] / "bench" / "studies"
 
 
 def write_eval(root: Path, run: str, rrmse_by_rollout: list[float], set_value: float | None = None):
@@ -28,9 +28,9 @@ def write_eval(root: Path, run: str, rrmse_by_rollout: list[float], set_value: f
 
 def paired(tmp_path, *runs, extra=()):
     out = tmp_path / "paired.json"
-    proc = subprocess.run([sys.executable, str(BENCH / "paired_rollouts.py"), str(tmp_path / "eval"), *runs,
+    proc = subprocess.run([sys.executable, str(STUDIES / "paired_rollouts.py"), str(tmp_path / "eval"), *runs,
                            "--json", str(out), "--device", "cpu", "--command", "t", *extra],
-                          capture_output=True, text=True, timeout=120)
+                          capture_output=True, text=True, timeout=120, check=False)
     return proc, out
 
 
@@ -41,7 +41,7 @@ def test_paired_comparison_against_hand_values(tmp_path):
     write_eval(tmp_path / "eval", "peer", [3, 1] + [1] * 8)
     proc, out = paired(tmp_path, "cand", "peer")
     assert proc.returncode == 0, proc.stderr
-    for g, c in json.loads(out.read_text())["peers"]["peer"].items():
+    for c in json.loads(out.read_text())["peers"]["peer"].values():
         assert c["candidate"] == pytest.approx(math.sqrt(13 / 10)) and c["peer"] == pytest.approx(math.sqrt(18 / 10))
         assert c["candidate_lower_share"] == pytest.approx(0.1)  # rollout 0 only
         assert c["median_ratio"] == pytest.approx(1.0)  # ratios 1/3, 2 and eight 1s

@@ -1,4 +1,4 @@
-"""bench/tip_stress_conditioning.py on FEM data made here (a small slab): the FEM's own elastic law,
+"""bench/studies/tip_stress_conditioning.py on FEM data made here (a small slab): the FEM's own elastic law,
 given the true next positions, reproduces the tool tips' stress rate during the ramp; noise on the
 positions spoils it; the reported position errors are the noise put in; a network's columns come out."""
 
@@ -9,16 +9,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from warpgnn.fem_ref import SolverConfig
+from warpgnn.fem_ref import generate as gen
+from warpgnn.fem_ref.generate import Preset, SimulationSet, generate_set
 
 from warpgnn.checkpoint import model_payload, save_atomically
 from warpgnn.data import load_file
-from warpgnn.fem_ref import SolverConfig, generate as gen
-from warpgnn.fem_ref.generate import Preset, SimulationSet, generate_set
 from warpgnn.mesh import box_tet_mesh
-from warpgnn.model import ModelConfig, TIGNN
+from warpgnn.model import TIGNN, ModelConfig
 from warpgnn.training import fit_normalizer
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
+STUDIES = Path(__file__).resolve().parents[2] / "bench" / "studies"
 
 
 def slab(_name=None):
@@ -39,7 +40,7 @@ def record(tmp_path_factory):
     (tmp / "net").mkdir()
     save_atomically(model_payload(model), tmp / "net" / "best.pt")
     out = tmp / "out.json"
-    subprocess.run([sys.executable, str(BENCH / "tip_stress_conditioning.py"), str(tmp / "net" / "best.pt"),
+    subprocess.run([sys.executable, str(STUDIES / "tip_stress_conditioning.py"), str(tmp / "net" / "best.pt"),
                     str(tmp / "L1.h5"), "--json", str(out), "--device", "cpu", "--command", "t"],
                    check=True, capture_output=True, timeout=300)
     return json.loads(out.read_text())["files"][str(tmp / "L1.h5")]

@@ -5,10 +5,11 @@ corners in the reverse order (the same sums, rounded differently, as float atomi
 RMSE and RRMSE). If each order's rounding-driven part is alike in size and independent of the other's, the
 pair's RRMSE is sqrt(2) times that part, which no network can predict. Also, per snapshot, the RMS velocity
 difference and the RMS velocity, and once the tools stop the correlation of the two orders' velocities (1: the
-same motion; 0: unrelated), and the largest differences (bench/fem_determinism.py's), to set beside two
+same motion; 0: unrelated), and the largest differences (bench/studies/fem_determinism.py's), to set beside two
 float-atomic GPU generations (bench/results/fem_determinism_h200.json).
 
-    python bench/fem_rounding_floor.py --set L5 --count 10 --device cpu --json bench/results/fem_rounding_floor_cpu.json
+    python bench/studies/fem_rounding_floor.py --set L5 --count 10 --device cpu
+        --json bench/results/fem_rounding_floor_cpu.json
     (all 190 on an H200, --device cuda:0 --count 190: bench/results/fem_rounding_floor_h200.json)
 """
 

@@ -1,4 +1,4 @@
-"""bench/perturbation_recovery.py's drift measure against restarts whose answer is known by hand: a restart that
+"""bench/studies/perturbation_recovery.py's drift measure against restarts whose answer is known by hand: a restart that
 goes half way to the full rollout's error, one that goes at right angles to it and one that goes the other way."""
 
 import sys
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench" / "studies"))
 from perturbation_recovery import drift_toward_own_error
 
 from warpgnn.graphs import NODE_FREE, NODE_PRESCRIBED

@@ -10,7 +10,8 @@ sqrt(max(e^2 - e_truth^2, 0)) / size over the free nodes (1: nothing pulled back
 Beside them, how smooth the network's own error is (the share a quadratic field of the rest
 coordinates fits).
 
-    python bench/perturbation_recovery.py CHECKPOINT.pt [...] DATA_FILE.h5 [...] --json OUT.json --device "..." --command "..."
+    python bench/studies/perturbation_recovery.py CHECKPOINT.pt [...] DATA_FILE.h5 [...] --json OUT.json
+        --device "..." --command "..."
 
 Runs on the CPU in about a minute per checkpoint for 10 simulations (error_breakdown.py's epilog
 makes them).
@@ -18,13 +19,16 @@ makes them).
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-import provenance  # bench/, beside this script
-from error_breakdown import node_classes, ramp_steps  # likewise
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/: provenance.py
+import provenance
+from error_breakdown import node_classes, ramp_steps  # beside this script
+
 from warpgnn.checkpoint import load_model
 from warpgnn.data import load_file, quadratic_basis
 from warpgnn.graphs import NODE_FREE
@@ -133,13 +137,14 @@ def main():
                   json.dumps(res["own_error_explained_by"]))
             toward = res["from_truth_toward_own_error"]
             print(f"{run} on {path}: restarted from the truth at snapshot {first}, its drift after 1 / "
-                  f"{len(toward['cosine'])} steps has cosine {toward['cosine'][0]:.2f} / {toward['cosine'][-1]:.2f} with "
-                  f"its own rollout error and reaches {toward['reached'][0]:.2f} / {toward['reached'][-1]:.2f} of it")
+                  f"{len(toward['cosine'])} steps has cosine {toward['cosine'][0]:.2f} / {toward['cosine'][-1]:.2f} "
+                  f"with its own rollout error and reaches {toward['reached'][0]:.2f} / {toward['reached'][-1]:.2f} "
+                  "of it")
             print(f"{run} on {path} (from snapshot {first}): retained after 1 / 5 / {sims[0].steps - first} steps")
             for key, r in res["displaced"].items():
                 ret = r["retained"]
                 print(f"  {key:>10}: {ret[0]:.2f} / {ret[min(4, len(ret) - 1)]:.2f} / {ret[-1]:.2f}")
-    open(a.json, "w").write(json.dumps(record, indent=1))
+    Path(a.json).write_text(json.dumps(record, indent=1))
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""bench/error_breakdown.py's position-rate measure against one-step errors whose answer is known by hand: a
+"""bench/studies/error_breakdown.py's position-rate measure against one-step errors whose answer is known by hand: a
 trajectory whose positions follow the trapezoid of its velocities exactly (so the FEM floor is zero), and
 network errors that either leave the velocity alone or move the position rate with the mean velocity."""
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench" / "studies"))
 from error_breakdown import PositionFromVelocity, position_rate
 
 from warpgnn.graphs import NODE_FIXED, NODE_FREE, NODE_PRESCRIBED
@@ -28,7 +28,8 @@ def simulation(seed: int):
     z = rng.normal(size=(STEPS + 1, NODES, 12))
     for t in range(STEPS):
         z[t + 1, :, :3] = z[t, :, :3] + DT * 0.5 * (z[t, :, 3:6] + z[t + 1, :, 3:6])
-    topology = SimpleNamespace(node_type=node_type, rest=torch.as_tensor(rng.random((NODES, 3))), loaded=torch.tensor([0]))
+    topology = SimpleNamespace(node_type=node_type, rest=torch.as_tensor(rng.random((NODES, 3))),
+                               loaded=torch.tensor([0]))
     return SimpleNamespace(topology=topology, z=torch.as_tensor(z), dt=DT, steps=STEPS)
 
 

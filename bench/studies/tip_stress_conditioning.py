@@ -9,25 +9,29 @@ error ||fit - true|| / ||true|| on the loaded nodes and on every tip node, durin
 and the hold. Beside it: each network's own one-step stress-rate error there, and how far its
 next positions and the extrapolation land from the true ones at the free nodes next to the tips.
 
-    python bench/tip_stress_conditioning.py CHECKPOINT.pt [...] DATA_FILE.h5 [...] --json OUT.json --device "..."
+    python bench/studies/tip_stress_conditioning.py CHECKPOINT.pt [...] DATA_FILE.h5 [...] --json OUT.json
+        --device "..." --command "..."
 
 Runs on the CPU (a few minutes for 40 simulations); error_breakdown.py's epilog makes data here.
 """
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import h5py
 import numpy as np
 import torch
 
-import provenance  # bench/, beside this script
-from error_breakdown import ramp_steps  # bench/, beside this script
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/: provenance.py
+import provenance
+from error_breakdown import ramp_steps  # beside this script
+from warpgnn.fem_ref import OgdenProny, elastic_nodal_stress
+
 from warpgnn import dataset
 from warpgnn.checkpoint import load_model
 from warpgnn.data import load_file, make_batch
-from warpgnn.fem_ref import OgdenProny, elastic_nodal_stress
 from warpgnn.graphs import NODE_FREE, NODE_PRESCRIBED, apply_boundary_conditions
 
 PERTURBATIONS = (1e-6, 1e-5, 1e-4)  # m, uniform in [-a, a] on each coordinate of every free node
@@ -152,7 +156,8 @@ def main():
         for name, s in out["elastic_law_fit"].items():
             print(f"  elastic law, {name:34s} {s['loaded']['ramp']:.3f} / {s['loaded']['hold']:.3f}")
         for run, s in out["network_one_step"].items():
-            print(f"  network {run} directly{'':{max(0, 25 - len(run))}} {s['loaded']['ramp']:.3f} / {s['loaded']['hold']:.3f}")
+            label = f"network {run} directly"
+            print(f"  {label:47s} {s['loaded']['ramp']:.3f} / {s['loaded']['hold']:.3f}")
         print(f"  next positions at the tips' free neighbours: true step {out['true_step_at_tip_neighbours']}, "
               f"errors {json.dumps(out['next_position_error_at_tip_neighbours'])}", flush=True)
     Path(a.json).write_text(json.dumps(record, indent=1))

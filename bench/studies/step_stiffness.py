@@ -6,17 +6,20 @@ keeps a mode only while |1 + dt mu| <= 1: a decaying mode with dt mu < -2 flips 
 largest |dt mu|, the stiffest mode, and where it lives; and, the other end of the spectrum, the step's own dominant
 eigenvalue, whose modulus is the largest |1 + dt mu| of all modes (a growing mode need not be a stiff one).
 
-    python bench/step_stiffness.py DATA_FILE.h5 CHECKPOINT [...] --simulations 3 --snapshots 5 10 20 \
+    python bench/studies/step_stiffness.py DATA_FILE.h5 CHECKPOINT [...] --simulations 3 --snapshots 5 10 20
         [--iterations 100 --ritz 20] --json OUT.json --device "..." --command "..."
 """
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
-import provenance  # bench/, beside this script
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/: provenance.py
+import provenance
 from long_hold import (
     dominant_eigenvalue,
     euler_step_jacobian,
@@ -48,8 +51,8 @@ def stiffest_mode(model, sim, z: torch.Tensor, t: int, iterations: int = 100, ri
     # eigenvalue that could be a slower mode of nearly the same modulus, not yet separated)
     return {"snapshot": t, "dt_mu": {"re": dt_mu.real, "im": abs(dt_mu.imag), "modulus": abs(dt_mu)},
             "euler_factor": abs(1 + dt_mu), "relative_residual": residual, **mode_location(sim, stiff),
-            "step_dominant": {"modulus": abs(lam), "re": lam.real, "im": abs(lam.imag), "relative_residual": step_residual,
-                              **mode_location(sim, dominant)}}
+            "step_dominant": {"modulus": abs(lam), "re": lam.real, "im": abs(lam.imag),
+                              "relative_residual": step_residual, **mode_location(sim, dominant)}}
 
 
 def main():
@@ -80,13 +83,14 @@ def main():
                 modes.append({"simulation": sim.name} | stiffest_mode(model, sim, z, t, a.iterations, a.ritz))
         record["networks"][run] = {"checkpoint": path, "modes": modes}
         worst = max(modes, key=lambda m: m["euler_factor"])
+        residual = max(max(m["relative_residual"], m["step_dominant"]["relative_residual"]) for m in modes)
         print(f"{run}: stiffest |dt mu| per state " + ", ".join(f"{m['dt_mu']['modulus']:.2f}" for m in modes)
               + f"; its largest Euler factor |1 + dt mu| {worst['euler_factor']:.3f} (dt mu "
               + f"{worst['dt_mu']['re']:.2f} +- {worst['dt_mu']['im']:.2f}i, {worst['simulation']} snapshot "
               + f"{worst['snapshot']}, shares q/v/sigma " + "/".join(f"{x:.2f}" for x in worst["share"].values())
               + "); the step's dominant |lambda| per state "
               + ", ".join(f"{m['step_dominant']['modulus']:.3f}" for m in modes)
-              + f"; largest residual {max(max(m['relative_residual'], m['step_dominant']['relative_residual']) for m in modes):.1e}")
+              + f"; largest residual {residual:.1e}")
     with open(a.json, "w") as f:
         json.dump(record, f, indent=1)
     print(f"wrote {a.json}: {np.sum([len(n['modes']) for n in record['networks'].values()])} states")

@@ -1,5 +1,5 @@
-"""bench/fem_determinism.py's comparison of two generations of one set (its GPU run is recorded in bench/results), and
-bench/fem_rounding_floor.py's reversed summing order."""
+"""bench/studies/fem_determinism.py's comparison of two generations of one set (its GPU run is recorded in
+bench/results), and bench/studies/fem_rounding_floor.py's reversed summing order."""
 
 import itertools
 import sys
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from warpgnn.fem_ref.generate import generate_set
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench" / "studies"))
 from fem_determinism import differences
 
 
@@ -53,7 +53,7 @@ def test_another_kept_load_case_is_reported_as_such(two_generations):
 
 
 def test_reversed_corners_sum_the_same_forces_in_the_other_order():
-    """bench/fem_rounding_floor.py's second generation: every node's corner list reversed, so its sums round
+    """bench/studies/fem_rounding_floor.py's second generation: every node's corner list reversed, so its sums round
     differently; the trajectories agree to rounding and yet differ, and the solver module is restored after."""
     from fem_rounding_floor import reversed_corners, summing_in_reverse
     from warpgnn.fem_ref import (

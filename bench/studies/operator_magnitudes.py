@@ -1,17 +1,23 @@
-"""How large a trained hybrid's operator entries are: the raw outputs l, m of its edge decoder
-(before any --operator-activation) on every self-loop and mesh edge, from the true states of a data
-file, by the class of the receiving node (bench/error_breakdown.py's: tool tip, fixed face, free within
-2 cm of a tool, free far field). It says where a bound on the entries would act: --operator-activation
-tanh changes an entry by more than 4 % only beyond |0.35| and halves it near |2|.
+"""How large a trained hybrid's operator entries are: the raw outputs l, m of its edge decoder on every
+self-loop and mesh edge, from the true states of a data file, by the class of the receiving node
+(error_breakdown.py's: tool tip, fixed face, free within 2 cm of a tool, free far field). It says where a
+bound on the entries would act: a tanh, as the paper group's public code has, changes an entry by more
+than 4 % only beyond |0.35| and halves it near |2| (that option measured no gain and left the model after
+commit ae2f903).
 
-    python bench/operator_magnitudes.py DATA_FILE.h5 CHECKPOINT.pt [...] --json OUT.json --device "..." --command "..."
+    python bench/studies/operator_magnitudes.py DATA_FILE.h5 CHECKPOINT.pt [...] --json OUT.json
+        --device "..." --command "..."
 """
 
+import sys
+from pathlib import Path
 
 import numpy as np
-import provenance  # bench/, beside this script
 import torch
-from error_breakdown import CLASSES, node_classes, true_states  # likewise
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/: provenance.py
+import provenance
+from error_breakdown import CLASSES, node_classes, true_states  # beside this script
 
 ROW_THRESHOLDS = (0.5, 1.0)  # |entry| marks: shares of rows (edges, self-loops) holding an entry beyond each
 
@@ -40,7 +46,8 @@ def statistics(lm: np.ndarray) -> dict:
 def by_class(model, sims) -> dict:
     rows, classes = zip(*(operator_outputs(model, s) for s in sims))
     lm, cls = np.concatenate(rows), np.concatenate(classes)
-    return {"all": statistics(lm)} | {name: statistics(lm[cls == k]) for k, name in enumerate(CLASSES) if (cls == k).any()}
+    return {"all": statistics(lm)} | {name: statistics(lm[cls == k])
+                                      for k, name in enumerate(CLASSES) if (cls == k).any()}
 
 
 def measure(name, model, sims) -> dict:
@@ -49,7 +56,7 @@ def measure(name, model, sims) -> dict:
         print(f"{name} {cls:9s} rows {st['rows']:7d}: |entry| median {st['entry_percentiles'][50]:.3f}, "
               f"99% {st['entry_percentiles'][99]:.3f}; rows' largest entry median {st['row_max_median']:.3f}, "
               f"beyond 0.5 / 1: {st['row_share_above']['0.5']:.3f} / {st['row_share_above']['1.0']:.3f}")
-    return {"operator_activation": model.config.operator_activation, "classes": classes}
+    return {"classes": classes}
 
 
 if __name__ == "__main__":

@@ -6,7 +6,8 @@ roll out if its positions moved at that velocity), and whether the loaded nodes'
 ramp's end is a per-step bias or compounded drift; beside it, how much of the ground truth's snapshot
 velocity is aliased vibration in each phase (a floor no network reaches from snapshots alone).
 
-    python bench/error_breakdown.py CHECKPOINT.pt [...] DATA_FILE.h5 [...] --json OUT.json --device "..."
+    python bench/studies/error_breakdown.py CHECKPOINT.pt [...] DATA_FILE.h5 [...] --json OUT.json
+        --device "..." --command "..."
 
 Several checkpoints are peers on the same data in one record: runs/<run> (the checkpoint's folder
 name) holds each one's errors, files/<data file> the data's own figures. (Records made before
@@ -19,14 +20,17 @@ preset; a handful of its simulations (same seeds) can be made here, see --help's
 import argparse
 import dataclasses
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-import provenance  # bench/, beside this script
-from warpgnn.checkpoint import load_model
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/: provenance.py
+import provenance
 from warpgnn.fem_ref.solver import SolverConfig
+
+from warpgnn.checkpoint import load_model
 from warpgnn.data import load_file, make_batch
 from warpgnn.graphs import GROUPS, NODE_FIXED, NODE_FREE, NODE_PRESCRIBED
 from warpgnn.rollout import rollout
@@ -76,7 +80,8 @@ def one_step(model, sims, errors) -> dict:
             count[k] += (cls == k).sum() * sim.steps
     return {"mse_per_component": (sq.sum(0) / count.sum()).tolist(), "mse": float(sq.sum() / count.sum() / 12),
             "classes": {name: {"nodes_per_snapshot": count[k] / sum(s.steps for s in sims),
-                               "mse_per_component": (sq[k] / count[k]).tolist(), "share_of_loss": sq[k].sum() / sq.sum()}
+                               "mse_per_component": (sq[k] / count[k]).tolist(),
+                               "share_of_loss": sq[k].sum() / sq.sum()}
                         for k, name in enumerate(CLASSES)}}
 
 
@@ -99,7 +104,8 @@ def position_rate(sims, errors) -> dict:
             sq[k] += (d[:, free] ** 2).sum()
         count += free.sum() * sim.steps * 3
     rms = np.sqrt(sq / count)
-    return dict(zip(("error", "from_own_mean_velocity", "own_mean_velocity_error", "fem_mean_velocity_floor"), rms.tolist()))
+    names = ("error", "from_own_mean_velocity", "own_mean_velocity_error", "fem_mean_velocity_floor")
+    return dict(zip(names, rms.tolist()))
 
 
 class PositionFromVelocity(torch.nn.Module):
@@ -135,9 +141,8 @@ def rollout_errors(sims, rolls) -> dict:
             for k in range(len(CLASSES)):
                 sq[k] += err[:, cls == k].sum(1)
                 count[k] += (cls == k).sum()
-        width = sl.stop - sl.start
 
-        def rms(total, n):
+        def rms(total, n, width=sl.stop - sl.start):
             return {str(s): float(np.sqrt(total[s - 1] / max(n, 1) / width)) for s in marks}
 
         out[g] = {"share_by_class": dict(zip(CLASSES, (sq.sum(1) / sq.sum()).tolist())),
@@ -190,7 +195,8 @@ def velocity_floor(sims) -> dict:
                 acc = sums.setdefault(f"{CLASSES[k]}_{phase}", np.zeros(4))
                 acc += [((v[1:-1][sl][:, m] - implied[sl][:, m]) ** 2).sum(), (v[1:-1][sl][:, m] ** 2).sum(),
                         (d2[sl][:, m] ** 2).sum(), (d1[sl][:, m] ** 2).sum()]
-    return {key: {"v_minus_dq_dt_relative": float(np.sqrt(a[0] / a[1])), "second_over_first_difference": float(np.sqrt(a[2] / a[3]))}
+    return {key: {"v_minus_dq_dt_relative": float(np.sqrt(a[0] / a[1])),
+                  "second_over_first_difference": float(np.sqrt(a[2] / a[3]))}
             for key, a in sums.items()}
 
 
@@ -198,7 +204,8 @@ def main():
     ap = argparse.ArgumentParser(epilog="A few paper-preset simulations on the CPU (same random streams as the "
                                  "GPU's paper preset; set index 0 = L1, 4 = L5): python -c \"from warpgnn.cli import "
                                  "init_warp; init_warp(); from warpgnn.fem_ref.generate import generate_set, PRESETS, "
-                                 "SimulationSet as S; generate_set('d', S('L5', 'L5', 10), 4, PRESETS['paper'](), 0, 'cpu')\"")
+                                 "SimulationSet as S; generate_set('d', S('L5', 'L5', 10), 4, PRESETS['paper'](), 0, "
+                                 "'cpu')\"")
     a, checkpoints, data = provenance.parse_checkpoints_then_data(ap)
     torch.set_num_threads(2)
     sims = {path: load_file(path) for path in data}
@@ -218,12 +225,12 @@ def main():
                      "rollout_position_from_velocity": {g: from_velocity[g]["rms_after_steps"] for g in ("q", "v")},
                      "loaded_node_stress": loaded_node_stress(s, rolls, errors)}
             record["runs"][run]["files"][path] = entry
-            print(run, path, json.dumps({"one_step_mse": entry["one_step"]["mse"], "position_rate": entry["position_rate"],
-                                         "loaded_node_stress": entry["loaded_node_stress"],
-                                         "rollout_share": {g: r["share_by_class"] for g, r in entry["rollout"].items()}},
-                                        indent=1), flush=True)
+            summary = {"one_step_mse": entry["one_step"]["mse"], "position_rate": entry["position_rate"],
+                       "loaded_node_stress": entry["loaded_node_stress"],
+                       "rollout_share": {g: r["share_by_class"] for g, r in entry["rollout"].items()}}
+            print(run, path, json.dumps(summary, indent=1), flush=True)
     print(json.dumps({path: f["velocity_floor"] for path, f in record["files"].items()}, indent=1))
-    open(a.json, "w").write(json.dumps(record, indent=1))
+    Path(a.json).write_text(json.dumps(record, indent=1))
 
 
 if __name__ == "__main__":
