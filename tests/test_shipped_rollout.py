@@ -9,31 +9,20 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from pinned import l5_from_rest
 
 from warpgnn import checkpoint
-from warpgnn.anatomy import procedural_liver
-from warpgnn.data import Simulation
-from warpgnn.fem_ref.loads import LoadSampler, smooth_ramp
-from warpgnn.graphs import make_topology
 from warpgnn.rollout import rollout
 
 RECORD = Path(__file__).with_name("data") / "shipped_rollout.npz"
-STEPS, DT = 20, 0.05
 KEPT_STEPS = [1, 2, 5, 10, 15, 20]
 
 
 def shipped_rollout() -> np.ndarray:
     """(len(KEPT_STEPS), N, 12) states of the shipped hybrid's rollout on L5."""
-    mesh = procedural_liver("L5")
-    case = LoadSampler(mesh).sample(np.random.default_rng(7), n_loads=2)
-    top = make_topology(mesh, case.loaded, *case.prescribed)
-    ramp = smooth_ramp(np.arange(STEPS + 1) * DT, 0.6 * STEPS * DT)
-    u = torch.as_tensor(ramp[:, None, None] * case.displacement[None], dtype=torch.float32)
-    rest = torch.cat([torch.as_tensor(mesh.nodes, dtype=torch.float32), torch.zeros(len(mesh.nodes), 9)], 1)
-    sim = Simulation("L5/pinned", top, rest[None].repeat(STEPS + 1, 1, 1), u, DT, 0.0)
     model, _ = checkpoint.load_model(checkpoint.PRETRAINED_HYBRID)
     torch.manual_seed(0)
-    return rollout(model, [sim])[0].z[KEPT_STEPS]
+    return rollout(model, [l5_from_rest()])[0].z[KEPT_STEPS]
 
 
 def test_shipped_rollout_is_unchanged():

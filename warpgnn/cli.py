@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -33,7 +34,7 @@ def init_warp():
         os.close(saved)
 
 
-WARP_COMMANDS = ("fem", "generate", "demo")  # the rest run on torch (and meshing) alone
+WARP_COMMANDS = ("fem", "generate", "demo", "bench")  # the rest run on torch (and meshing) alone
 
 
 def _device(name):
@@ -82,7 +83,10 @@ def cmd_fem(args):
     try:
         case = make_load_case(mesh, loaded, disp, spread=not args.single_node)
     except ValueError as exc:
-        raise InputError(f"load nodes: {exc}") from None
+        hint = "" if args.single_node else (" (each listed node is a tool whose rigid tip covers its ring of "
+                                            "surface neighbours); --single-node drives the listed nodes alone "
+                                            "(e.g. a whole face)")
+        raise InputError(f"load nodes: {exc}{hint}") from None
     if args.duration <= 0 or args.snapshots < 1:
         raise InputError("--duration must be > 0 and --snapshots >= 1")
     config = SolverConfig(duration=args.duration, snapshots=args.snapshots, viscosity=not args.no_viscosity)
@@ -124,13 +128,15 @@ def cmd_demo(args):
     the first test simulation of the paper preset (the unseen anatomy L5, full length)."""
     from dataclasses import replace
 
-    from .anatomy import LIVERS, procedural_liver
     from . import dataset
+    from .anatomy import LIVERS, procedural_liver
     from .checkpoint import PRETRAINED_HYBRID
     from .evaluation import evaluate
     from .fem_ref.generate import PRESETS, generate_set
+    from .model import check_backend
     from .render import anatomy_table, render_anatomies, render_simulation
 
+    args.backend = check_backend(args.backend, args.device)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     meshes = {name: procedural_liver(name) for name in LIVERS}
@@ -146,48 +152,30 @@ def cmd_demo(args):
     paper = PRESETS["paper"]()
     k, test_set = next((k, s) for k, s in enumerate(paper.sets) if s.name == "L5")
     generate_set(out / "unseen", replace(test_set, count=1), k, paper, 0, _device(args.device))
-    evaluate(PRETRAINED_HYBRID, out / "unseen" / "L5.h5", out / "network", args.device)
+    evaluate(PRETRAINED_HYBRID, out / "unseen" / "L5.h5", out / "network", args.device, args.backend)
     print(f"network against the FEM: {out / 'network'} (metrics.json, final_step_median.png, node_history.png)")
 
 
 def train_model_config(args):
-    """`warpgnn train`'s model flags as a ModelConfig (one clear line on a bad combination)."""
+    """`warpgnn train`'s model flags as a ModelConfig (one clear line on a bad value)."""
     from .model import ModelConfig
 
     try:
-        return ModelConfig(kind=args.model, passes=args.passes, latent=args.latent,
-                           actuator_graphs=not args.single_graph, rate_weights=tuple(args.rate_weights),
-                           tip_weight=args.tip_weight, imposed_in_loss=not args.skip_imposed_rates,
-                           operator_activation=args.operator_activation,
-                           reversible_positions=args.reversible_positions,
-                           reversible_velocities=args.reversible_velocities,
-                           decoder_hidden_layers=args.decoder_hidden_layers, split_decoders=args.split_decoders,
-                           local_positions=args.local_positions, state_skip=args.state_skip,
-                           **({} if args.dissipation_init_scale is None else
-                              {"dissipation_init_scale": args.dissipation_init_scale}))
+        return ModelConfig(kind=args.model, passes=args.passes, latent=args.latent, actuator_graphs=not args.single_graph)
     except ValueError as exc:
         raise InputError(str(exc)) from None
 
 
 def cmd_train(args):
-    from .training import TrainConfig, train
+    from dataclasses import fields
 
-    model = train_model_config(args)
-    if not 0 < args.train_fraction <= 1:
-        raise InputError("--train-fraction must be in (0, 1]")
+    from .model import check_backend
+    from .training import TrainConfig, recipe, train
+
+    check_backend(args.backend, training=True)
+    given = {f.name: getattr(args, f.name) for f in fields(TrainConfig) if f.name != "model" and hasattr(args, f.name)}
     try:
-        cfg = TrainConfig(data=args.data, out=args.out, model=model, epochs=args.epochs, batch_size=args.batch,
-                          lr=args.lr, lr_schedule=args.lr_schedule, lr_final=args.lr_final,
-                          weight_decay=args.weight_decay, patience=args.patience,
-                          train_fraction=args.train_fraction, seed=args.seed, resume=args.resume,
-                          time_limit=args.time_limit, time_budget=args.time_budget, tf32=args.tf32,
-                          compile=args.compile, cuda_graphs=args.cuda_graphs, operator_products=args.operator_products,
-                          pushforward=args.pushforward,
-                          rotate=args.rotate, mirror=args.mirror, noise_smooth_velocity=args.noise_smooth_velocity, device=args.device,
-                          **{k: getattr(args, k) for k in ("noise_q", "noise_v", "noise_v_add", "noise_v_add_gamma",
-                                                           "noise_smooth",
-                                                           "noise_smooth_gamma", "noise_smooth_share")
-                             if getattr(args, k) is not None})
+        cfg = recipe(args.recipe, model=train_model_config(args), **given)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     result = train(cfg)
@@ -197,15 +185,41 @@ def cmd_train(args):
 
 def cmd_eval(args):
     from .evaluation import evaluate
+    from .model import check_backend
 
-    try:
-        evaluate(args.checkpoint, args.data, args.out, args.device, args.backend, args.batch, not args.no_plots)
-    except NotImplementedError as exc:
-        raise InputError(str(exc)) from None
+    backend = check_backend(args.backend, args.device)
+    if backend == "warp":
+        init_warp()
+    evaluate(args.checkpoint, args.data, args.out, args.device, backend, args.batch, not args.no_plots)
+
+
+def cmd_bench(args):
+    from . import benchmark
+
+    device = str(_device(args.device or benchmark.default_device()))
+    s = benchmark.settings(args.passes, args.models, args.latent, args.batch, args.backends, device, args.repeats,
+                           args.mesh)
+    save = (lambda doc: benchmark.write_json(doc, args.json)) if args.json else None
+    doc = benchmark.run(s, save=save)
+    if args.json:
+        benchmark.write_json(doc, args.json)
+        print(f"records: {args.json}")
+    if args.png:
+        benchmark.plot(doc, args.png)
+        print(f"figure: {args.png}")
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse takes only -5 and -.5 for negative numbers: -1.33e-02 or -5. after an option were read as an
+    unknown option ("expected 3 arguments"). This one takes every decimal form (its subcommands inherit it)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="warpgnn", description=__doc__.splitlines()[0])
+    p = Parser(prog="warpgnn", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
 
     a = sub.add_parser("anatomy", help="make a tetrahedral liver mesh (procedural or from a surface)")
@@ -242,116 +256,68 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--batch", type=int, default=256, help="most simulations per launch")
     g.set_defaults(func=cmd_generate)
 
-    t = sub.add_parser("train", help="train the vanilla or hybrid network on a generated dataset")
-    t.add_argument("--data", required=True, help="dataset directory (L1..L5.h5 from 'generate')")
-    t.add_argument("--model", default="hybrid", choices=["hybrid", "vanilla"])
-    t.add_argument("--passes", type=int, default=5, help="message passes (1, 5, 12 in the paper)")
-    t.add_argument("--latent", type=int, default=64, help="latent width F (64: ~0.3M parameters at 5 passes)")
-    t.add_argument("--single-graph", action="store_true",
-                   help="ablation: no actuator graphs, the tool's displacement on its loaded node only")
-    t.add_argument("--out", required=True, help="run directory (last.pt, best.pt, log.csv)")
-    t.add_argument("--epochs", type=int, default=1000)
-    t.add_argument("--batch", type=int, default=16, help="snapshots per step (per process under torchrun)")
-    t.add_argument("--lr", type=float, default=1e-3)
-    t.add_argument("--lr-schedule", default="plateau", choices=["plateau", "exponential"],
-                   help="plateau: halve on a training-loss plateau (the paper); exponential: lr -> --lr-final "
-                        "over --time-budget, or over --epochs without one (runs compared at equal epochs)")
-    t.add_argument("--lr-final", type=float, default=1e-5, help="exponential schedule: the rate at the end of the budget (or of the epochs)")
-    t.add_argument("--weight-decay", type=float, default=0.0, metavar="WD",
-                   help="Adam's L2 penalty on every parameter (default 0: the paper names none; the public "
-                        "port-metriplectic code of the paper's group uses 1e-4)")
-    t.add_argument("--patience", type=int, default=None,
-                   help="epochs without a better validation rollout before stopping (default: 30 under the "
-                        "plateau schedule, none under the exponential one: its --time-budget ends the run); "
-                        "raise it and --resume to continue a run that stopped early")
-    t.add_argument("--train-fraction", type=float, default=1.0, help="use this share of the training simulations")
-    t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--time-limit", type=float, default=None,
-                   help="seconds of this invocation; stop after the epoch passing it (--resume continues)")
-    t.add_argument("--time-budget", type=float, default=None,
-                   help="seconds of training in all, across resumes, the first compilation included (a resumed "
-                        "run's warm-up before its first epoch, which compiles and records the --cuda-graphs shapes, "
-                        "is not; --compile's lazy compilation in the first epoch is); no epoch is begun that, as long as "
-                        "the last one, would end past them")
-    t.add_argument("--noise-q", type=float, help="position noise, times the mean edge length (default: the paper's 1e-4)")
-    t.add_argument("--noise-v", type=float, help="relative noise on velocity and stress (default: the paper's 1e-3)")
-    t.add_argument("--noise-v-add", type=float, help="additive velocity noise on free nodes, times mean edge / dt "
-                   "(default 0, the paper: none); keeps the hold phase stable")
-    t.add_argument("--noise-v-add-gamma", type=float, metavar="G",
-                   help="fraction of that velocity noise the target takes back per step (default 1: all of it at once, "
-                        "a response the networks overshoot toward explicit Euler's stability bound; 0.5 did not move that "
-                        "overshoot nor the accuracy in a 24-epoch screen)")
-    t.add_argument("--noise-smooth", type=float, help="a random quadratic displacement field on free nodes, RMS up "
-                   "to this times the mean edge (default 0, the paper: none); per-node noise cannot teach the network to pull "
-                   "back the smooth error its rollouts carry")
-    t.add_argument("--noise-smooth-gamma", type=float, metavar="GAMMA",
-                   help="fraction of that displacement the target takes back per step, as MeshGraphNets' noise_gamma "
-                        "(default 1: all of it at once)")
-    t.add_argument("--noise-smooth-velocity", type=float, nargs="?", const=1.0, default=0.0, metavar="SHARE",
-                   help="the share of that take-back the target's velocity carries too (alone: 1, the position moves "
-                        "back at the velocity the state holds; default 0: the position alone)")
-    t.add_argument("--noise-smooth-share", type=float, metavar="P",
-                   help="the share of the samples that smooth displacement is given to, the rest left clean "
-                        "(default 1: all of them)")
-    t.add_argument("--tf32", action="store_true", help="TF32 matmuls on CUDA (default: full fp32)")
-    t.add_argument("--compile", action="store_true",
-                   help="torch.compile the network for training (GPU: fused kernels; compiles once, ~1 min)")
-    t.add_argument("--rate-weights", type=float, nargs=3, default=(1.0, 1.0, 1.0), metavar=("Q", "V", "SIGMA"),
-                   help="weights of the position, velocity and stress rates in the data loss (default 1 1 1: the paper)")
-    t.add_argument("--tip-weight", type=float, default=1.0, metavar="W",
-                   help="weight of each tool-tip node in the data loss against 1 for the others (default 1: the paper)")
-    t.add_argument("--skip-imposed-rates", action="store_true",
-                   help="leave out of the data loss the rates the boundary conditions overwrite (fixed nodes' q and v, "
-                        "tool tips' q); default: every rate is scored (the paper)")
-    t.add_argument("--operator-activation", default="none", choices=["none", "tanh"],
-                   help="the hybrid's operator entries (A, B of L = A - A^T, M = B B^T): none, linear (default); tanh, "
-                        "bounded to (-1, 1) as the port-metriplectic code of the paper's group does")
-    t.add_argument("--reversible-positions", action="store_true",
-                   help="the hybrid's positions move by L dE alone: M = B B^T without position rows or columns, so "
-                        "dissipation acts on velocity and stress only (default off: the paper's unconstrained M)")
-    t.add_argument("--reversible-velocities", action="store_true",
-                   help="the hybrid's velocities move by L dE alone too (with --reversible-positions: M acts on the "
-                        "stress alone, as the ground truth's Prony relaxation does; default off)")
-    t.add_argument("--state-skip", action="store_true",
-                   help="a linear map, started at zero, from each node's standardised v and sigma into the decoder's "
-                        "outputs (the hybrid's dE, dS: a quadratic energy's and entropy's gradients; vanilla's rate) "
-                        "(default off: the paper's decoders read the node latent alone)")
-    t.add_argument("--local-positions", action="store_true",
-                   help="the hybrid's ports (mesh edges' L and M) without position rows or columns: each node's positions "
-                        "move by its own self-loop, as a solid's kinematics are local (default off: the paper's ports)")
-    t.add_argument("--dissipation-init-scale", type=float, metavar="K",
-                   help="the hybrid's B (M = B B^T) starts at K times a default layer's output scale (default 0.05, "
-                        "A's: OPERATOR_INIT_SCALE); larger gives the dissipative path more gradient at the start")
-    t.add_argument("--decoder-hidden-layers", type=int, metavar="N",
-                   help="hidden layers of the decoder's MLPs (default 1, as every other MLP; the port-metriplectic "
-                        "code of the paper's group has 2)")
-    t.add_argument("--split-decoders", action="store_true",
-                   help="the hybrid's decoder as four MLPs, one each for dE, dS, l and m, as that code has it "
-                        "(default: the paper's two, delta_v for dE and dS, delta_e for l and m)")
-    t.add_argument("--rotate", action="store_true",
-                   help="turn each training sample by a random angle about the vertical z axis (an exact new simulation: "
-                        "no gravity, isotropic material; default off: the paper)")
-    t.add_argument("--mirror", action="store_true",
-                   help="reflect each training sample with probability 1/2 through a vertical plane (exact as a turn, "
-                        "and a mirrored anatomy, its lobes swapped; default off: the paper)")
-    t.add_argument("--pushforward", type=int, default=0, metavar="K",
-                   help="train each step from the state the network reaches in K steps of its own (no gradient) "
-                        "instead of the true state; the target leads back to the ground truth (default 0: the paper)")
-    t.add_argument("--cuda-graphs", action="store_true",
-                   help="pad batches to a few fixed shapes, compile the network and replay each step as CUDA graphs "
-                        "(one GPU; removes the launch overhead that bounds --compile)")
-    t.add_argument("--operator-products", choices=["einsum", "broadcast"], default=None,
-                   help="how the hybrid decoder computes (A - A^T) x and B B^T x: the same values, differently fused "
-                        "(default: broadcast with --cuda-graphs, which inductor fuses there; einsum otherwise)")
-    t.add_argument("--resume", action="store_true", help="continue RUN/last.pt")
+    # train: the recipe's settings, each flag given overriding one (argument_default: a flag not given is absent)
+    t = sub.add_parser("train", help="train the vanilla or hybrid network on a generated dataset",
+                       argument_default=argparse.SUPPRESS, description="Trains --recipe (default: best); every "
+                       "flag given overrides the recipe's value.")
+    t.add_argument("--data", required=True, metavar="DIR", help="dataset directory (L1..L5.h5 from 'generate')")
+    t.add_argument("--out", required=True, metavar="RUN", help="run directory (last.pt, best.pt, log.csv)")
+    t.add_argument("--recipe", default="best", choices=["best", "paper"],
+                   help="best: the shipped network's (batch 32, lr 1e-3 -> 1e-5 exponentially over a 1800 s "
+                        "budget, noise q 3e-3 v 1e-2, additive v noise 1e-2, smooth noise 0.2 taken back 0.3 a step "
+                        "with its velocity, pushforward 2, rotate; CUDA graphs on a GPU); paper: the paper's "
+                        "(batch 16, plateau schedule, noise q 1e-4 v 1e-3)")
+    t.add_argument("--backend", default="torch", choices=["torch", "warp"],
+                   help="the network's implementation (torch: training through the Warp kernels comes later)")
+    t.add_argument("--resume", action="store_true", default=False, help="continue RUN/last.pt")
     t.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
+    m = t.add_argument_group("model")
+    m.add_argument("--model", default="hybrid", choices=["hybrid", "vanilla"])
+    m.add_argument("--passes", type=int, default=5, metavar="N", help="message passes (default 5; the paper: 1, 5, 12)")
+    m.add_argument("--latent", type=int, default=64, metavar="F", help="latent width (default 64)")
+    m.add_argument("--single-graph", action="store_true", default=False,
+                   help="ablation: no actuator graphs, the tool's displacement on its loaded node only")
+    r = t.add_argument_group("training (each overrides the recipe)")
+    r.add_argument("--epochs", type=int, metavar="N", help="at most this many (default 1000); given alone, it replaces the recipe's time budget")
+    r.add_argument("--batch", dest="batch_size", type=int, metavar="B", help="snapshots per step (per process)")
+    r.add_argument("--lr", type=float, help="the starting learning rate")
+    r.add_argument("--lr-schedule", choices=["plateau", "exponential"],
+                   help="plateau: halve on a training-loss plateau; exponential: to --lr-final over --time-budget, "
+                        "or over --epochs without one")
+    r.add_argument("--lr-final", type=float, metavar="LR", help="the exponential schedule's last rate")
+    r.add_argument("--time-budget", type=float, metavar="S",
+                   help="seconds of training in all, across resumes; no epoch begins that would end past them")
+    r.add_argument("--patience", type=int, metavar="N", help="epochs without a better validation rollout before "
+                   "stopping (default: 30 under plateau, none under exponential)")
+    r.add_argument("--noise-q", type=float, metavar="X", help="position noise, times the mean edge length")
+    r.add_argument("--noise-v", type=float, metavar="X", help="relative noise on velocity and stress")
+    r.add_argument("--noise-v-add", type=float, metavar="X", help="additive velocity noise, times mean edge / dt")
+    r.add_argument("--noise-smooth", type=float, metavar="X",
+                   help="a random quadratic displacement of the free nodes, RMS up to X times the mean edge")
+    r.add_argument("--noise-smooth-gamma", type=float, metavar="G", help="the share of it the target takes back a step")
+    r.add_argument("--noise-smooth-velocity", type=float, nargs="?", const=1.0, metavar="S",
+                   help="the share of that take-back the target's velocity carries (alone: 1)")
+    r.add_argument("--pushforward", type=int, metavar="K",
+                   help="train each step from the state the network reaches in K steps of its own")
+    r.add_argument("--rotate", action=argparse.BooleanOptionalAction,
+                   help="turn each sample by a random angle about the vertical axis")
+    r.add_argument("--train-fraction", type=float, metavar="P", help="use this share of the training simulations")
+    r.add_argument("--seed", type=int, metavar="N", help="of the data order, the noise and the weights")
+    x = t.add_argument_group("speed and time")
+    x.add_argument("--time-limit", type=float, metavar="S",
+                   help="seconds of this invocation; stop after the epoch passing them (--resume continues)")
+    x.add_argument("--compile", action="store_true", help="torch.compile the network (dynamic shapes; torchrun)")
+    x.add_argument("--cuda-graphs", action=argparse.BooleanOptionalAction,
+                   help="pad batches to a few shapes and replay each step as CUDA graphs (default: on one GPU)")
     t.set_defaults(func=cmd_train)
 
     e = sub.add_parser("eval", help="roll a checkpoint out on a dataset file and score it")
     e.add_argument("--checkpoint", required=True)
     e.add_argument("--data", required=True, help="one dataset file (e.g. data/L5.h5)")
     e.add_argument("--out", required=True, help="directory for metrics.json, rollouts.h5 and plots")
-    e.add_argument("--backend", default="torch", choices=["torch", "warp"])
+    e.add_argument("--backend", choices=["torch", "warp"],
+                   help="the network's implementation: warp (the kernels) or torch "
+                        "(default: warp on CUDA, torch on the CPU)")
     e.add_argument("--batch", type=int, default=64, help="simulations rolled out side by side")
     e.add_argument("--no-plots", action="store_true")
     e.add_argument("--device", default=None)
@@ -360,7 +326,29 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="the main job on the built-in default")
     d.add_argument("--out", default="warpgnn-demo")
     d.add_argument("--device", default=None)
+    d.add_argument("--backend", choices=["torch", "warp"],
+                   help="the network's implementation: warp (the kernels) or torch "
+                        "(default: warp on CUDA, torch on the CPU)")
     d.set_defaults(func=cmd_demo)
+
+    b = sub.add_parser("bench", help="time one step of the network per backend, model and pass count (L5 mesh)",
+                       description="Times forward + Euler + boundary conditions (no grad) on the L5 mesh with "
+                       "random weights; the first call (compile, capture) apart from the median step. Defaults on "
+                       "CUDA: passes 1..12, latent 64, batch 1,64; on the CPU: passes 1,2, latent 16, batch 1.")
+    b.add_argument("--passes", metavar="P", help="pass counts: 5, 1..12 or 1,5,12")
+    b.add_argument("--models", default="vanilla,hybrid", metavar="M[,M]", help="comma-separated: vanilla, hybrid")
+    b.add_argument("--latent", type=int, metavar="F", help="latent width (default 64; 16 on the CPU)")
+    b.add_argument("--batch", metavar="B[,B...]",
+                   help="simulations stacked into one graph (default 1,64; 1 on the CPU)")
+    b.add_argument("--backends", default="warp,torch-eager,torch-graph,torch-compile", metavar="NAME[,NAME...]",
+                   help="comma-separated: warp, torch-eager, torch-graph, torch-compile (the last two need CUDA)")
+    b.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when available)")
+    b.add_argument("--repeats", type=int, metavar="N", help="timed steps per record (default 50; 5 on the CPU)")
+    b.add_argument("--mesh", metavar="MESH.vtu", help="time on this mesh (e.g. `warpgnn anatomy --name L5`'s, "
+                   "where pyvista and tetgen are missing; default: the shipped anatomy L5, built here)")
+    b.add_argument("--json", metavar="F", help="write the records here")
+    b.add_argument("--png", metavar="F", help="plot step time against passes here")
+    b.set_defaults(func=cmd_bench)
     return p
 
 

@@ -7,6 +7,7 @@ DIR/*.png          per-rollout RRMSE box plot, the final step beside the FEM (|u
 Per rollout, how much the position error jitters from step to step (its second difference: flips
 of nodes back and forth, which the RMSE hides). The hybrid also reports its degeneracy residual
 and its bulk entropy production dS_i . M_ii dS_i, whose minimum must never be negative.
+The network runs on torch (the TIGNN) or on the Warp kernels (warpgnn.kernels.WarpModel, default on CUDA).
 """
 
 from __future__ import annotations
@@ -24,22 +25,29 @@ from tqdm.auto import tqdm
 from . import checkpoint, dataset, metrics
 from .data import load_file
 from .graphs import GROUPS
+from .model import check_backend
 
 
-def evaluate(checkpoint_path, data_file, out_dir, device=None, backend: str = "torch", chunk: int = 64,
+def evaluate(checkpoint_path, data_file, out_dir, device=None, backend: str | None = None, chunk: int = 64,
              plots: bool = True, log=print) -> dict:
+    """``backend``: torch (the TIGNN) or warp (the kernels); None: warp on CUDA, torch on the CPU."""
     from .rollout import rollout
 
-    if backend != "torch":
-        raise NotImplementedError(f"backend {backend!r} is not built yet (the Warp kernels plug in here)")
+    backend = check_backend(backend, device)
     device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     model, payload = checkpoint.load_model(checkpoint_path, device)
+    if backend == "warp":
+        from .kernels import WarpModel
+
+        network = WarpModel(model)  # before the data are read: a configuration it does not cover ends here
+    else:
+        network = model
     sims = load_file(data_file, device)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     with tqdm(total=len(sims) * sims[0].steps, desc="rollouts", unit="step", leave=False) as bar:
-        rolls = rollout(model, sims, chunk, progress=bar.update)
+        rolls = rollout(network, sims, chunk, progress=bar.update)
     seconds = time.perf_counter() - t0
     per = []
     for r, s in zip(rolls, sims):
@@ -54,7 +62,7 @@ def evaluate(checkpoint_path, data_file, out_dir, device=None, backend: str = "t
     summary = metrics.set_metrics(per, [s.topology.n_nodes for s in sims])
     result = {**summary, "per_rollout": per, "checkpoint": str(checkpoint_path), "data": str(data_file),
               "model": model.describe(), "trained_epochs": payload.get("epoch"), "device": str(device),
-              "rollout_seconds": seconds, "simulations": len(sims),
+              "backend": backend, "rollout_seconds": seconds, "simulations": len(sims),
               "q_error_second_difference": {  # pooled over its node-snapshots like the RMSE, and the largest
                   "rms": metrics.pooled_rms([p["q_error_second_difference"]["rms"] for p in per],
                                             [s.topology.n_nodes * (s.steps - 1) for s in sims]),
@@ -69,7 +77,7 @@ def evaluate(checkpoint_path, data_file, out_dir, device=None, backend: str = "t
         from .plots import node_history, rrmse_boxplot
         from .render import render_comparison
 
-        rrmse_boxplot({model.config.kind: per}, out / "rrmse_boxplot.png", title=Path(data_file).stem)
+        rrmse_boxplot({result["model"]["kind"]: per}, out / "rrmse_boxplot.png", title=Path(data_file).stem)
         worst = int(np.argmax([p["rrmse"]["q"] for p in per]))
         pick = int(np.argsort([p["rrmse"]["q"] for p in per])[len(per) // 2])  # the median rollout
         for i, tag in ((pick, "median"), (worst, "worst")):
@@ -80,10 +88,12 @@ def evaluate(checkpoint_path, data_file, out_dir, device=None, backend: str = "t
         node = int(s.topology.loaded[0])
         node_history(s.z.cpu().numpy()[:, node], rolls[pick].z[:, node], s.dt, out / "node_history.png",
                      f"{s.name}, loaded node {node}")
-    log(f"{Path(data_file).stem}: {len(sims)} rollouts in {seconds:.1f} s; RRMSE q {summary['rrmse']['q']:.3e} "
-        f"v {summary['rrmse']['v']:.3e} sigma {summary['rrmse']['sigma']:.3e}; RMSE q {summary['rmse']['q']:.3e} m "
-        f"v {summary['rmse']['v']:.3e} m/s sigma {summary['rmse']['sigma']:.3e} Pa; position error's second "
-        f"difference RMS {result['q_error_second_difference']['rms']:.2e} m, largest {result['q_error_second_difference']['max']:.2e} m")
+    log(f"{Path(data_file).stem}: {len(sims)} rollouts in {seconds:.1f} s ({backend}); "
+        f"RRMSE q {summary['rrmse']['q']:.3e} v {summary['rrmse']['v']:.3e} sigma {summary['rrmse']['sigma']:.3e}; "
+        f"RMSE q {summary['rmse']['q']:.3e} m v {summary['rmse']['v']:.3e} m/s "
+        f"sigma {summary['rmse']['sigma']:.3e} Pa; "
+        f"position error's second difference RMS {result['q_error_second_difference']['rms']:.2e} m, "
+        f"largest {result['q_error_second_difference']['max']:.2e} m")
     return result
 
 

@@ -1,10 +1,14 @@
 """Full rollouts from the initial state: the network integrates every simulation of a chunk
 side by side (one stacked graph), 20 Euler steps, tools and fixed face imposed each step. (Probes
-start later, or from states of their own: ``first`` and ``z0``.)"""
+start later, or from states of their own: ``first`` and ``z0``.)
+
+A network that rolls a whole chunk out at once (``model.rollout(topology, z0, u, dt)``, the Warp
+backend: one captured CUDA graph) does so; any other goes a step at a time through model.py's interface."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import torch
@@ -22,40 +26,60 @@ class Rollout:
     entropy_production_mean: np.ndarray | None = None  # (steps,)
 
 
+def stepwise(model, top, z, u, dt, tick=None):
+    """A rollout through the narrow interface (model(...) and model.step(...)) from ``z`` (N, 12) with the
+    tools' displacements ``u`` (S+1, K, 3): the states (S+1, N, 12) and, for the hybrid, the degeneracy
+    residual and entropy production of every step and node, ((S, N), (S, N)), else None. The signature
+    and result of ``model.rollout``."""
+    states, deg, ent = [z], [], []
+    for t in range(len(u) - 1):
+        p = model(top, z, u[t], u[t + 1])
+        z = model.step(top, z, u[t], u[t + 1], dt, zdot=p.zdot)
+        states.append(z)
+        if p.degeneracy is not None:
+            deg.append(p.degeneracy)
+            ent.append(p.entropy_production)
+        if tick:
+            tick()
+    return torch.stack(states), ((torch.stack(deg), torch.stack(ent)) if deg else None)
+
+
 @torch.no_grad()
 def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None, first: int = 0,
             z0: list[torch.Tensor] | None = None) -> list[Rollout]:
     """Each simulation rolled from snapshot ``first`` (0: the initial state) to its end, from the
-    ground truth's state there or from ``z0`` (one (N, 12) state per simulation)."""
-    model.eval()
+    ground truth's state there or from ``z0`` (one (N, 12) state per simulation). ``model``: any network
+    behind the interface of model.py (its call and its step), or with a whole-rollout ``model.rollout``."""
     z0 = z0 if z0 is not None else [s.z[first] for s in sims]
     out = []
     for c in range(0, len(sims), chunk):
         part = sims[c:c + chunk]
         device = part[0].z.device
         top = batch([s.topology for s in part]).to(device)
-        graph_of = torch.repeat_interleave(torch.arange(len(part)), top.graph_sizes).to(device)
-        counts = top.graph_sizes.to(device).float()
         z = torch.cat(z0[c:c + chunk]).to(device)
-        states, deg, ent_min, ent_mean = [z], [], [], []
-        for t in range(first, part[0].steps):
-            u_now = torch.cat([s.u[t] for s in part])
-            u_next = torch.cat([s.u[t + 1] for s in part])
-            p = model(top, z, u_now, u_next)
-            z = model.step(top, z, u_now, u_next, part[0].dt, zdot=p.zdot)
-            states.append(z)
-            if p.degeneracy is not None:
-                per = torch.zeros(len(part), device=z.device, dtype=z.dtype)
-                deg.append(per.index_add(0, graph_of, p.degeneracy) / counts)
-                ent_mean.append(per.index_add(0, graph_of, p.entropy_production) / counts)
-                ent_min.append(torch.full((len(part),), float("inf"), device=z.device, dtype=z.dtype)
-                               .scatter_reduce(0, graph_of, p.entropy_production, "amin"))
+        u = torch.cat([s.u[first:] for s in part], 1).to(device)  # (steps + 1, tools of the chunk, 3)
+        if hasattr(model, "rollout"):
+            states, diagnostics = model.rollout(top, z, u, part[0].dt)
             if progress:
-                progress(len(part))
-        zs = torch.stack(states).cpu().numpy()
+                progress(len(part) * (len(u) - 1))
+        else:
+            states, diagnostics = stepwise(model, top, z, u, part[0].dt, progress and partial(progress, len(part)))
+        zs = states.cpu().numpy()
         offsets = np.concatenate([[0], np.cumsum(top.graph_sizes.numpy())])
-        # (graphs, steps) arrays of the hybrid's diagnostics, in Rollout's field order
-        diagnostics = [torch.stack(xs, 1).cpu().numpy() for xs in (deg, ent_min, ent_mean)] if deg else []
+        per_graph = _per_graph(top, diagnostics) if diagnostics is not None else []
         for g, s in enumerate(part):
-            out.append(Rollout(s.name, zs[:, offsets[g]:offsets[g + 1]], *(a[g] for a in diagnostics)))
+            out.append(Rollout(s.name, zs[:, offsets[g]:offsets[g + 1]], *(a[g] for a in per_graph)))
     return out
+
+
+def _per_graph(top, diagnostics) -> list[np.ndarray]:
+    """The hybrid's (S, N) diagnostics as (graphs, steps) arrays in Rollout's field order: the mean
+    degeneracy, the least and the mean entropy production over each graph's nodes."""
+    deg, ent = diagnostics
+    steps, device = deg.shape[0], deg.device
+    graph_of = torch.repeat_interleave(torch.arange(len(top.graph_sizes)), top.graph_sizes).to(device)
+    counts = top.graph_sizes.to(device).to(deg.dtype)
+    zeros = torch.zeros(steps, len(counts), device=device, dtype=deg.dtype)
+    least = torch.full_like(zeros, float("inf")).scatter_reduce(1, graph_of.expand(steps, -1), ent, "amin")
+    out = (zeros.index_add(1, graph_of, deg) / counts, least, zeros.index_add(1, graph_of, ent) / counts)
+    return [x.T.cpu().numpy() for x in out]

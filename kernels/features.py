@@ -1,0 +1,114 @@
+"""Raw features and their standardisation, from the state z and the tools' displacements, in one
+launch (a thread per row of every class), as warpgnn.graphs.raw_features + TIGNN.graph:
+
+    node (N, 12 or 18): standardised v, sigma; one-hot type; [single-graph: the standardised tool
+        features summed at their loaded node]
+    mesh edge (E, 8): q_s - q_r and its norm, now and at rest (sorted by receiver)
+    actuator edge (KA, 8): node j relative to tool k's loaded node, now and at rest
+    tool (K, 6): u_next and u_next - u_now
+
+Rows land where the encoder reads them (graph.Layout's blocks); every column up to the padded
+width is written, so the encoder's zero weight rows never meet stale memory.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import warp as wp
+
+from .spec import FEATURE_WIDTH, STAT_WIDTH, Spec
+
+FW = FEATURE_WIDTH
+
+
+@functools.cache
+def kernels(spec: Spec):
+    @wp.func
+    def std(raw: float, mean: wp.array2d(dtype=float), sd: wp.array2d(dtype=float), cls: int, c: int):
+        return (raw - mean[cls, c]) / sd[cls, c]  # a division, as the reference's
+
+    @wp.func
+    def relative(feat: wp.array2d(dtype=float), row: int, col: int, d: wp.vec3,
+                 mean: wp.array2d(dtype=float), sd: wp.array2d(dtype=float), cls: int):
+        for c in range(3):
+            feat[row, col + c] = std(d[c], mean, sd, cls, col + c)
+        feat[row, col + 3] = std(wp.length(d), mean, sd, cls, col + 3)
+
+    @wp.func
+    def tool_feature(u_now: wp.array2d(dtype=float), u_next: wp.array2d(dtype=float), t: int, c: int,
+                     mean: wp.array2d(dtype=float), sd: wp.array2d(dtype=float)):
+        raw = u_next[t, c % 3]
+        if c >= 3:
+            raw = u_next[t, c - 3] - u_now[t, c - 3]
+        return std(raw, mean, sd, 3, c)
+
+    @wp.func
+    def vec(a: wp.array2d(dtype=float), i: int):
+        return wp.vec3(a[i, 0], a[i, 1], a[i, 2])
+
+    @wp.kernel(enable_backward=False, module=spec.module)
+    def features(z: wp.array2d(dtype=float), u_now: wp.array2d(dtype=float), u_next: wp.array2d(dtype=float),
+                 rest: wp.array2d(dtype=float), node_type: wp.array(dtype=wp.int32),
+                 mesh_recv: wp.array(dtype=wp.int32), mesh_send: wp.array(dtype=wp.int32),
+                 act_node: wp.array(dtype=wp.int32), act_tool: wp.array(dtype=wp.int32),
+                 loaded: wp.array(dtype=wp.int32), tool_off: wp.array(dtype=wp.int32),
+                 tool_list: wp.array(dtype=wp.int32),
+                 mean: wp.array2d(dtype=float), sd: wp.array2d(dtype=float),
+                 n_nodes: int, n_edges: int, n_act: int, single_graph: int,
+                 mesh_row: int, act_row: int, tool_row: int, feat: wp.array2d(dtype=float)):
+        i = wp.tid()
+        row = wp.int32(0)
+        width = wp.int32(0)
+        if i < n_nodes:
+            row = i
+            for c in range(STAT_WIDTH):
+                feat[row, c] = std(z[i, 3 + c], mean, sd, 0, c)
+            for c in range(3):
+                feat[row, STAT_WIDTH + c] = wp.where(node_type[i] == c, 1.0, 0.0)
+            width = STAT_WIDTH + 3
+            if single_graph != 0:
+                for c in range(6):
+                    acc = wp.float32(0.0)
+                    for m in range(tool_off[i], tool_off[i + 1]):
+                        acc += tool_feature(u_now, u_next, tool_list[m], c, mean, sd)
+                    feat[row, width + c] = acc
+                width += 6
+        elif i < n_nodes + n_edges:
+            e = i - n_nodes
+            row = mesh_row + e
+            rcv, snd = mesh_recv[e], mesh_send[e]
+            relative(feat, row, 0, vec(z, snd) - vec(z, rcv), mean, sd, 1)
+            relative(feat, row, 4, vec(rest, snd) - vec(rest, rcv), mean, sd, 1)
+            width = 8
+        elif i < n_nodes + n_edges + n_act:
+            a = i - n_nodes - n_edges
+            row = act_row + a
+            j, k = act_node[a], loaded[act_tool[a]]
+            relative(feat, row, 0, vec(z, j) - vec(z, k), mean, sd, 2)
+            relative(feat, row, 4, vec(rest, j) - vec(rest, k), mean, sd, 2)
+            width = 8
+        else:
+            tool = i - n_nodes - n_edges - n_act
+            row = tool_row + tool
+            for c in range(6):
+                feat[row, c] = tool_feature(u_now, u_next, tool, c, mean, sd)
+            width = 6
+        for c in range(width, FW):
+            feat[row, c] = 0.0
+
+    return features
+
+
+def launch(net, record: bool = False):
+    """``net``: a network.Network (its buffers, graph and weights). Returns the Launch when ``record``."""
+    g, lay, w = net.graph, net.layout, net.weights
+    n_act = lay.n_act_edges
+    n_tools = lay.n_tools if w.actuator_graphs else 0
+    dim = lay.n_nodes + lay.n_edges + n_act + n_tools
+    return wp.launch(
+        kernels(net.spec), dim=dim, block_dim=net.block_dim, device=net.device, record_cmd=record,
+        inputs=[net.z, net.u_now, net.u_next, g.rest, g.node_type, g.mesh_recv, g.mesh_send, g.act_node,
+                g.act_tool, g.loaded, g.tool_off, g.tool_list, w.stat_mean, w.stat_std,
+                lay.n_nodes, lay.n_edges, n_act, 0 if w.actuator_graphs else 1,
+                lay.mesh_row, lay.act_row, lay.tool_row, net.feat])

@@ -1,0 +1,153 @@
+"""The forward step of a TIGNN in Warp kernels, in the style of NVIDIA Warp's examples: every buffer
+is allocated in __init__, ``forward()`` / ``step()`` only launch (recorded launches, replayed), so a
+whole step can be captured once as a CUDA graph (``capture()``) and replayed.
+
+    net = Network(model, topology, device="cuda:0")
+    net.set_inputs(z, u_now, u_next, dt)      # copies into net.z, net.u_now, net.u_next, net.dt
+    net.forward()                              # net.zdot, net.zdot_std, [net.degeneracy, net.entropy], net.z_next
+    net.step()                                 # forward, then z <- z_next (a rollout: set u, step, ...)
+
+Launches per step: features 1, encoders 1, 2 per pass, then the hybrid's decoder fields 1 and
+GENERIC tail 1 (Euler and boundary conditions included), or the vanilla decoder-and-tail 1;
+``step()`` adds one device copy. 2 P + 4 (hybrid) or 2 P + 3 (vanilla) kernels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from . import decoders, features, generic_tail, integrate, message_passing
+from .graph import build
+from .spec import FEATURE_WIDTH, N_GRAD, N_LM, STATE, Spec
+from .weights import pack
+
+
+def build_kernels(spec: Spec) -> None:
+    """Create every kernel of ``spec`` before any launch: they share one Warp module, compiled once."""
+    for module in (features, message_passing, decoders, generic_tail, integrate):
+        module.kernels(spec)
+
+
+def _as_warp(x, device):
+    """A Warp view of a torch tensor (zero-copy where it can be), a Warp array, or array-like data."""
+    if isinstance(x, wp.array):
+        return x
+    try:
+        import torch
+        if isinstance(x, torch.Tensor):
+            return wp.from_torch(x.detach().float().contiguous())
+    except ImportError:  # pragma: no cover
+        pass
+    return wp.array(np.ascontiguousarray(x, np.float32), dtype=float, device=device)
+
+
+class Network:
+    def __init__(self, model, topology, device=None, tile_rows: int = 32, block_dim: int | None = None,
+                 k_chunk: int = 0):
+        """``model``: a warpgnn TIGNN (its config and weights are read once); ``topology``: a
+        warpgnn.graphs.Topology, one simulation or a stacked batch. ``block_dim``: threads a block
+        of the tile kernels (the CPU runs one unless wp.config.enable_cpu_blocks)."""
+        self.device = wp.get_device(device)
+        self.weights = w = pack(model, self.device)
+        self.spec = Spec(w.latent, tile_rows, k_chunk)
+        build_kernels(self.spec)
+        self.graph = build(topology, tile_rows, w.actuator_graphs, w.kind == "hybrid", self.device)
+        self.layout = lay = self.graph.layout
+        self.block_dim = block_dim or (128 if self.device.is_cuda else 1)
+        n, k, F = lay.n_nodes, topology.n_tools, w.latent
+
+        def zeros(*shape):
+            return wp.zeros(shape, dtype=float, device=self.device)
+
+        # inputs
+        self.z, self.u_now, self.u_next = zeros(n, STATE), zeros(max(k, 1), 3), zeros(max(k, 1), 3)
+        self.dt = zeros(n)
+        self.n_tools = k
+        # scratch: features and latents of every row, node (and tool) products, decoder fields
+        self.feat = zeros(lay.rows, FEATURE_WIDTH)
+        self.lat = zeros(lay.rows, F)
+        hybrid = w.kind == "hybrid"
+        self.products = zeros(lay.nodes_pad + w.passes * lay.tools_pad, 3 * F)
+        self.self_loop = w.self_loop if hybrid else zeros(1, F)
+        self.lm = zeros(lay.edges_pad + lay.nodes_pad, N_LM) if hybrid else None
+        self.grads = zeros(lay.nodes_pad, N_GRAD) if hybrid else None
+        # outputs
+        self.zdot, self.zdot_std, self.z_next = zeros(n, STATE), zeros(n, STATE), zeros(n, STATE)
+        self.degeneracy = zeros(n) if hybrid else None
+        self.entropy = zeros(n) if hybrid else None
+
+        self._launches = ([features.launch(self, record=True)] + message_passing.launches(self, self.block_dim)
+                          + decoders.launches(self, self.block_dim) + generic_tail.launches(self))
+        self._graphs = []  # CUDA graphs of forward and step, once captured
+
+    # ----------------------------------------------------------------------------- inputs and outputs
+    @property
+    def n_launches(self) -> int:
+        return len(self._launches)
+
+    def set_inputs(self, z=None, u_now=None, u_next=None, dt=None) -> None:
+        """Copy the state (N, 12), the tools' displacements (K, 3) at t and t + dt and the step dt
+        (a number, or one per node: (N,) or (N, 1)) into the input buffers; None leaves one as it is."""
+        for buf, x in ((self.z, z), (self.u_now, u_now), (self.u_next, u_next)):
+            if x is None or (buf is not self.z and self.n_tools == 0):
+                continue
+            a = _as_warp(x, self.device)
+            if a.shape != buf.shape:
+                raise ValueError(f"expected shape {buf.shape}, got {a.shape}")
+            wp.copy(buf, a)
+        if dt is None:
+            return
+        size = dt.size if isinstance(dt, wp.array) else dt.numel() if hasattr(dt, "numel") else np.size(dt)
+        if size > 1:
+            a = _as_warp(dt, self.device)
+            if a.size != self.layout.n_nodes:
+                raise ValueError(f"dt: one number or one per node ({self.layout.n_nodes}), got {a.shape}")
+            wp.copy(self.dt, a.reshape((self.layout.n_nodes,)))
+        else:
+            self.dt.fill_(float(dt))
+
+    def outputs(self) -> dict:
+        """The output buffers as torch tensors (zero-copy views: the next step overwrites them)."""
+        names = ("zdot", "zdot_std", "degeneracy", "entropy", "z_next")
+        return {k: wp.to_torch(getattr(self, k)) for k in names if getattr(self, k) is not None}
+
+    # ----------------------------------------------------------------------------- running
+    def _launch_all(self) -> None:
+        for launch in self._launches:
+            launch.launch()
+
+    def forward(self) -> None:
+        """TIGNN.forward at (z, u_now, u_next), and z(t + dt) = TIGNN.step's state into z_next."""
+        if self._graphs:
+            wp.capture_launch(self._graphs[0])
+        else:
+            self._launch_all()
+
+    def step(self) -> None:
+        """forward, then advance: z <- z_next (set u_now, u_next before each step of a rollout)."""
+        if self._graphs:
+            wp.capture_launch(self._graphs[1])
+        else:
+            self._launch_all()
+            wp.copy(self.z, self.z_next)
+
+    def integrate(self, zdot, out) -> None:
+        """Euler and the boundary conditions with a given zdot (N, 12) into ``out`` (TIGNN.step's zdot=)."""
+        integrate.launch(self, _as_warp(zdot, self.device), out)
+
+    def capture(self) -> None:
+        """On CUDA: record forward() and step() once each as a CUDA graph, replayed from then on
+        (a launch costs ~25 us from Python and ~1.3 us inside a graph on the H100: calibration notes).
+        The modules were loaded when the launches were recorded, so nothing compiles while capturing."""
+        if not self.device.is_cuda:
+            return
+        self._graphs = []
+        graphs = []
+        for advance in (False, True):
+            with wp.ScopedCapture(device=self.device) as cap:
+                self._launch_all()
+                if advance:
+                    wp.copy(self.z, self.z_next)
+            graphs.append(cap.graph)
+        self._graphs = graphs

@@ -1,0 +1,54 @@
+"""What a set of compiled kernels is specialised for, and the configurations the kernels cover.
+
+Tile shapes are compile-time constants in Warp, so every kernel is built by a factory for one
+``Spec`` (latent width F, rows per tile, K chunk of the products) and all kernels of one spec share
+one Warp module: one compile per spec whatever the passes, the variant (vanilla or hybrid, with or
+without actuator graphs) or the topology (on a 2-core CPU ~15 s a module, of which the C++ headers
+alone cost ~4 s: one module, not one per kernel).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+STATE = 12  # q, v, sigma per node
+N_L = STATE * (STATE - 1) // 2  # 66: strict lower triangle of A
+N_M = STATE * (STATE + 1) // 2  # 78: lower triangle of B
+N_LM = N_L + N_M  # delta_e's outputs per edge and self-loop
+N_GRAD = 2 * STATE  # delta_v's outputs per node: dE, dS
+FEATURE_WIDTH = 24  # widest encoder input (18: the single-graph node features) padded to a multiple of 8
+STAT_WIDTH = 9  # widest standardised raw feature set (the node's v, sigma)
+
+
+@dataclass(frozen=True)
+class Spec:
+    latent: int  # F
+    tile_rows: int = 32  # rows (edges or nodes) per tile, one tile per block
+    # K extent of each partial product (0: the largest divisor of F up to 32): (K, F) weight slices keep
+    # a block's shared memory bounded at F = 128, where one (F, F) fp32 weight is 64 KiB
+    k_chunk: int = 0
+
+    @property
+    def kc(self) -> int:
+        kc = self.k_chunk or math.gcd(self.latent, 32)
+        if self.latent % kc:
+            raise ValueError(f"k_chunk {kc} must divide the latent width {self.latent}")
+        return kc
+
+    @property
+    def module(self) -> str:
+        return f"warpgnn_kernels_F{self.latent}_T{self.tile_rows}_K{self.kc}"
+
+
+def check_config(config) -> None:
+    """The kernels cover the paper's configurations: hybrid or vanilla, any passes and latent,
+    with or without actuator graphs, one hidden layer per MLP. Anything else is refused in one line."""
+    if getattr(config, "kind", None) not in ("hybrid", "vanilla"):
+        raise ValueError(f"model kind {getattr(config, 'kind', None)!r} is not covered by the Warp kernels "
+                         "(hybrid or vanilla)")
+    if config.hidden_layers != 1:
+        raise ValueError(f"hidden_layers = {config.hidden_layers} is not covered by the Warp kernels "
+                         "(hidden_layers = 1 only)")
+    if config.passes < 1 or config.latent < 1:
+        raise ValueError("passes and latent must be >= 1")

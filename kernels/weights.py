@@ -1,0 +1,145 @@
+"""A TIGNN's weights packed once into Warp arrays, in the layouts the kernels read.
+
+Linear weights are stored transposed, (in, out), so a tile of rows times a weight slice is a
+plain ``tile_matmul``. Weights of the same role are stacked along rows (one block per pass and
+edge set), so a kernel picks its block with a runtime row offset: one compiled kernel serves every
+pass, both edge sets and both variants. Read through the state-dict keys, the checkpoint contract.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from .spec import FEATURE_WIDTH, N_GRAD, N_LM, STAT_WIDTH, STATE, check_config
+
+# encoder classes, in the row order of the latent buffer (graph.Layout)
+ENCODERS = ("node_encoder", "edge_encoder", "actuator_edge_encoder", "actuator_encoder")
+STATS = ("node", "mesh_edge", "actuator_edge", "actuator_node")  # the normaliser's feature set of each class
+
+
+@dataclass
+class Weights:
+    kind: str
+    passes: int
+    latent: int
+    actuator_graphs: bool
+    eps: float  # LayerNorm epsilon
+    n_node_features: int  # 12, or 18 for the single-graph ablation
+    arrays: dict  # name -> wp.array (see pack)
+
+    def __getattr__(self, name):
+        try:
+            return self.__dict__["arrays"][name]
+        except KeyError:
+            raise AttributeError(name) from None
+
+
+def _t(w) -> np.ndarray:
+    """torch Linear weight (out, in) -> (in, out) float32."""
+    return w.detach().cpu().float().numpy().T
+
+
+def _v(b) -> np.ndarray:
+    return b.detach().cpu().float().numpy()
+
+
+def pack(model, device=None) -> Weights:
+    """Pack a TIGNN (any checkpoint of a covered configuration) for the kernels on ``device``."""
+    c = model.config
+    check_config(c)
+    sd = model.state_dict()
+    F, P, A = c.latent, c.passes, c.actuator_graphs
+    ln = [m for m in model.modules() if m.__class__.__name__ == "LayerNorm"]
+    eps = float(ln[0].eps) if ln else 1e-5
+
+    # encoders: class k's first layer in rows [k * FW, k * FW + in_k), zero-padded to FW
+    enc = [e for e in ENCODERS if A or e in ("node_encoder", "edge_encoder")]
+    enc_w1 = np.zeros((4 * FEATURE_WIDTH, F), np.float32)
+    enc_b1, enc_w2, enc_b2, enc_g, enc_be = (np.zeros((4, F), np.float32), np.zeros((4 * F, F), np.float32),
+                                             np.zeros((4, F), np.float32), np.ones((4, F), np.float32),
+                                             np.zeros((4, F), np.float32))
+    for k, name in enumerate(ENCODERS):
+        if name not in enc:
+            continue
+        w1 = _t(sd[f"core.{name}.0.weight"])
+        enc_w1[k * FEATURE_WIDTH:k * FEATURE_WIDTH + w1.shape[0]] = w1
+        enc_b1[k] = _v(sd[f"core.{name}.0.bias"])
+        enc_w2[k * F:(k + 1) * F] = _t(sd[f"core.{name}.2.weight"])
+        enc_b2[k] = _v(sd[f"core.{name}.2.bias"])
+        enc_g[k] = _v(sd[f"core.{name}.3.weight"])
+        enc_be[k] = _v(sd[f"core.{name}.3.bias"])
+    n_node_features = sd["core.node_encoder.0.weight"].shape[1]
+
+    # passes: edge MLPs stacked by (pass, set) with set 0 = mesh (f_m), 1 = actuator (f_w)
+    ew_e, ew_w2 = np.zeros((2 * P * F, F), np.float32), np.zeros((2 * P * F, F), np.float32)
+    ew_b1, ew_b2 = np.zeros((2 * P, F), np.float32), np.zeros((2 * P, F), np.float32)
+    ew_g, ew_be = np.ones((2 * P, F), np.float32), np.zeros((2 * P, F), np.float32)
+    # node MLPs: f_v's first layer as three (F, F) blocks for x, sum of mesh messages, sum of actuator messages
+    nv_w1 = np.zeros((3 * P * F, F), np.float32)
+    nv_w2 = np.zeros((P * F, F), np.float32)
+    nv_b1, nv_b2, nv_g, nv_be = (np.zeros((P, F), np.float32), np.zeros((P, F), np.float32),
+                                 np.ones((P, F), np.float32), np.zeros((P, F), np.float32))
+    # per-node products of the next stage, [W_r(f_m) | W_s(f_m) | W_r(f_w)] for pass p, the decoder's at P
+    proj = np.zeros(((P + 1) * F, 3 * F), np.float32)
+    tool_proj = np.zeros((P * F, F), np.float32)  # W_s(f_w): actuator latents a are the senders
+    for p in range(P):
+        pre = f"core.passes.{p}"
+        for s, f in enumerate(("f_m", "f_w")):
+            if f == "f_w" and not A:
+                continue
+            i = 2 * p + s
+            ew_e[i * F:(i + 1) * F] = _t(sd[f"{pre}.{f}.edge.weight"])
+            ew_b1[i] = _v(sd[f"{pre}.{f}.edge.bias"])
+            ew_w2[i * F:(i + 1) * F] = _t(sd[f"{pre}.{f}.rest.1.weight"])
+            ew_b2[i] = _v(sd[f"{pre}.{f}.rest.1.bias"])
+            ew_g[i] = _v(sd[f"{pre}.{f}.rest.2.weight"])
+            ew_be[i] = _v(sd[f"{pre}.{f}.rest.2.bias"])
+        w1 = _t(sd[f"{pre}.f_v.0.weight"])  # (2F or 3F, F)
+        nv_w1[3 * p * F:3 * p * F + w1.shape[0]] = w1
+        nv_b1[p] = _v(sd[f"{pre}.f_v.0.bias"])
+        nv_w2[p * F:(p + 1) * F] = _t(sd[f"{pre}.f_v.2.weight"])
+        nv_b2[p] = _v(sd[f"{pre}.f_v.2.bias"])
+        nv_g[p] = _v(sd[f"{pre}.f_v.3.weight"])
+        nv_be[p] = _v(sd[f"{pre}.f_v.3.bias"])
+        proj[p * F:(p + 1) * F, :F] = _t(sd[f"{pre}.f_m.receiver.weight"])
+        proj[p * F:(p + 1) * F, F:2 * F] = _t(sd[f"{pre}.f_m.sender.weight"])
+        if A:
+            proj[p * F:(p + 1) * F, 2 * F:] = _t(sd[f"{pre}.f_w.receiver.weight"])
+            tool_proj[p * F:(p + 1) * F] = _t(sd[f"{pre}.f_w.sender.weight"])
+
+    arrays = {"enc_w1": enc_w1, "enc_b1": enc_b1, "enc_w2": enc_w2, "enc_b2": enc_b2, "enc_g": enc_g, "enc_be": enc_be,
+                  "ew_e": ew_e, "ew_b1": ew_b1, "ew_w2": ew_w2, "ew_b2": ew_b2, "ew_g": ew_g, "ew_be": ew_be,
+                  "nv_w1": nv_w1, "nv_b1": nv_b1, "nv_w2": nv_w2, "nv_b2": nv_b2, "nv_g": nv_g, "nv_be": nv_be,
+                  "tool_proj": tool_proj}
+
+    # decoders: the first layer's per-node products join proj's last block (the last pass computes them)
+    if c.kind == "hybrid":
+        d = "decoder"
+        proj[P * F:, :F] = _t(sd[f"{d}.delta_e.receiver.weight"])
+        proj[P * F:, F:2 * F] = _t(sd[f"{d}.delta_e.sender.weight"])
+        proj[P * F:, 2 * F:] = _t(sd[f"{d}.delta_v.0.weight"])
+        arrays.update(
+            de_e=_t(sd[f"{d}.delta_e.edge.weight"]), de_b1=_v(sd[f"{d}.delta_e.edge.bias"])[None],
+            de_w2=_t(sd[f"{d}.delta_e.rest.1.weight"]), de_b2=_v(sd[f"{d}.delta_e.rest.1.bias"])[None],
+            dv_b1=_v(sd[f"{d}.delta_v.0.bias"])[None], dv_w2=_t(sd[f"{d}.delta_v.2.weight"]),
+            dv_b2=_v(sd[f"{d}.delta_v.2.bias"])[None], self_loop=_v(sd[f"{d}.self_loop"])[None])
+        assert arrays["de_w2"].shape == (F, N_LM) and arrays["dv_w2"].shape == (F, N_GRAD)
+    else:
+        proj[P * F:, :F] = _t(sd["decoder.0.weight"])
+        arrays.update(vd_b1=_v(sd["decoder.0.bias"])[None], vd_w2=_t(sd["decoder.2.weight"]),
+                      vd_b2=_v(sd["decoder.2.bias"])[None])
+        assert arrays["vd_w2"].shape == (F, STATE)
+    arrays["proj"] = proj
+
+    # standardisation: per class (ENCODERS order) mean and std of the raw features, padded with 0 / 1
+    mean, std = np.zeros((4, STAT_WIDTH), np.float32), np.ones((4, STAT_WIDTH), np.float32)
+    for k, name in enumerate(STATS):
+        m, s = _v(sd[f"normalizer.{name}_mean"]), _v(sd[f"normalizer.{name}_std"])
+        mean[k, :len(m)], std[k, :len(s)] = m, s
+    arrays.update(stat_mean=mean, stat_std=std, zdot_scale=_v(sd["normalizer.zdot_scale"]))
+
+    arrays = {k: wp.array(np.ascontiguousarray(v, np.float32), dtype=float, device=device) for k, v in arrays.items()}
+    return Weights(c.kind, P, F, A, eps, n_node_features, arrays)

@@ -1,0 +1,258 @@
+"""The Warp kernels (warpgnn.kernels) against the torch reference (TIGNN), on Warp's CPU device.
+
+Forward (zdot physical and standardised, the hybrid's degeneracy and entropy production) and step
+(Euler and boundary conditions) agree to 1e-5 of each output column's scale in float32, for both
+variants, with and without actuator graphs, 1 and 2 passes, F = 16 and 32, meshes of several
+sizes, 1 to 4 tools, a batch of two different meshes; the shipped network on the procedural L5
+liver, one forward and a 20-step rollout equal to warpgnn.rollout.rollout within 1e-4. Every output
+element is written (buffers poisoned with NaN first), runs repeat bit for bit, several threads
+a block give the same numbers (CPU fibers), and what the kernels do not cover is refused in one line.
+
+Kernels compile once per latent width (one Warp module each, cached on disk); building a Network
+after that costs milliseconds, so the tests build many.
+"""
+
+import numpy as np
+import pytest
+import torch
+import warp as wp
+from synthetic import box
+from warpgnn.kernels import Network
+
+from warpgnn.graphs import batch, make_topology
+from warpgnn.model import TIGNN, ModelConfig
+from warpgnn.normalization import FEATURES
+
+wp.config.quiet = True
+TOL = 1e-5
+DT = 0.05
+HAS_CUDA = wp.get_cuda_device_count() > 0
+
+
+# ----------------------------------------------------------------------------- helpers
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread():
+    """The torch reference on one thread: on a small shared CPU its worker threads mostly wait
+    (the L5 rollout took 5x longer on two)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def random_model(kind="hybrid", passes=2, latent=16, actuator_graphs=True, seed=0, **kw) -> TIGNN:
+    """Random weights, LayerNorm gains and shifts away from (1, 0), a normaliser far from the identity."""
+    torch.manual_seed(seed)
+    model = TIGNN(ModelConfig(kind=kind, passes=passes, latent=latent, actuator_graphs=actuator_graphs, **kw))
+    gen = torch.Generator().manual_seed(seed + 100)
+    with torch.no_grad():
+        for m in model.modules():
+            if isinstance(m, torch.nn.LayerNorm):
+                m.weight.copy_(1 + 0.2 * torch.randn(m.weight.shape, generator=gen))
+                m.bias.copy_(0.2 * torch.randn(m.bias.shape, generator=gen))
+        norm = model.normalizer
+        scales = {"node": [1e-2] * 3 + [1e3] * 6, "mesh_edge": [5e-3] * 8, "actuator_node": [3e-3] * 6,
+                  "actuator_edge": [2e-2] * 8}
+        for name, width in FEATURES.items():
+            s = torch.tensor(scales[name])
+            getattr(norm, f"{name}_mean").copy_(0.3 * s * torch.randn(width, generator=gen))
+            getattr(norm, f"{name}_std").copy_(s * (0.5 + torch.rand(width, generator=gen)))
+        norm.zdot_scale.copy_(torch.tensor([1e-2] * 3 + [1e-1] * 3 + [1e4] * 6) * (0.5 + torch.rand(12, generator=gen)))
+    return model.eval()
+
+
+def tool_topology(mesh, n_tools, seed=0):
+    """``n_tools`` tools on top-face nodes, each driving its loaded node (weight 1) and one free
+    neighbour (weight 0.5): footprints, tools and weights all matter."""
+    top = np.flatnonzero(mesh.nodes[:, 2] > mesh.nodes[:, 2].max() - 1e-9)
+    loaded = np.random.default_rng(seed).choice(top, n_tools, replace=False)
+    ring = mesh.neighbours()
+    nodes, tools, weights = [], [], []
+    for k, node in enumerate(loaded):
+        free = [j for j in ring[node] if not mesh.fixed[j] and j not in loaded and j not in nodes]
+        nodes += [int(node), int(free[0])]
+        tools += [k, k]
+        weights += [1.0, 0.5]
+    return make_topology(mesh, loaded, nodes, tools, weights)
+
+
+def random_inputs(top, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    n, k = top.n_nodes, top.n_tools
+    z = torch.cat([top.rest + 2e-3 * torch.randn(n, 3, generator=gen), 1e-2 * torch.randn(n, 3, generator=gen),
+                   1e3 * torch.randn(n, 6, generator=gen)], 1)
+    u_now = 3e-3 * torch.randn(k, 3, generator=gen)
+    return z, u_now, u_now + 1e-3 * torch.randn(k, 3, generator=gen)
+
+
+@torch.no_grad()
+def reference(model, top, z, u_now, u_next, dt=DT) -> dict:
+    p = model(top, z, u_now, u_next)
+    ref = {"zdot": p.zdot, "zdot_std": p.zdot_standardized, "z_next": model.step(top, z, u_now, u_next, dt)}
+    if p.degeneracy is not None:
+        ref.update(degeneracy=p.degeneracy, entropy=p.entropy_production)
+    return {k: v.numpy() for k, v in ref.items()}
+
+
+def run(net, z, u_now, u_next, dt=DT) -> dict:
+    net.set_inputs(z, u_now, u_next, dt)
+    net.forward()
+    return {k: v.cpu().numpy().copy() for k, v in net.outputs().items()}
+
+
+def assert_matches(out: dict, ref: dict, tol=TOL):
+    """Each output within ``tol`` of its reference's scale, column by column (positions, velocities
+    and stresses differ by 1e5)."""
+    assert out.keys() == ref.keys()
+    for name, r in ref.items():
+        o = out[name]
+        assert o.shape == r.shape, name
+        assert np.isfinite(o).all(), name
+        scale = np.abs(r).max(axis=0) if r.ndim > 1 else np.abs(r).max()
+        err = np.abs(o - r) / np.maximum(scale, 1e-30)
+        assert err.max() <= tol, f"{name}: relative error {err.max():.2e}"
+
+
+def check(model, top, seed=0, **kw):
+    z, u_now, u_next = random_inputs(top, seed)
+    net = Network(model, top, device="cpu", **kw)
+    out = run(net, z, u_now, u_next)
+    assert_matches(out, reference(model, top, z, u_now, u_next))
+    return net, out
+
+
+# ----------------------------------------------------------------------------- random weights
+@pytest.mark.parametrize("latent", [16, 32])
+@pytest.mark.parametrize("passes", [1, 2])
+@pytest.mark.parametrize("actuator_graphs", [True, False], ids=["actuators", "single-graph"])
+@pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
+def test_forward_and_step_match_reference(kind, actuator_graphs, passes, latent):
+    model = random_model(kind, passes, latent, actuator_graphs)
+    net, _ = check(model, tool_topology(box((3, 3, 2)), 2))
+    assert net.n_launches == 2 * passes + (4 if kind == "hybrid" else 3)
+
+
+@pytest.mark.parametrize("cells,tools", [((2, 2, 1), 1), ((3, 3, 2), 2), ((5, 4, 3), 3), ((7, 6, 3), 4)])
+def test_mesh_sizes_and_tool_counts(cells, tools):
+    """18 to 224 nodes (never a whole number of 32-row tiles), 1 to 4 tools."""
+    check(random_model("hybrid", 2, 16), tool_topology(box(cells), tools, seed=tools), seed=tools)
+
+
+@pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
+def test_batch_of_two_meshes(kind):
+    """Two simulations of different meshes and tool counts stacked (graphs.batch): one graph."""
+    top = batch([tool_topology(box((3, 3, 2)), 1, seed=1), tool_topology(box((4, 2, 3)), 3, seed=2)])
+    check(random_model(kind, 2, 16, seed=3), top, seed=4)
+
+
+def test_step_per_node_dt_and_given_zdot():
+    """TIGNN.step with dt per node (stacked simulations) and with a zdot brought by the caller."""
+    model = random_model("hybrid", 1, 16)
+    top = tool_topology(box((3, 3, 2)), 2)
+    z, u_now, u_next = random_inputs(top, 5)
+    dt = torch.linspace(0.01, 0.1, top.n_nodes)[:, None]
+    net = Network(model, top, device="cpu")
+    out = run(net, z, u_now, u_next, dt)
+    assert_matches(out, reference(model, top, z, u_now, u_next, dt))
+    zdot = 1e-2 * torch.randn(top.n_nodes, 12)
+    given = wp.zeros((top.n_nodes, 12), dtype=float, device="cpu")
+    net.integrate(zdot, given)
+    with torch.no_grad():
+        expected = model.step(top, z, u_now, u_next, dt, zdot=zdot).numpy()
+    assert_matches({"z": given.numpy()}, {"z": expected})
+
+
+@pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
+def test_every_output_written_and_runs_repeat(kind):
+    """Outputs and every scratch buffer poisoned with NaN: the forward still equals the reference
+    (nothing real reads an unwritten element), and a second run is bit for bit the first (CSR sums)."""
+    model = random_model(kind, 2, 16, seed=7)
+    top = tool_topology(box((4, 3, 2)), 3, seed=7)
+    z, u_now, u_next = random_inputs(top, 7)
+    net = Network(model, top, device="cpu")
+    net.set_inputs(z, u_now, u_next, DT)
+    for name in ("feat", "lat", "products", "lm", "grads", "zdot", "zdot_std", "degeneracy", "entropy", "z_next"):
+        buf = getattr(net, name)
+        if buf is not None:
+            buf.fill_(float("nan"))
+    net.forward()
+    first = {k: v.cpu().numpy().copy() for k, v in net.outputs().items()}
+    assert_matches(first, reference(model, top, z, u_now, u_next))
+    net.forward()
+    for k, v in net.outputs().items():
+        assert np.array_equal(v.cpu().numpy(), first[k]), k
+
+
+def test_several_threads_a_block(monkeypatch):
+    """The tile kernels' per-thread parts (CSR sums, epilogues) with 5 threads a block (CPU fibers;
+    5 divides no tile), as on a GPU: the same answer."""
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    top = tool_topology(box((3, 3, 2)), 2)
+    for kind in ("hybrid", "vanilla"):
+        check(random_model(kind, 2, 16, seed=11), top, seed=11, block_dim=5)
+
+
+def test_unsupported_configuration_refused_in_one_line():
+    model = random_model("hybrid", 1, 16, hidden_layers=2)
+    with pytest.raises(ValueError) as err:
+        Network(model, tool_topology(box((2, 2, 1)), 1), device="cpu")
+    message = str(err.value)
+    assert "hidden_layers" in message and "\n" not in message
+
+
+# ----------------------------------------------------------------------------- the shipped network
+@pytest.fixture(scope="module")
+def shipped_case():
+    """The shipped hybrid on L5, two tools ramping in from rest (as tests/test_shipped_rollout.py),
+    and the torch reference's 20-step rollout."""
+    from pinned import l5_from_rest
+
+    from warpgnn import checkpoint
+    from warpgnn.rollout import rollout
+
+    sim = l5_from_rest("L5/kernels")
+    top, u = sim.topology, sim.u
+    model, _ = checkpoint.load_model(checkpoint.PRETRAINED_HYBRID)
+    z = rollout(model, [sim])[0].z  # (21, N, 12)
+    return model, top, u, z
+
+
+def test_shipped_network_forward_on_L5(shipped_case):
+    model, top, u, z = shipped_case
+    state = torch.as_tensor(z[10])
+    out = run(Network(model, top, device="cpu"), state, u[10], u[11])
+    assert_matches(out, reference(model, top, state, u[10], u[11]))
+
+
+def test_shipped_network_rollout_on_L5(shipped_case):
+    """20 steps through Network.step equal warpgnn.rollout.rollout's (the torch reference) within 1e-4."""
+    model, top, u, z = shipped_case
+    net = Network(model, top, device="cpu")
+    net.set_inputs(z=torch.as_tensor(z[0]), dt=DT)
+    states = [z[0]]
+    for t in range(len(u) - 1):
+        net.set_inputs(u_now=u[t], u_next=u[t + 1])
+        net.step()
+        states.append(net.z.numpy().copy())
+    states = np.stack(states)
+    assert np.abs(z[-1, :, :3] - z[0, :, :3]).max() > 1e-3  # the tools moved the liver
+    scale = np.abs(z).max(axis=(0, 1))
+    err = (np.abs(states - z) / scale).max()
+    assert err <= 1e-4, err
+
+
+# ----------------------------------------------------------------------------- GPU only
+@pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device")
+def test_cuda_graph_step_equals_eager():
+    """On CUDA a whole step is one captured graph; its replay equals the launches one by one and the
+    reference (the tile kernels' GPU path: cuBLASDx products, many threads a block)."""
+    model = random_model("hybrid", 2, 32, seed=13)
+    top = tool_topology(box((5, 4, 3)), 3, seed=13)
+    z, u_now, u_next = random_inputs(top, 13)
+    net = Network(model, top, device="cuda:0")
+    eager = run(net, z, u_now, u_next)
+    assert_matches(eager, reference(model, top, z, u_now, u_next))
+    net.capture()
+    replay = run(net, z, u_now, u_next)
+    for k, v in eager.items():
+        assert np.array_equal(replay[k], v), k
