@@ -8,8 +8,12 @@ pytest.importorskip("tetgen")
 pytest.importorskip("pymeshfix")
 
 from warpgnn.anatomy import (  # noqa: E402
+    FIXED_FRACTION,
+    LIVER_FIXED_FRACTIONS,
     LIVERS,
+    check_fixed_rule,
     find_fixed_face,
+    fixed_face_by_fraction,
     mesh_from_surface,
     mesh_quality,
     procedural_liver,
@@ -141,6 +145,77 @@ def test_find_fixed_face_on_a_box():
         find_fixed_face(box, axis=(0, 0, 0))
 
 
+def test_training_livers_fixed_share_and_default(livers):
+    """L1..L5 keep find_fixed_face's flat face (the dataset stays reproducible); the rule's default
+    share is their mean, and the rule itself finds that flat face."""
+    for name, mesh in livers.items():
+        np.testing.assert_array_equal(mesh.fixed, find_fixed_face(mesh))
+        assert mesh.fixed.mean() == pytest.approx(LIVER_FIXED_FRACTIONS[name], abs=1e-12)
+        mask, axis = fixed_face_by_fraction(mesh)
+        np.testing.assert_allclose(axis, [0, 0, -1], atol=0.02)
+        assert (mask & mesh.fixed).sum() >= 0.95 * min(mask.sum(), mesh.fixed.sum())
+    assert FIXED_FRACTION == pytest.approx(np.mean([m.fixed.mean() for m in livers.values()]), abs=5e-4)
+
+
+def connected(mesh, mask):
+    """Whether the masked nodes are one piece over surface edges among themselves."""
+    f = mesh.boundary_faces()
+    e = f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    e = e[mask[e].all(axis=1)]
+    seen, todo = set(), [int(np.flatnonzero(mask)[0])]
+    while todo:
+        i = todo.pop()
+        if i not in seen:
+            seen.add(i)
+            todo += e[e[:, 0] == i, 1].tolist() + e[e[:, 1] == i, 0].tolist()
+    return len(seen) == mask.sum()
+
+
+def test_fixed_face_rule_on_a_rotated_liver_surface(livers, tmp_path):
+    """L2 turned by a random rotation, written as an STL and meshed as a user's surface: the rule
+    recovers the training share on its turned flat face, and with a given axis a face on that side."""
+    q, r = np.linalg.qr(np.random.default_rng(7).normal(size=(3, 3)))
+    rot = q * np.sign(np.diag(r)) * np.sign(np.linalg.det(q * np.sign(np.diag(r))))
+    liver = livers["L2"]
+    pv.PolyData.from_regular_faces(liver.nodes @ rot.T, liver.boundary_faces()).save(tmp_path / "liver.stl")
+    mesh, report = mesh_from_surface(tmp_path / "liver.stl", target_nodes=300)
+    down = rot @ [0.0, 0.0, -1.0]
+    assert abs(mesh.fixed.mean() - FIXED_FRACTION) < 0.02 and connected(mesh, mesh.fixed)
+    h = mesh.nodes @ down
+    assert h.max() - h[mesh.fixed].min() < 0.1 * np.ptp(h)  # the flat visceral face, turned
+    assert f"fixed face: {100 * FIXED_FRACTION:.1f} %" in report[1]
+    for axis, fraction in ((rot @ [1.0, 0.0, 0.0], 0.1), (-down, 0.2)):
+        mask, used = fixed_face_by_fraction(mesh, axis, fraction)
+        np.testing.assert_allclose(used, axis)
+        h = mesh.nodes @ axis
+        assert abs(mask.mean() - fraction) < 0.01 and connected(mesh, mask)
+        assert h.max() - h[mask].min() < 0.35 * np.ptp(h)  # on the side the axis points to
+
+
+def test_fixed_face_rule_on_a_slab():
+    slab = box_tet_mesh(5, 5, 2, size=(0.1, 0.1, 0.02))
+    bottom = slab.nodes[:, 2] == 0
+    mask, axis = fixed_face_by_fraction(slab, fraction=bottom.mean())
+    np.testing.assert_array_equal(mask, bottom)
+    np.testing.assert_allclose(axis, [0, 0, -1], atol=1e-12)
+    mask, _ = fixed_face_by_fraction(slab)  # the default share: a central patch of the bottom
+    assert mask.sum() == round(FIXED_FRACTION * len(slab.nodes)) and (mask <= bottom).all() and connected(slab, mask)
+    mask, _ = fixed_face_by_fraction(slab, axis=(2.0, 0.0, 0.0), fraction=0.1)
+    assert np.isclose(slab.nodes[mask, 0], 0.1).all()
+
+
+@pytest.mark.parametrize("axis, fraction, words", [
+    (None, 0.0, "between 0 and 1"), (None, 1.0, "between 0 and 1"), (None, -0.2, "between 0 and 1"),
+    (None, float("nan"), "between 0 and 1"), ((0, 0, 0), None, "non-zero 3-vector"),
+    ((1, 0), None, "non-zero 3-vector")])
+def test_fixed_rule_bad_values(axis, fraction, words):
+    with pytest.raises(InputError, match=words) as err:
+        check_fixed_rule(axis, fraction)
+    assert "\n" not in str(err.value)
+    with pytest.raises(InputError, match="at least 3|needs 3"):
+        fixed_face_by_fraction(box_tet_mesh(2, 2, 2), fraction=0.01)
+
+
 def test_anatomy_table_lists_paper_values(livers):
     table = anatomy_table(livers)
     assert table.count("\n") == 2 + len(LIVERS)
@@ -159,8 +234,9 @@ def test_import_clean_sphere(tmp_path, suffix):
     assert abs(len(mesh.nodes) / 400 - 1) <= 0.15
     assert abs(mesh.volume / (4 / 3 * np.pi * R**3) - 1) < 0.05
     assert (mesh.volumes > 0).all()
-    assert len(report) == 1 and "nothing repaired" in report[0]
-    assert mesh.fixed.any() and mesh.nodes[mesh.fixed, 2].max() < -0.9 * R  # bottom pole
+    assert len(report) == 2 and "nothing repaired" in report[0] and report[1].startswith("fixed face:")
+    # a ball has no thinnest side: the training livers' share as a cap at the bottom
+    assert abs(mesh.fixed.mean() - FIXED_FRACTION) < 0.01 and mesh.nodes[mesh.fixed, 2].max() < -0.3 * R
 
 
 def test_import_scaled_and_with_fixed_ids(tmp_path):

@@ -181,3 +181,67 @@ def test_every_numeric_option_takes_every_number_form():
                 assert value == ([expected] * count if isinstance(action.nargs, int) else expected), argv
             checked += 1
     assert checked >= 10  # the numeric options of fem, generate, train and eval at least
+
+
+# ------------------------------------------------------------ the fixed face
+@pytest.fixture(scope="module")
+def slab_stl(tmp_path_factory):
+    pv = pytest.importorskip("pyvista")
+    pytest.importorskip("tetgen")
+    path = tmp_path_factory.mktemp("slab") / "slab.stl"
+    pv.Box(bounds=(0.0, 0.08, 0.0, 0.06, 0.0, 0.015), level=5).triangulate().save(path)
+    return path
+
+
+def anatomy(capsys, *args):
+    from warpgnn.cli import main
+
+    code = main(["anatomy", *map(str, args)])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_anatomy_surface_gets_a_training_like_support(slab_stl, tmp_path, capsys):
+    """A thin slab: its bottom face (the rule's default side) holds the training livers' share, said in the
+    output line, with no warning; a small share on a given axis is refused nothing but warned about."""
+    from warpgnn.anatomy import FIXED_FRACTION
+    from warpgnn.mesh import TetMesh
+
+    code, out, err = anatomy(capsys, "--surface", slab_stl, "--nodes", 200, "--out", tmp_path / "a.vtu")
+    assert code == 0 and err == "", err
+    mesh = TetMesh.load(tmp_path / "a.vtu")
+    assert abs(mesh.fixed.mean() - FIXED_FRACTION) < 0.01 and np.abs(mesh.nodes[mesh.fixed, 2]).max() < 1e-9
+    assert f"fixed face: {100 * FIXED_FRACTION:.1f} % of the nodes" in out and "(0.000, 0.000, -1.000)" in out
+    assert f"{mesh.fixed.sum()} fixed nodes ({100 * mesh.fixed.mean():.1f} % of the nodes)" in out
+
+    code, out, err = anatomy(capsys, "--surface", slab_stl, "--nodes", 200, "--fixed-axis", "1e+0", "-0.", "0",
+                             "--fixed-fraction", "5.e-2", "--out", tmp_path / "b.vtu")
+    assert code == 0
+    mesh = TetMesh.load(tmp_path / "b.vtu")
+    assert (mesh.nodes[mesh.fixed, 0] > 0.04).all()  # the +x end (the remesher rounds the slab's corners)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("warning: ") and "far from the training livers'" in lines[0]
+    assert "--fixed-fraction" in lines[0] and "--fixed IDS.txt" in lines[0]
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--fixed-fraction", "1.5"], "between 0 and 1"), (["--fixed-fraction", "0"], "between 0 and 1"),
+    (["--fixed-fraction", "-1.33e-02"], "between 0 and 1"), (["--fixed-axis", "0", "-0.", "0e0"], "non-zero"),
+    (["--fixed", "ids.txt", "--fixed-fraction", "0.2"], "one or the other")])
+def test_anatomy_refuses_bad_fixed_rule_in_one_line(args, words, tmp_path, capsys):
+    code, _, err = anatomy(capsys, "--name", "L1", *args, "--out", tmp_path / "a.vtu")
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("warpgnn: error:") and words in lines[0], err
+    assert not (tmp_path / "a.vtu").exists()
+
+
+def test_fem_warns_on_a_support_unlike_the_training_livers(bar, tmp_path):
+    mesh, path = bar
+    np.savetxt(tmp_path / "fixed2.txt", np.flatnonzero(mesh.nodes[:, 0] < 0.011), fmt="%d")  # two slices: 40 %
+    proc = run_cli("fem", "--mesh", path, "--fixed", tmp_path / "fixed2.txt", "--load", tmp_path / "load.txt",
+                   "--displacement", 0, 0, 0.002, "--duration", 0.05, "--snapshots", 2, "--device", "cpu",
+                   "--out", tmp_path / "o.h5")
+    assert proc.returncode == 0, proc.stderr
+    warning = [line for line in proc.stderr.splitlines() if line.startswith("warning: ")]
+    assert len(warning) == 1 and "40.0 %" in warning[0] and "--fixed IDS.txt" in warning[0], proc.stderr
+    assert (tmp_path / "o.h5").exists()

@@ -17,12 +17,15 @@ that hit the target node (and, for L1..L5, the paper's tetrahedron) count, the o
 largest shortest altitude is kept. Last, the nodes are scaled so the volume matches exactly.
 
 User surfaces (``mesh_from_surface``) are repaired with pymeshfix, then go through the same
-remeshing, TetGen and improvement steps. The Dirichlet face comes from ``find_fixed_face``.
+remeshing, TetGen and improvement steps. Their Dirichlet face comes from
+``fixed_face_by_fraction`` (a contiguous face of the lowest surface nodes holding the training
+livers' share of the nodes); L1..L5 keep ``find_fixed_face`` (their whole flat visceral face).
 """
 
 from __future__ import annotations
 
 import contextlib
+import heapq
 import logging
 import warnings
 from dataclasses import dataclass
@@ -76,6 +79,19 @@ SLIVER_DIHEDRAL = 160.0  # [deg] a surface tet this flat is peeled off (_peel_su
 
 
 # ------------------------------------------------------------------ fixed face
+# L1..L5's fixed share of all nodes (find_fixed_face's flat visceral face, measured)
+LIVER_FIXED_FRACTIONS = {"L1": 91 / 531, "L2": 90 / 468, "L3": 78 / 489, "L4": 101 / 668, "L5": 106 / 670}
+FIXED_FRACTION = 0.1665  # their mean: the default share of fixed_face_by_fraction
+FIXED_FRACTION_RANGE = (0.10, 0.25)  # a support outside this is far from the training livers'
+
+
+def _unit_axis(axis) -> np.ndarray:
+    a = np.asarray(axis, dtype=float)
+    if a.shape != (3,) or not np.isfinite(a).all() or np.linalg.norm(a) == 0:
+        raise InputError(f"fixed-face axis must be a non-zero 3-vector, got {tuple(np.ravel(axis).tolist())}")
+    return a / np.linalg.norm(a)
+
+
 def find_fixed_face(mesh: TetMesh, axis=(0.0, 0.0, -1.0), angle_deg: float = 30.0,
                     tol: float = 0.02) -> np.ndarray:
     """Dirichlet nodes: the face of ``mesh`` that looks along ``axis``.
@@ -86,10 +102,7 @@ def find_fixed_face(mesh: TetMesh, axis=(0.0, 0.0, -1.0), angle_deg: float = 30.
     than averaged vertex normals, so the rim of a flat face (whose averaged normal tilts
     towards the sides) is still part of the face. Returns a bool mask (N,).
     """
-    a = np.asarray(axis, dtype=float)
-    if a.shape != (3,) or not np.isfinite(a).all() or np.linalg.norm(a) == 0:
-        raise InputError(f"fixed-face axis must be a non-zero 3-vector, got {axis!r}")
-    a = a / np.linalg.norm(a)
+    a = _unit_axis(axis)
     h = mesh.nodes @ a
     near = h >= h.max() - tol * np.ptp(h)
     f = mesh.boundary_faces()
@@ -99,6 +112,125 @@ def find_fixed_face(mesh: TetMesh, axis=(0.0, 0.0, -1.0), angle_deg: float = 30.
     touched = np.zeros(len(mesh.nodes), dtype=bool)
     touched[f[facing]] = True
     return near & touched
+
+
+def check_fixed_rule(axis=None, fraction=None) -> tuple:
+    """``fixed_face_by_fraction``'s arguments checked: (unit axis or None, fraction, default
+    FIXED_FRACTION); a bad value is one InputError line."""
+    fraction = FIXED_FRACTION if fraction is None else fraction
+    if not (np.isfinite(fraction) and 0 < fraction < 1):
+        raise InputError(f"fixed fraction must lie strictly between 0 and 1, got {fraction:g}")
+    return (None if axis is None else _unit_axis(axis)), float(fraction)
+
+
+def _grow_face(nodes, neighbours, surface, a, count) -> np.ndarray:
+    """The ``count`` surface nodes reached by flooding the surface from its extreme node along
+    ``a``, always taking the frontier node that lies furthest along ``a`` (ties on a flat face:
+    the one nearest the surface's centre line, so the face grows as a disc). Returns the mask
+    (bool (N,))."""
+    h = nodes @ a
+    ref = h[surface].max()
+    step = 1e-9 * np.ptp(h[surface])  # heights closer than this count as level
+    rel = nodes - nodes[surface].mean(axis=0)
+    radial = np.linalg.norm(rel - np.outer(rel @ a, a), axis=1)
+    key = np.round((ref - h) / step) if step > 0 else np.zeros_like(h)
+    start = surface[np.lexsort((radial[surface], key[surface]))[0]]
+    taken = np.zeros(len(nodes), dtype=bool)
+    heap, n = [(key[start], radial[start], start)], 0
+    while heap and n < count:
+        _, _, i = heapq.heappop(heap)
+        if taken[i]:
+            continue
+        taken[i], n = True, n + 1
+        for j in neighbours[i]:
+            if not taken[j]:
+                heapq.heappush(heap, (key[j], radial[j], j))
+    return taken
+
+
+def _plane_normal(x: np.ndarray, towards: np.ndarray) -> tuple[np.ndarray, float]:
+    """Normal of the plane fitted to points ``x`` (pointing along ``towards``) and their RMS
+    distance from it."""
+    _, sv, vt = np.linalg.svd(x - x.mean(axis=0), full_matrices=False)
+    n = vt[-1] if vt[-1] @ towards >= 0 else -vt[-1]
+    return n, sv[-1] / np.sqrt(len(x))
+
+
+FIXED_AXIS_ROUNDS = 5  # re-fits of the automatic axis to its face (it settles in one or two)
+FLATTER = 0.8  # the +z side wins only when its face is this much flatter (a ball's caps tie)
+ISOTROPIC = 1.05  # normals' two largest moments closer than this: no thinnest direction, -z
+
+
+def fixed_face_by_fraction(mesh: TetMesh, axis=None, fraction=None) -> tuple[np.ndarray, np.ndarray]:
+    """Dirichlet nodes like the training livers': a contiguous face of the lowest surface nodes.
+
+    ``fraction`` x (all nodes) surface nodes (default FIXED_FRACTION, the mean share of L1..L5's
+    flat visceral faces) are taken by flooding the surface from its extreme node along ``axis``,
+    the frontier node furthest along ``axis`` first: the deepest cap of the surface that the share
+    allows, grown over surface edges, so one connected face. Without ``axis``: the surface's
+    thinnest direction (the principal direction of its area-weighted triangle normals, the normal
+    of a flattened organ's broad sides; -z for a ball-like surface without one), on each of its two
+    sides re-fitted to the normal of the face's plane until the face settles; the face of the
+    flatter side is taken (RMS distance from its plane under FLATTER x the other's; else the side
+    facing -z). For user surfaces; L1..L5 keep ``find_fixed_face``.
+    Returns (bool mask (N,), the unit axis used)."""
+    a, fraction = check_fixed_rule(axis, fraction)
+    count = round(fraction * len(mesh.nodes))
+    faces = mesh.boundary_faces()
+    surface = np.unique(faces)
+    if not 3 <= count <= len(surface):
+        raise InputError(f"fixed fraction {fraction:g} of {len(mesh.nodes)} nodes is {count} nodes: a support "
+                         f"needs 3 to {len(surface)} (the surface nodes)")
+    e = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    e = np.concatenate([e, e[:, ::-1]])
+    e = e[np.argsort(e[:, 0], kind="stable")]
+    neighbours = np.split(e[:, 1], np.searchsorted(e[:, 0], np.arange(1, len(mesh.nodes))))
+
+    def grow(direction):
+        return _grow_face(mesh.nodes, neighbours, surface, direction, count)
+
+    if a is not None:
+        return grow(a), a
+
+    def settle(direction):  # the face, its axis re-fitted to the face's plane until it stays
+        mask = grow(direction)
+        for _ in range(FIXED_AXIS_ROUNDS):
+            direction = _plane_normal(mesh.nodes[mask], direction)[0]
+            mask, previous = grow(direction), mask
+            if (mask == previous).all():
+                break
+        return mask, direction, _plane_normal(mesh.nodes[mask], direction)[1]
+
+    x = mesh.nodes[faces]
+    n = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    w, v = np.linalg.eigh(n.T @ (n / np.linalg.norm(n, axis=1, keepdims=True)))
+    thin = v[:, -1] if w[-1] > ISOTROPIC * w[-2] else np.array([0.0, 0.0, -1.0])  # a ball: no thinnest side
+    thin = thin if thin[2] <= 0 else -thin  # first the side facing -z, kept on a tie
+    low, high = settle(thin), settle(-thin)
+    flat = 1e-6 * np.ptp(mesh.nodes, axis=0).max()  # flatter than this is flat: a tie
+    mask, a, _ = high if high[2] < FLATTER * low[2] - flat else low
+    return mask, a
+
+
+def fixed_rule_line(axis, fraction=None) -> str:
+    """One line saying which rule chose the fixed face."""
+    _, fraction = check_fixed_rule(None, fraction)
+    return (f"fixed face: {100 * fraction:.1f} % of the nodes, the surface's lowest along "
+            f"({', '.join(f'{c:.3f}' for c in np.round(axis, 3) + 0.0)}), one contiguous face "
+            "(--fixed-axis, --fixed-fraction)")
+
+
+def fixed_fraction_warning(mesh: TetMesh, remedy: str) -> str | None:
+    """A warning line when ``mesh``'s fixed share lies outside FIXED_FRACTION_RANGE (the network was
+    trained on supports of L1..L5's share), naming ``remedy``; else None."""
+    share = mesh.fixed.mean()
+    lo, hi = FIXED_FRACTION_RANGE
+    if lo <= share <= hi:
+        return None
+    train = sorted(LIVER_FIXED_FRACTIONS.values())
+    return (f"warning: {int(mesh.fixed.sum())} fixed nodes are {100 * share:.1f} % of the {len(mesh.nodes)} "
+            f"nodes, far from the training livers' {100 * train[0]:.0f}-{100 * train[-1]:.0f} % "
+            f"(a support outside {100 * lo:.0f}-{100 * hi:.0f} % is unlike theirs): {remedy}")
 
 
 # --------------------------------------------------------------------- quality
@@ -511,17 +643,30 @@ def _repair_surface(surface) -> tuple:
                       f"{before[0]} -> {after[0]} vertices, {before[1]} -> {after[1]} triangles"]
 
 
+def apply_fixed_ids(mesh: TetMesh, ids) -> None:
+    """Set ``mesh.fixed`` to exactly the node ids ``ids`` (checked: integers, in range)."""
+    ids = np.asarray(ids).reshape(-1)
+    if ids.size == 0 or not np.issubdtype(ids.dtype, np.integer):
+        raise InputError("fixed node ids must be a non-empty list of integers")
+    if ids.min() < 0 or ids.max() >= len(mesh.nodes):
+        raise InputError(f"fixed node id out of range [0, {len(mesh.nodes) - 1}]")
+    mesh.fixed[:] = False
+    mesh.fixed[ids] = True
+
+
 def mesh_from_surface(path, scale: float = 1.0, target_nodes: int = 600, fixed_ids=None,
-                      fixed_axis=(0.0, 0.0, -1.0)) -> tuple[TetMesh, list[str]]:
+                      fixed_axis=None, fixed_fraction=None) -> tuple[TetMesh, list[str]]:
     """Tetrahedral mesh of a closed user surface (STL, OBJ, PLY, VTK/VTP/VTU) with about
     ``target_nodes`` nodes. Coordinates are multiplied by ``scale`` (to metres). Fixed nodes:
-    ``fixed_ids`` (ids of the new mesh) or ``find_fixed_face(mesh, fixed_axis)``.
-    Returns (mesh, report lines saying what was repaired)."""
+    ``fixed_ids`` (ids of the new mesh) or ``fixed_face_by_fraction(mesh, fixed_axis, fixed_fraction)``
+    (a face of the training livers' share). Returns (mesh, report lines: what was repaired, prefixed
+    "repair: ", and, when the rule chose it, the fixed face)."""
     path = Path(path)
     if not (np.isfinite(scale) and scale > 0):
         raise InputError(f"scale must be a positive number, got {scale}")
     if int(target_nodes) < MIN_TARGET_NODES:
         raise InputError(f"target node count must be at least {MIN_TARGET_NODES}, got {target_nodes}")
+    check_fixed_rule(fixed_axis, fixed_fraction)  # before the seconds of meshing
     surface = _read_surface(path)
     surface.points = np.asarray(surface.points, dtype=np.float64) * scale
     centred = surface.points - surface.points.mean(axis=0)
@@ -529,6 +674,7 @@ def mesh_from_surface(path, scale: float = 1.0, target_nodes: int = 600, fixed_i
     if thickness[-1] <= 1e-6 * thickness[0]:
         raise InputError(f"{path} encloses no volume: all its points lie in one plane")
     surface, report = _repair_surface(surface)
+    report = [f"repair: {line}" for line in report]
     # The reference for remeshing: dense enough for decimation to pick well-placed vertices,
     # not so dense that each of the few decimations tried takes long.
     with _quiet():
@@ -540,15 +686,8 @@ def mesh_from_surface(path, scale: float = 1.0, target_nodes: int = 600, fixed_i
     mesh = _fit_mesh(lambda n: _remesh(surface, n)[:2], _window(int(target_nodes), NODE_TOLERANCE), None,
                      first_guess=round(0.6 * target_nodes), surface=surface)
     if fixed_ids is not None:
-        ids = np.asarray(fixed_ids).reshape(-1)
-        if ids.size == 0 or not np.issubdtype(ids.dtype, np.integer):
-            raise InputError("fixed node ids must be a non-empty list of integers")
-        if ids.min() < 0 or ids.max() >= len(mesh.nodes):
-            raise InputError(f"fixed node id out of range [0, {len(mesh.nodes) - 1}]")
-        mesh.fixed[:] = False
-        mesh.fixed[ids] = True
+        apply_fixed_ids(mesh, fixed_ids)
     else:
-        mesh.fixed = find_fixed_face(mesh, fixed_axis)
-        if not mesh.fixed.any():
-            raise InputError(f"no fixed node found facing {tuple(fixed_axis)}: give the fixed node ids")
+        mesh.fixed, axis = fixed_face_by_fraction(mesh, fixed_axis, fixed_fraction)
+        report.append(fixed_rule_line(axis, fixed_fraction))
     return mesh, report

@@ -47,28 +47,47 @@ def _device(name):
 
 
 def cmd_anatomy(args):
-    from .anatomy import find_fixed_face, mesh_from_surface, procedural_liver
+    from .anatomy import (
+        apply_fixed_ids,
+        check_fixed_rule,
+        fixed_face_by_fraction,
+        fixed_fraction_warning,
+        fixed_rule_line,
+        mesh_from_surface,
+        procedural_liver,
+    )
+    from .mesh import read_ids
 
+    rule = args.fixed_axis is not None or args.fixed_fraction is not None
+    if args.fixed and rule:
+        raise InputError("--fixed gives the fixed nodes, --fixed-axis/--fixed-fraction choose them by the rule: "
+                         "give one or the other")
+    check_fixed_rule(args.fixed_axis, args.fixed_fraction)  # a bad value ends before the meshing
+    # ids read (and the file checked) now, checked against the node count once meshed
+    ids = read_ids(args.fixed, np.iinfo(np.int32).max, "fixed") if args.fixed else None
     if args.surface:
-        mesh, report = mesh_from_surface(args.surface, scale=args.scale, target_nodes=args.nodes or 600)
-        for line in report:
-            print(f"repair: {line}")
+        mesh, report = mesh_from_surface(args.surface, scale=args.scale, target_nodes=args.nodes or 600,
+                                         fixed_ids=ids, fixed_axis=args.fixed_axis, fixed_fraction=args.fixed_fraction)
+        print("\n".join(report))
     else:
-        mesh = procedural_liver(args.name or args.seed, target_nodes=args.nodes)
-    if args.fixed:
-        from .mesh import read_ids
-
-        mesh.fixed[:] = False
-        mesh.fixed[read_ids(args.fixed, len(mesh.nodes), "fixed")] = True
-    elif not mesh.fixed.any():
-        mesh.fixed[:] = find_fixed_face(mesh)
+        mesh = procedural_liver(args.name or args.seed, target_nodes=args.nodes)  # fixed: its flat visceral face
+        if ids is not None:
+            apply_fixed_ids(mesh, ids)
+        elif rule:
+            mesh.fixed, axis = fixed_face_by_fraction(mesh, args.fixed_axis, args.fixed_fraction)
+            print(fixed_rule_line(axis, args.fixed_fraction))
     mesh.save(args.out)
     print(f"{args.out}: {len(mesh.nodes)} nodes, {len(mesh.tets)} tetrahedra, volume {mesh.volume:.3e} m^3, "
-          f"{int(mesh.fixed.sum())} fixed nodes")
+          f"{int(mesh.fixed.sum())} fixed nodes ({100 * mesh.fixed.mean():.1f} % of the nodes)")
+    warning = fixed_fraction_warning(mesh, "choose it with --fixed-fraction F (and --fixed-axis X Y Z) "
+                                           "or --fixed IDS.txt")
+    if warning:
+        print(warning, file=sys.stderr)
 
 
 def cmd_fem(args):
     from . import dataset
+    from .anatomy import fixed_fraction_warning
     from .fem_ref import BatchedExplicitSolver, OgdenProny, SolverConfig, make_load_case
     from .mesh import TetMesh, read_ids
 
@@ -78,6 +97,10 @@ def cmd_fem(args):
         mesh.fixed[read_ids(args.fixed, len(mesh.nodes), "fixed")] = True
     if not mesh.fixed.any():
         raise InputError("no fixed node: give --fixed IDS.txt or a mesh with point data 'fixed'")
+    warning = fixed_fraction_warning(mesh, "give --fixed IDS.txt, or remake the mesh with "
+                                           "`warpgnn anatomy --fixed-fraction F`")
+    if warning:
+        print(warning, file=sys.stderr)
     loaded = read_ids(args.load, len(mesh.nodes), "load")
     disp = np.tile(np.asarray(args.displacement, float), (len(loaded), 1))
     try:
@@ -219,6 +242,8 @@ class Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .anatomy import FIXED_FRACTION
+
     p = Parser(prog="warpgnn", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -229,7 +254,15 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--surface", help="closed surface: STL, OBJ, PLY, VTK/VTP/VTU")
     a.add_argument("--scale", type=float, default=1.0, help="multiply surface coordinates (e.g. 0.001 for mm)")
     a.add_argument("--nodes", type=int, help="target node count (default: the paper's for --name, 600 otherwise)")
-    a.add_argument("--fixed", help="node ids of the Dirichlet face (default: the automatic rule)")
+    a.add_argument("--fixed", metavar="IDS.txt",
+                   help="node ids of the Dirichlet face (default: --surface: the rule below; --name/--seed: the "
+                        "flat visceral face)")
+    a.add_argument("--fixed-axis", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                   help="fix the lowest surface nodes along this direction, a contiguous face (default: the "
+                        "surface's thinnest principal axis, towards its flatter side)")
+    a.add_argument("--fixed-fraction", type=float, metavar="F",
+                   help=f"share of all nodes that face holds, 0 < F < 1 (default {FIXED_FRACTION}, the training "
+                        "livers' mean)")
     a.add_argument("--out", required=True, help="output .vtu (point data 'fixed')")
     a.set_defaults(func=cmd_anatomy)
 
