@@ -27,6 +27,7 @@ from warpgnn.model import Prediction
 
 from .network import Network
 from .spec import check_config
+from .weights import pack
 
 
 def _ordered(device):
@@ -96,13 +97,15 @@ class WarpModel:
         wp.init()
         self.reference, self.config = model, model.config
         self.device = wp.device_from_torch(next(model.parameters()).device)
+        self.weights = pack(model, self.device)  # once: every topology's Network reads the same copy
         self.keep = keep
         self._cache = OrderedDict()  # id(topology) -> _Topology
 
     def _get(self, top) -> _Topology:
         entry = self._cache.get(id(top))
         if entry is None:
-            entry = self._cache[id(top)] = _Topology(Network(self.reference, top, device=self.device), top)
+            entry = self._cache[id(top)] = _Topology(Network(self.reference, top, device=self.device,
+                                                                weights=self.weights), top)
             while len(self._cache) > self.keep:
                 self._cache.popitem(last=False)
         self._cache.move_to_end(id(top))

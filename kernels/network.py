@@ -44,12 +44,13 @@ def _as_warp(x, device):
 
 class Network:
     def __init__(self, model, topology, device=None, tile_rows: int = 32, block_dim: int | None = None,
-                 k_chunk: int = 0):
+                 k_chunk: int = 0, weights=None):
         """``model``: a warpgnn TIGNN (its config and weights are read once); ``topology``: a
         warpgnn.graphs.Topology, one simulation or a stacked batch. ``block_dim``: threads a block
-        of the tile kernels (the CPU runs one unless wp.config.enable_cpu_blocks)."""
+        of the tile kernels (the CPU runs one unless wp.config.enable_cpu_blocks). ``weights``: the
+        model already packed on ``device`` (weights.pack), so Networks of many topologies share one copy."""
         self.device = wp.get_device(device)
-        self.weights = w = pack(model, self.device)
+        self.weights = w = weights if weights is not None else pack(model, self.device)
         self.spec = Spec(w.latent, tile_rows, k_chunk)
         build_kernels(self.spec)
         self.graph = build(topology, tile_rows, w.actuator_graphs, w.kind == "hybrid", self.device)

@@ -1,11 +1,11 @@
 """``warpgnn train``: one-step training on snapshot pairs, early stopping on rollouts.
 
 Two recipes (RECIPES): the paper's, and the best we measured, which trained the shipped network
-and which `warpgnn train` runs unless told otherwise. Adam; the learning rate drops on a plateau of the training loss (the paper), or decays
-exponentially over a fixed training-time budget (``lr_schedule="exponential"``, for runs that
-must fit a time slot: the rate is set at each epoch's start from the seconds already spent, so
-a resumed run continues the same curve), or without a budget over the epochs (runs compared at
-equal epochs whatever their speed); after every epoch the
+and which `warpgnn train` runs unless told otherwise. Adam; the learning rate drops on a plateau of
+the training loss (the paper), or decays exponentially over a fixed training-time budget
+(``lr_schedule="exponential"``, for runs that must fit a time slot: the rate is set at each epoch's
+start from the seconds already spent, so a resumed run continues the same curve), or without a
+budget over the epochs (runs compared at equal epochs whatever their speed); after every epoch the
 validation simulations (20% of L5) are rolled out from their initial state, and the mean of
 the q, v, sigma RRMSE decides best.pt and early stopping (by default only under the plateau
 schedule: a time budget ends an exponential one). RUN/last.pt is written atomically
