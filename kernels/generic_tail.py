@@ -1,13 +1,17 @@
-"""The hybrid decoder's tail (paper Eq. Gen12, port_metriplectic.py) in ONE launch, a thread per node:
+"""The hybrid decoder's tail (paper Eq. Gen12, port_metriplectic.py) in ONE launch, a thread per
+(node, state component):
 
     zdot_i = L_ii dE_i + M_ii dS_i - sum_{j -> i} (L_ij dE_j + M_ij dS_j)
 
 L x = A x - A^T x and M x = B (B^T x) straight from the packed triangles l (66) and m (78) of each
 self-loop and incoming edge (row-major lower triangles, as torch.tril_indices): no 12 x 12 matrix is
 ever formed or stored. The incoming edges are the node's CSR segment (destination-sorted, summed
-in the reference's order); the same thread then writes the degeneracy residual
-|L_ii dS_i|^2 + |M_ii dE_i|^2, the entropy production dS_i . M_ii dS_i, zdot standardised and
-physical, and z(t + dt) after Euler and the boundary conditions.
+in the reference's order). The twelve threads of a node are neighbours, so they read its rows once
+(broadcast) and write its outputs coalesced; their first two also write the node's degeneracy residual
+|L_ii dS_i|^2 + |M_ii dE_i|^2 and entropy production dS_i . M_ii dS_i (whole, in a fixed order: no
+atomics). A thread per node instead ran the L5 step's tail in 135 us on an H100 (670 threads, 6 blocks,
+every edge's 144 coefficients read by one thread; bench/studies/warp_kernel_profile_h100.json).
+Each thread ends with zdot standardised and physical, and z(t + dt) after Euler and the boundary conditions.
 """
 
 from __future__ import annotations
@@ -60,6 +64,32 @@ def apply_M(lm: wp.array2d(dtype=float), row: int, x: vec12):
     return out
 
 
+@wp.func
+def L_row(lm: wp.array2d(dtype=float), row: int, a: int, x: vec12):
+    """((A - A^T) x)[a]: row a of A (b < a) minus column a of A (b > a)."""
+    out = float(0.0)
+    for b in range(12):
+        if b < a:
+            out += lm[row, a * (a - 1) // 2 + b] * x[b]
+        elif b > a:
+            out -= lm[row, b * (b - 1) // 2 + a] * x[b]
+    return out
+
+
+@wp.func
+def M_row(lm: wp.array2d(dtype=float), row: int, a: int, x: vec12):
+    """(B (B^T x))[a] = sum_{b <= a} B[a, b] (B^T x)[b], (B^T x)[b] = sum_{c >= b} B[c, b] x[c]."""
+    out = float(0.0)
+    for b in range(12):
+        if b <= a:
+            btx = float(0.0)
+            for c in range(12):
+                if c >= b:
+                    btx += lm[row, N_L + c * (c + 1) // 2 + b] * x[c]
+            out += lm[row, N_L + a * (a + 1) // 2 + b] * btx
+    return out
+
+
 @functools.cache
 def kernels(spec: Spec):
     @wp.kernel(enable_backward=False, module=spec.module)
@@ -70,25 +100,26 @@ def kernels(spec: Spec):
                      presc_weight: wp.array(dtype=float), u_next: wp.array2d(dtype=float),
                      zdot: wp.array2d(dtype=float), zdot_std: wp.array2d(dtype=float),
                      degeneracy: wp.array(dtype=float), entropy: wp.array(dtype=float), z_next: wp.array2d(dtype=float)):
-        i = wp.tid()
+        i, a = wp.tid()
         dE = load12(grads, i, 0)
         dS = load12(grads, i, STATE)
         s = self_row + i  # the node's self-loop row of lm
-        m_dS = apply_M(lm, s, dS)
-        ports = vec12()
+        m_dS = M_row(lm, s, a, dS)
+        ports = float(0.0)
         for e in range(mesh_off[i], mesh_off[i + 1]):  # lm row of sorted mesh edge e is e
             j = mesh_send[e]
-            ports += apply_L(lm, e, load12(grads, j, 0)) + apply_M(lm, e, load12(grads, j, STATE))
-        zs = apply_L(lm, s, dE) + m_dS - ports
-        l_dS = apply_L(lm, s, dS)
-        m_dE = apply_M(lm, s, dE)
-        degeneracy[i] = wp.dot(l_dS, l_dS) + wp.dot(m_dE, m_dE)
-        entropy[i] = wp.dot(dS, m_dS)
-        for c in range(12):
-            zdot_std[i, c] = zs[c]
-            zp = zs[c] * zdot_scale[c]
-            zdot[i, c] = zp
-            z_next[i, c] = advance(i, c, z, zp, dt, rest, node_type, presc_tool, presc_weight, u_next)
+            ports += L_row(lm, e, a, load12(grads, j, 0)) + M_row(lm, e, a, load12(grads, j, STATE))
+        zs = L_row(lm, s, a, dE) + m_dS - ports
+        if a == 0:
+            l_dS = apply_L(lm, s, dS)
+            m_dE = apply_M(lm, s, dE)
+            degeneracy[i] = wp.dot(l_dS, l_dS) + wp.dot(m_dE, m_dE)
+        if a == 1:
+            entropy[i] = wp.dot(dS, apply_M(lm, s, dS))
+        zdot_std[i, a] = zs
+        zp = zs * zdot_scale[a]
+        zdot[i, a] = zp
+        z_next[i, a] = advance(i, a, z, zp, dt, rest, node_type, presc_tool, presc_weight, u_next)
 
     return generic_tail
 
@@ -98,7 +129,7 @@ def launches(net) -> list:
         return []
     g, lay = net.graph, net.layout
     return [wp.launch(
-        kernels(net.spec), dim=lay.n_nodes, block_dim=net.block_dim, device=net.device, record_cmd=True,
+        kernels(net.spec), dim=(lay.n_nodes, STATE), block_dim=net.block_dim, device=net.device, record_cmd=True,
         inputs=[net.lm, net.grads, g.mesh_off, g.mesh_send, lay.edges_pad, net.weights.zdot_scale, net.z, net.dt,
                 g.rest, g.node_type, g.presc_tool, g.presc_weight, net.u_next, net.zdot, net.zdot_std,
                 net.degeneracy, net.entropy, net.z_next])]

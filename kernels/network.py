@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from . import decoders, features, generic_tail, integrate, message_passing
+from . import decoders, features, generic_tail, integrate, message_passing, shipped
 from .graph import build
 from .spec import FEATURE_WIDTH, N_GRAD, N_LM, STATE, Spec
 from .weights import pack
@@ -27,6 +27,12 @@ def build_kernels(spec: Spec) -> None:
     """Create every kernel of ``spec`` before any launch: they share one Warp module, compiled once."""
     for module in (features, message_passing, decoders, generic_tail, integrate):
         module.kernels(spec)
+
+
+def default_block_dim(device) -> int:
+    """Threads a block of the tile kernels: 128 on CUDA (every launch the same, so one build a module),
+    one on the CPU (which runs one unless wp.config.enable_cpu_blocks)."""
+    return 128 if device.is_cuda else 1
 
 
 def _as_warp(x, device):
@@ -47,15 +53,16 @@ class Network:
                  k_chunk: int = 0, weights=None):
         """``model``: a warpgnn TIGNN (its config and weights are read once); ``topology``: a
         warpgnn.graphs.Topology, one simulation or a stacked batch. ``block_dim``: threads a block
-        of the tile kernels (the CPU runs one unless wp.config.enable_cpu_blocks). ``weights``: the
+        of the tile kernels (default_block_dim). ``weights``: the
         model already packed on ``device`` (weights.pack), so Networks of many topologies share one copy."""
         self.device = wp.get_device(device)
         self.weights = w = weights if weights is not None else pack(model, self.device)
         self.spec = Spec(w.latent, tile_rows, k_chunk)
         build_kernels(self.spec)
+        self.block_dim = block_dim or default_block_dim(self.device)
+        self.shipped_module = shipped.load(self.spec, self.device, self.block_dim)  # else Warp compiles it
         self.graph = build(topology, tile_rows, w.actuator_graphs, w.kind == "hybrid", self.device)
         self.layout = lay = self.graph.layout
-        self.block_dim = block_dim or (128 if self.device.is_cuda else 1)
         n, k, F = lay.n_nodes, topology.n_tools, w.latent
 
         def zeros(*shape):

@@ -88,8 +88,21 @@ def helpers(spec: Spec):
             v = wp.float32(0.0)
             i = node0 + r
             if ok and i < n_nodes:
-                for e in range(offsets[i], offsets[i + 1]):
-                    v += lat[base_row + e, c]
+                # four rows loaded before the first add (the latency of one L2 read, not four, per
+                # round); added in segment order, rows past the end as +0.0, so the sum is the same
+                e = wp.int32(offsets[i])
+                end = wp.int32(offsets[i + 1])
+                while e < end:
+                    last = end - 1
+                    x0 = lat[base_row + e, c]
+                    x1 = lat[base_row + wp.min(e + 1, last), c]
+                    x2 = lat[base_row + wp.min(e + 2, last), c]
+                    x3 = lat[base_row + wp.min(e + 3, last), c]
+                    v += x0
+                    v += wp.where(e + 1 < end, x1, 0.0)
+                    v += wp.where(e + 2 < end, x2, 0.0)
+                    v += wp.where(e + 3 < end, x3, 0.0)
+                    e += 4
             wp.tile_scatter_masked(agg, wp.min(r, T - 1), c, v, ok)
 
     mm_ff = matmul(T, F, spec.kc, F)

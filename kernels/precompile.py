@@ -1,0 +1,101 @@
+"""Build kernel modules before their first step: on the GPU into Warp's kernel cache, or ahead of time on
+a machine without one (Warp's compiler builds for any architecture), for the shipped modules too.
+
+    python -m warpgnn.kernels.precompile --latent 64,128 --device cuda:0   # into Warp's cache, here
+    python -m warpgnn.kernels.precompile --latent 128 --arch 90 --out aot/  # cubins for sm_90, here
+    python -m warpgnn.kernels.precompile --ship                             # rebuild kernels/aot (shipped.py)
+
+A folder of ``--arch`` cubins is loaded on the GPU machine with ``load(folder, latents, device)``: Warp
+builds the same module there, so the hashes match where the code does. Modules build one after another:
+Warp's builds do not overlap (four started at once on the H100 had not finished after 580 s, one takes 150 s).
+"""
+
+from __future__ import annotations
+
+import argparse
+import lzma
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import warp as wp
+
+from . import shipped
+from .network import build_kernels, default_block_dim
+from .spec import Spec
+
+
+def _modules(latents, block_dim: int, tile_rows: int = 32, k_chunk: int = 0) -> list:
+    specs = [Spec(F, tile_rows, k_chunk) for F in latents]
+    for spec in specs:
+        build_kernels(spec)
+    return [shipped.module_of(s, block_dim) for s in specs]
+
+
+def compile_modules(latents, device=None, tile_rows: int = 32) -> float:
+    """Build and load the module of each latent width on ``device`` (Warp's cache keeps them); seconds."""
+    device = wp.get_device(device)
+    block_dim = default_block_dim(device)
+    t0 = time.perf_counter()
+    for m in _modules(latents, block_dim, tile_rows):
+        wp.load_module(m, device=device, block_dim=block_dim)
+    return time.perf_counter() - t0
+
+
+def compile_ahead(latents, arch: int, out, tile_rows: int = 32, k_chunk: int = 0) -> float:
+    """Build the modules for GPU architecture ``arch`` into the folder ``out`` (cubins) without a GPU; seconds."""
+    t0 = time.perf_counter()
+    for m in _modules(latents, shipped.BLOCK_DIM, tile_rows, k_chunk):
+        wp.compile_aot_module(m, arch=arch, module_dir=str(out), use_ptx=False)
+    return time.perf_counter() - t0
+
+
+def load(folder, latents, device, tile_rows: int = 32, k_chunk: int = 0) -> float:
+    """Load modules that compile_ahead built; a Network of the same spec then compiles nothing. Seconds."""
+    device = wp.get_device(device)
+    t0 = time.perf_counter()
+    for m in _modules(latents, shipped.BLOCK_DIM, tile_rows, k_chunk):
+        wp.load_aot_module(m, device=device, arch=device.arch, module_dir=str(folder), use_ptx=False)
+    return time.perf_counter() - t0
+
+
+def ship(log=print) -> None:
+    """Rebuild kernels/aot: shipped.LATENTS for shipped.ARCHS, xz-compressed; older builds removed."""
+    shipped.FOLDER.mkdir(exist_ok=True)
+    keep = set()
+    for F in shipped.LATENTS:
+        for arch in shipped.ARCHS:
+            with tempfile.TemporaryDirectory() as tmp:
+                seconds = compile_ahead([F], arch, tmp)
+                cubin, meta = shipped.files(Spec(F), arch)
+                cubin.write_bytes(lzma.compress((Path(tmp) / cubin.stem).read_bytes(), preset=6))
+                shutil.copy(Path(tmp) / meta.name, meta)
+            keep.update((cubin, meta))
+            log(f"latent {F}, sm_{arch}: built in {seconds:.0f} s, {cubin.stat().st_size / 1e6:.2f} MB shipped")
+    for stale in set(shipped.FOLDER.iterdir()) - keep:
+        stale.unlink()
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m warpgnn.kernels.precompile", description=__doc__.split("\n")[0])
+    parser.add_argument("--latent", default="64", help="latent widths, comma-separated (default 64)")
+    parser.add_argument("--device", default=None, help="Warp device (default: Warp's default device)")
+    parser.add_argument("--arch", type=int, default=None, help="build ahead of time for this GPU architecture")
+    parser.add_argument("--out", default="aot", help="the folder of --arch's cubins (default aot)")
+    parser.add_argument("--k-chunk", type=int, default=0, help="Spec.k_chunk (default: Spec's)")
+    parser.add_argument("--ship", action="store_true", help="rebuild the shipped modules (kernels/aot)")
+    args = parser.parse_args(argv)
+    latents = sorted({int(x) for x in args.latent.split(",") if x.strip()})
+    if args.ship:
+        ship()
+    elif args.arch is not None:
+        seconds = compile_ahead(latents, args.arch, args.out, k_chunk=args.k_chunk)
+        print(f"built latent {','.join(map(str, latents))} for sm_{args.arch} into {args.out} in {seconds:.1f} s")
+    else:
+        seconds = compile_modules(latents, args.device)
+        print(f"compiled latent {','.join(map(str, latents))} on {wp.get_device(args.device)} in {seconds:.1f} s")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,68 @@
+"""Kernel modules shipped prebuilt (kernels/aot/), so that a user's first step loads instead of compiling.
+
+Warp compiles a module on its first launch: the F = 64 module took 149 s on an H100 and 150 s on a
+2-core CPU (its tile products are cuBLASDx code, one per product shape). The shipped network's width
+is shipped built for sm_80 (A100, and by binary compatibility sm_86/sm_89) and sm_90 (H100, H200), as
+xz-compressed cubins of ~0.9 MB; loading the sm_90 one took 0.62 s on the H100
+(bench/results/warp_kernel_profile_h100.json's run). A file is named by Warp's module identifier, which
+holds a hash of the kernels' code and options: a changed kernel finds no file and compiles as before,
+and tests/test_shipped_modules.py fails until ``python -m warpgnn.kernels.precompile --ship`` rebuilds them.
+"""
+
+from __future__ import annotations
+
+import lzma
+import shutil
+import tempfile
+from pathlib import Path
+
+import warp as wp
+
+from .spec import Spec
+
+FOLDER = Path(__file__).resolve().parent / "aot"
+LATENTS = (64,)  # the shipped network's width
+ARCHS = (80, 90)
+BLOCK_DIM = 128  # network.default_block_dim on CUDA: the variant every launch uses
+
+_loaded: set = set()
+
+
+def module_of(spec: Spec, block_dim: int = BLOCK_DIM):
+    """The Warp module of ``spec`` (its kernels built) with ``block_dim`` as its default, which ahead-of-time
+    builds and loads use."""
+    module = wp.get_module(spec.module)
+    module.options["block_dim"] = block_dim
+    return module
+
+
+def files(spec: Spec, arch: int, block_dim: int = BLOCK_DIM) -> tuple[Path, Path]:
+    """The shipped (cubin.xz, meta) of ``spec`` for ``arch``, present or not."""
+    ident = module_of(spec, block_dim).get_module_identifier(block_dim)
+    return FOLDER / f"{ident}.sm{arch}.cubin.xz", FOLDER / f"{ident}.meta"
+
+
+def shipped_arch(device_arch: int) -> int | None:
+    """The newest shipped architecture a device runs: same major version, not newer than the device."""
+    fits = [a for a in ARCHS if a // 10 == device_arch // 10 and a <= device_arch]
+    return max(fits) if fits else None
+
+
+def load(spec: Spec, device, block_dim: int = BLOCK_DIM) -> bool:
+    """Load ``spec``'s shipped module on a CUDA ``device`` if one matches; False: Warp compiles it on first use."""
+    device = wp.get_device(device)
+    key = (spec.module, device.alias, block_dim)
+    if key in _loaded:
+        return True
+    arch = shipped_arch(device.arch) if device.is_cuda else None
+    if arch is None:
+        return False
+    cubin, meta = files(spec, arch, block_dim)
+    if not cubin.exists() or not meta.exists():
+        return False
+    with tempfile.TemporaryDirectory() as tmp:
+        (Path(tmp) / cubin.stem).write_bytes(lzma.decompress(cubin.read_bytes()))  # NAME.smXX.cubin
+        shutil.copy(meta, tmp)
+        wp.load_aot_module(module_of(spec, block_dim), device=device, arch=arch, module_dir=tmp, use_ptx=False)
+    _loaded.add(key)
+    return True
