@@ -34,7 +34,7 @@ def init_warp():
         os.close(saved)
 
 
-WARP_COMMANDS = ("fem", "generate", "demo", "bench")  # the rest run on torch (and meshing) alone
+WARP_COMMANDS = ("fem", "generate", "demo", "bench", "twin")  # the rest run on torch (and meshing) alone
 
 
 def _device(name):
@@ -83,6 +83,19 @@ def cmd_anatomy(args):
                                            "or --fixed IDS.txt")
     if warning:
         print(warning, file=sys.stderr)
+
+
+def cmd_twin(args):
+    from .anatomy import check_fixed_rule
+    from .twin import TwinConfig, make_twin
+
+    check_fixed_rule(args.fixed_axis, args.fixed_fraction)
+    cfg = TwinConfig(args.surface, args.out, args.scale, args.nodes, args.fixed_axis, args.fixed_fraction,
+                     preset=args.preset, epochs=args.epochs, seed=args.seed,
+                     device=str(_device(args.device)) if args.device else None)
+    if args.checkpoint:
+        cfg.checkpoint = args.checkpoint
+    make_twin(cfg)
 
 
 def cmd_fem(args):
@@ -242,8 +255,6 @@ class Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .anatomy import FIXED_FRACTION
-
     p = Parser(prog="warpgnn", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -257,12 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--fixed", metavar="IDS.txt",
                    help="node ids of the Dirichlet face (default: --surface: the rule below; --name/--seed: the "
                         "flat visceral face)")
-    a.add_argument("--fixed-axis", nargs=3, type=float, metavar=("X", "Y", "Z"),
-                   help="fix the lowest surface nodes along this direction, a contiguous face (default: the "
-                        "surface's thinnest principal axis, towards its flatter side)")
-    a.add_argument("--fixed-fraction", type=float, metavar="F",
-                   help=f"share of all nodes that face holds, 0 < F < 1 (default {FIXED_FRACTION}, the training "
-                        "livers' mean)")
+    add_fixed_rule_flags(a)
     a.add_argument("--out", required=True, help="output .vtu (point data 'fixed')")
     a.set_defaults(func=cmd_anatomy)
 
@@ -364,6 +370,23 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: warp on CUDA, torch on the CPU)")
     d.set_defaults(func=cmd_demo)
 
+    w = sub.add_parser("twin", help="fine-tune the shipped network on one patient's liver surface",
+                       description="Meshes the surface, simulates the paper's load cases on it (train, validation "
+                       "and held-out test cases), fine-tunes the shipped network on them and scores it before and "
+                       "after on the test cases: DIR/twin.pt, DIR/twin.json.")
+    w.add_argument("--surface", required=True, help="the patient's closed liver surface: STL, OBJ, PLY, VTK/VTP/VTU")
+    w.add_argument("--scale", type=float, default=1.0, help="multiply surface coordinates (e.g. 0.001 for mm)")
+    w.add_argument("--out", required=True, metavar="DIR")
+    w.add_argument("--nodes", type=int, default=600, help="target node count of the mesh (default 600)")
+    add_fixed_rule_flags(w)
+    w.add_argument("--checkpoint", help="the network to start from (default: the shipped one)")
+    w.add_argument("--preset", choices=["paper", "smoke"], default="paper",
+                   help="paper: 160/10/30 cases and 5 minutes of fine-tuning (a GPU); smoke: a CPU in minutes")
+    w.add_argument("--epochs", type=int, help="fine-tune this many epochs instead of the preset's time budget")
+    w.add_argument("--seed", type=int, default=0)
+    w.add_argument("--device", default=None)
+    w.set_defaults(func=cmd_twin)
+
     b = sub.add_parser("bench", help="time one step of the network per backend, model and pass count (L5 mesh)",
                        description="Times forward + Euler + boundary conditions (no grad) on the L5 mesh with "
                        "random weights; the first call (compile, capture) apart from the median step. Defaults on "
@@ -383,6 +406,18 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--png", metavar="F", help="plot step time against passes here")
     b.set_defaults(func=cmd_bench)
     return p
+
+
+def add_fixed_rule_flags(parser) -> None:
+    """--fixed-axis, --fixed-fraction: the rule picking a surface's fixed face (anatomy.fixed_face_by_fraction)."""
+    from .anatomy import FIXED_FRACTION
+
+    parser.add_argument("--fixed-axis", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                        help="fix the lowest surface nodes along this direction, a contiguous face (default: the "
+                             "surface's thinnest principal axis, towards its flatter side)")
+    parser.add_argument("--fixed-fraction", type=float, metavar="F",
+                        help=f"share of all nodes that face holds, 0 < F < 1 (default {FIXED_FRACTION}, the "
+                             "training livers' mean)")
 
 
 def main(argv=None) -> int:

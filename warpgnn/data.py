@@ -75,19 +75,21 @@ def file_path(data_dir: Path, stem: str) -> Path:
     return path
 
 
-def load_splits(data_dir, device="cpu", train_fraction: float = 1.0, seed: int = 0) -> dict[str, list[Simulation]]:
-    """Train (L1-L4, optionally a random ``train_fraction`` of them) and validation (20% of L5)."""
+def load_splits(data_dir, device="cpu", train_fraction: float = 1.0, seed: int = 0, train_files=TRAIN_FILES,
+                val_file: str = TEST_FILE, val_every: int = VALIDATION_EVERY) -> dict[str, list[Simulation]]:
+    """Train (L1-L4, optionally a random ``train_fraction`` of them) and validation (20% of L5), or those of
+    other files of the folder."""
     train = []
-    for stem in TRAIN_FILES:
+    for stem in train_files:
         path = file_path(data_dir, stem)
         names = sim_names(path)
         if train_fraction < 1.0:
-            rng = np.random.default_rng([seed, TRAIN_FILES.index(stem)])
+            rng = np.random.default_rng([seed, list(train_files).index(stem)])
             keep = max(1, round(train_fraction * len(names)))
             names = sorted(rng.choice(names, keep, replace=False).tolist())
         train += load_file(path, device, names)
-    test = file_path(data_dir, TEST_FILE)
-    val = load_file(test, device, sim_names(test)[::VALIDATION_EVERY])
+    test = file_path(data_dir, val_file)
+    val = load_file(test, device, sim_names(test)[::val_every])
     return {"train": train, "val": val}
 
 

@@ -29,7 +29,17 @@ import torch.distributed as dist
 from tqdm.auto import tqdm
 
 from . import checkpoint, metrics
-from .data import Batch, BatchShape, all_samples, load_splits, make_batch, smallest
+from .data import (
+    TEST_FILE,
+    TRAIN_FILES,
+    VALIDATION_EVERY,
+    Batch,
+    BatchShape,
+    all_samples,
+    load_splits,
+    make_batch,
+    smallest,
+)
 from .errors import InputError
 from .model import TIGNN, ModelConfig
 from .port_metriplectic import PortMetriplecticDecoder
@@ -85,6 +95,13 @@ class TrainConfig:
     # isotropic material) for a network that is not rotation-invariant and sees few tool orientations
     rotate: bool = False
     train_fraction: float = 1.0  # data-scarcity study
+    # the data's sets: the training files, and the file every val_every-th simulation of which is validation
+    train_sets: tuple[str, ...] = TRAIN_FILES
+    val_set: str = TEST_FILE
+    val_every: int = VALIDATION_EVERY
+    # fine-tuning: the weights and standardisation of this checkpoint (its model settings must be ``model``'s) are
+    # the start, and the starting network's validation the best to beat, so best.pt is never worse on validation
+    init_from: str | None = None
     seed: int = 0
     resume: bool = False
     time_limit: float | None = None  # seconds of this invocation; stop after the epoch that passes it (resume later)
@@ -115,6 +132,8 @@ class TrainConfig:
             raise ValueError("--patience must be >= 1")
         if not 0 < self.train_fraction <= 1:
             raise ValueError("--train-fraction must be in (0, 1]")
+        if self.val_every < 1:
+            raise ValueError("val_every must be >= 1")
         if self.cuda_graphs and self.compile:
             raise ValueError("--cuda-graphs compiles the network itself (static shapes): drop --compile")
 
@@ -153,6 +172,15 @@ def recipe(name: str = "best", **settings) -> TrainConfig:
     if "epochs" in settings and "time_budget" not in settings:
         base.pop("time_budget", None)
     return TrainConfig(**{**base, **settings})
+
+
+def start_from(model: TIGNN, path, device) -> None:
+    """Fine-tuning's start: ``path``'s weights and standardisation into ``model``, whose settings must be its."""
+    payload = checkpoint.read(path, map_location=device)
+    if checkpoint.model_config(payload["model_config"], path) != model.config:
+        raise InputError(f"{path} was trained with other model settings ({payload['model_config']}): "
+                         "fine-tune it with its own")
+    model.load_state_dict(payload["model"])
 
 
 def budget_spent(cfg: TrainConfig, history: list[dict]) -> bool:
@@ -383,13 +411,15 @@ def train(cfg: TrainConfig, log=print) -> dict:
         # with torch's default thread count: 3 runs sharing an H200 ran 2-3x slower.
         torch.set_num_threads(max(1, min(4, (os.cpu_count() or 1) // world)))
     torch.manual_seed(cfg.seed)
-    splits = load_splits(cfg.data, device, cfg.train_fraction, cfg.seed)
+    splits = load_splits(cfg.data, device, cfg.train_fraction, cfg.seed, cfg.train_sets, cfg.val_set, cfg.val_every)
     train_sims, val_sims = splits["train"], splits["val"]
     model = TIGNN(cfg.model).to(device)
-    if state is None:
-        fit_normalizer(model, train_sims, rotate=cfg.rotate)
-    else:
+    if state is not None:
         model.load_state_dict(state["model"])
+    elif cfg.init_from:
+        start_from(model, cfg.init_from, device)
+    else:
+        fit_normalizer(model, train_sims, rotate=cfg.rotate)
     # fused: one kernel for the whole update instead of a few per parameter group (CUDA only)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, fused=device.type == "cuda")
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=cfg.lr_factor, patience=cfg.lr_patience,
@@ -434,6 +464,15 @@ def train(cfg: TrainConfig, log=print) -> dict:
                 "is not counted against --time-budget")
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
+    if state is None and cfg.init_from:  # the fine-tuned network must beat where it started
+        val = validate(model, val_sims)
+        best = metrics.mean_rrmse(val)
+        if rank == 0:
+            checkpoint.save_atomically(checkpoint.model_payload(model, epoch=-1, validation=val,
+                                                                train_config=asdict(cfg)), out / "best.pt")
+            log(f"start ({cfg.init_from}): val RRMSE q {val['rrmse']['q']:.3e} v {val['rrmse']['v']:.3e} "
+                f"sigma {val['rrmse']['sigma']:.3e}")
+    if rank == 0:
         log(f"{cfg.model.kind}, {cfg.model.passes} passes, F = {cfg.model.latent}: {model.n_parameters():,} parameters; "
             f"{len(train_sims)} training and {len(val_sims)} validation simulations on {device}"
             + (f" x {world} processes" if world > 1 else ""))
