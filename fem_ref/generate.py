@@ -1,6 +1,7 @@
-"""Dataset generation: presets of load cases on the five anatomies, batched, resumable, shardable.
+"""Dataset generation: presets of load cases on the anatomies, batched, resumable, shardable.
 
-One HDF5 file per set (L1..L5, Extra on a training anatomy, Extra* with four tools on L5).
+One HDF5 file per set (paper: L1..L5, Extra on a training anatomy, Extra* with four tools on L5; wide: W00..W39
+and the paper's L5 and Extra*).
 Every simulation's load case is drawn from its own random stream seeded by
 (seed, set, simulation, attempt), so shards and resumed runs draw exactly the same cases. A
 simulation that inverts an element, goes non-finite or breaks an element's CFL condition is
@@ -12,7 +13,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import partial
 from pathlib import Path
 
@@ -37,6 +38,7 @@ class SimulationSet:
     anatomy: str  # L1..L5
     count: int
     n_loads: int | None = None  # None: 1-3 tools at random
+    stream: int | None = None  # its load draws' random stream (None: its place in the preset)
 
 
 @dataclass
@@ -44,6 +46,7 @@ class Preset:
     sets: list[SimulationSet]
     solver: SolverConfig = field(default_factory=SolverConfig)
     displacement_range: tuple[float, float] = (MIN_DISPLACEMENT, MAX_DISPLACEMENT)  # m, of each tool
+    train_sets: tuple[str, ...] = ("L1", "L2", "L3", "L4")  # what `warpgnn train` trains on (names or globs)
 
 
 def _paper() -> Preset:
@@ -62,7 +65,24 @@ def _smoke() -> Preset:
     return Preset(sets, SolverConfig(duration=0.1, snapshots=5), (MIN_DISPLACEMENT, 0.0125))
 
 
-PRESETS = {"paper": _paper, "smoke": _smoke}
+WIDE_PER_ANATOMY = 24
+
+
+def _wide() -> Preset:
+    """Anatomy variety (issue 57): 24 simulations on each of the 40 wide anatomies (anatomy.WIDE) to train on,
+    960 in all, about the paper's 760 training simulations (so the same FEM time and epoch length, a few
+    minutes of a GPU), spread over ten times as many livers; and the paper's L5 and Extra* sets, drawn from the
+    paper's own random streams (the same simulations), so a network trained on either preset is scored on the
+    same unseen cases. `warpgnn train` reads its training files (W*) from the folder's manifest."""
+    from warpgnn.anatomy import WIDE
+
+    paper = _paper()
+    sets = [SimulationSet(name, name, WIDE_PER_ANATOMY, stream=100 + i) for i, name in enumerate(WIDE)]
+    sets += [replace(s, stream=k) for k, s in enumerate(paper.sets) if s.name in ("L5", "extra_star")]
+    return Preset(sets, train_sets=("W*",))
+
+
+PRESETS = {"paper": _paper, "smoke": _smoke, "wide": _wide}
 
 
 def sim_name(index: int) -> str:
@@ -171,10 +191,11 @@ def generate(out_dir, preset: str = "paper", seed: int = 0, device=None, shard: 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    stats = [generate_set(out_dir, spec, k, p, seed, device, max_batch, log)
+    stats = [generate_set(out_dir, spec, k if spec.stream is None else spec.stream, p, seed, device, max_batch, log)
              for k, spec in enumerate(p.sets) if k % n == i]
     summary = {"preset": preset, "seed": seed, "shard": f"{i}/{n}", "device": str(wp.get_device(device)),
-               "solver": asdict(p.solver), "displacement_range": p.displacement_range, "sets": stats,
+               "solver": asdict(p.solver), "displacement_range": p.displacement_range,
+               "train_sets": list(p.train_sets), "sets": stats,
                "seconds": time.perf_counter() - t0}
     manifest = out_dir / (f"manifest.{i}-of-{n}.json" if n > 1 else "manifest.json")
     dataset.write_text_atomically(manifest, json.dumps(summary, indent=2))

@@ -11,12 +11,14 @@ from warpgnn.anatomy import (  # noqa: E402
     FIXED_FRACTION,
     LIVER_FIXED_FRACTIONS,
     LIVERS,
+    WIDE,
     check_fixed_rule,
     find_fixed_face,
     fixed_face_by_fraction,
     mesh_from_surface,
     mesh_quality,
     procedural_liver,
+    wide_spec,
 )
 from warpgnn.errors import InputError  # noqa: E402
 from warpgnn.mesh import TetMesh, box_tet_mesh, face_keys, signed_volumes  # noqa: E402
@@ -301,3 +303,38 @@ def test_face_keys_match_triangles_in_any_corner_order(offset):
     same = keys[:, None] == keys[None, :]
     corners = [frozenset(f) for f in faces.tolist()]
     assert (same == np.array([[a == b for b in corners] for a in corners])).all()
+
+
+WIDE_SAMPLE = WIDE[:8]
+
+
+@pytest.fixture(scope="module")
+def wide_livers():
+    return {name: procedural_liver(name) for name in WIDE_SAMPLE}
+
+
+def aspects(mesh):
+    """(front-back / left-right, height / left-right) of a liver's bounding box."""
+    x, y, z = np.ptp(mesh.nodes, axis=0)
+    return y / x, z / x
+
+
+def test_wide_livers_keep_the_papers_ranges_and_a_training_like_support(wide_livers):
+    """W00..W39 (the wide preset's): each within DESIGN's volume and node ranges, a mesh near L1..L5's (its
+    shortest altitude, which sets the FEM's step, over 1 mm: L1..L5's over 1.5 mm), its flat face 10-25 % of
+    the nodes."""
+    for name, mesh in wide_livers.items():
+        spec = wide_spec(name)
+        assert 2.1e-4 <= spec.volume <= 2.8e-4 and 460 <= spec.nodes <= 680 and spec.variety == 1
+        assert abs(len(mesh.nodes) / spec.nodes - 1) <= 0.02 and abs(mesh.volume / spec.volume - 1) < 0.02
+        assert mesh.min_altitude().min() >= 1.0e-3 and (mesh.volumes > 0).all()
+        assert 0.10 <= mesh.fixed.mean() <= 0.25
+    assert wide_spec("W40") is None and wide_spec("L1") is None and wide_spec("W1") is None
+
+
+def test_wide_livers_vary_more_than_the_papers(livers, wide_livers):
+    """Eight wide livers span wider proportions than L1..L5 (front-back and height over length). Their draws
+    come after L1..L5's, which stay as they were (tests/test_shipped_rollout.py pins L5's mesh through a rollout)."""
+    paper = np.array([aspects(m) for m in livers.values()])
+    wide = np.array([aspects(m) for m in wide_livers.values()])
+    assert (np.ptp(wide, axis=0) > 1.5 * np.ptp(paper, axis=0)).all()

@@ -1,6 +1,7 @@
 """Dataset generation: schema, determinism, resume without rewriting, sharding, atomic writes."""
 
 import hashlib
+import json
 
 import h5py
 import numpy as np
@@ -124,3 +125,36 @@ def test_paper_preset_is_the_papers():
         *[(f"L{i}", f"L{i}", 190, None) for i in range(1, 6)], ("extra", "L1", 33, None), ("extra_star", "L5", 10, 4)]
     assert (paper.solver.duration, paper.solver.snapshots, paper.solver.viscosity) == (1.0, 20, True)
     assert paper.displacement_range == (0.005, 0.025)
+
+
+def test_wide_preset_spreads_the_paper_budget_over_forty_livers_and_keeps_the_papers_test_cases():
+    wide, paper = gen.PRESETS["wide"](), gen.PRESETS["paper"]()
+    train = [s for s in wide.sets if s.name.startswith("W")]
+    assert len(train) == 40 and {s.count for s in train} == {24} and all(s.name == s.anatomy for s in train)
+    assert 900 <= sum(s.count for s in train) <= 1000  # about the paper's 760 training simulations (+L5's 190)
+    streams = [s.stream for s in wide.sets]
+    assert len(set(streams)) == len(streams)
+    # the unseen sets are the paper's own: same anatomy, count, tools and random stream (its place in paper)
+    for s in wide.sets[40:]:
+        k = next(k for k, p in enumerate(paper.sets) if p.name == s.name)
+        assert (s.anatomy, s.count, s.n_loads, s.stream) == (paper.sets[k].anatomy, paper.sets[k].count,
+                                                              paper.sets[k].n_loads, k)
+    assert [s.name for s in wide.sets[40:]] == ["L5", "extra_star"]
+    assert (wide.solver, wide.displacement_range) == (paper.solver, paper.displacement_range)
+
+
+def test_a_sets_stream_decides_its_simulations(tmp_path, tiny_preset, monkeypatch):
+    """generate() draws a set's cases from its stream, not its place: B moved first, given its old place as its
+    stream, simulates exactly what it did second."""
+    from dataclasses import replace
+
+    monkeypatch.setitem(gen.PRESETS, "t1", lambda: tiny_preset)
+    moved = replace(tiny_preset, sets=[replace(tiny_preset.sets[1], stream=1)])
+    monkeypatch.setitem(gen.PRESETS, "t2", lambda: moved)
+    gen.generate(tmp_path / "a", "t1", seed=5, device="cpu")
+    gen.generate(tmp_path / "b", "t2", seed=5, device="cpu")
+    manifest = json.loads((tmp_path / "a" / "manifest.json").read_text())
+    assert manifest["train_sets"] == ["L1", "L2", "L3", "L4"]  # what `warpgnn train` will read (data.py)
+    for name in dataset.simulation_names(tmp_path / "a" / "B.h5"):
+        a, b = (dataset.read_simulation(tmp_path / d / "B.h5", name) for d in "ab")
+        assert np.array_equal(a["q"], b["q"]) and np.array_equal(a["loaded"], b["loaded"])

@@ -963,3 +963,23 @@ def test_shipped_network_is_the_recorded_run_and_evaluates(data, tmp_path):
     metrics = json.loads((tmp_path / "ev" / "metrics.json").read_text())
     assert all(np.isfinite(metrics["rrmse"][g]) for g in GROUPS)
     assert metrics["negative_entropy_rollouts"] == 0
+
+
+def test_training_sets_are_names_or_globs_of_the_data_folder(tmp_path):
+    """A data folder's training files: its preset's (the manifest's train_sets: the wide preset's 'W*'), else
+    L1..L4; globs pick the folder's files in order, each once; a plain name passes through (its missing file is
+    load_splits' one line); a glob that picks nothing is one line."""
+    from warpgnn.data import dataset_stems
+    from warpgnn.errors import InputError
+
+    for stem in ("W01", "W00", "L5", "extra_star"):
+        (tmp_path / f"{stem}.h5").touch()
+    assert dataset_stems(tmp_path, ("W*",)) == ["W00", "W01"]
+    assert dataset_stems(tmp_path, ("W0[1]", "W*", "L1")) == ["W01", "W00", "L1"]
+    with pytest.raises(InputError, match="no dataset file matches 'X\\*'"):
+        dataset_stems(tmp_path, ("X*",))
+    from warpgnn.data import preset_train_sets
+
+    assert preset_train_sets(tmp_path) == ("L1", "L2", "L3", "L4")  # no manifest: the paper's
+    (tmp_path / "manifest.json").write_text(json.dumps({"preset": "wide", "train_sets": ["W*"]}))
+    assert preset_train_sets(tmp_path) == ("W*",)

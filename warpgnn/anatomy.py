@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import heapq
 import logging
+import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,6 +45,7 @@ class LiverSpec:
     volume: float  # target volume [m^3]
     nodes: int  # target node count
     tets: int | None = None  # the paper's tetrahedron count (Table 2), a second target
+    variety: float = 0.0  # 0: L1..L5's shape draws; 1: the wide set's (_liver_field)
 
 
 # The paper's Table 2 (volume, nodes, tetrahedra); seeds are ours.
@@ -59,6 +61,24 @@ LIVER_NODE_RANGE = (460, 680)
 LIVER_TET_RANGE = (1400, 2300)
 SEED_VOLUME = 2.5e-4  # volume of a liver made from a bare seed [m^3]
 SEED_NODES = 600
+# The wide set (generate preset "wide"): W00..W39, each its own seed, volume and node count drawn within the
+# paper's ranges (DESIGN.md: 2.1e-4..2.8e-4 m^3, 460-680 nodes), shapes drawn with variety 1
+WIDE_COUNT = 40
+WIDE_VOLUME = (2.1e-4, 2.8e-4)
+WIDE_SEED = 7000
+
+
+def wide_spec(name: str) -> LiverSpec | None:
+    """The LiverSpec of wide anatomy ``name`` ("W00".."W39"), None for any other name."""
+    m = re.fullmatch(r"W(\d\d)", name)
+    if not m or int(m[1]) >= WIDE_COUNT:
+        return None
+    rng = np.random.default_rng([WIDE_SEED, int(m[1])])
+    return LiverSpec(seed=WIDE_SEED + int(m[1]), volume=float(rng.uniform(*WIDE_VOLUME)),
+                     nodes=int(rng.integers(LIVER_NODE_RANGE[0], LIVER_NODE_RANGE[1] + 1)), variety=1.0)
+
+
+WIDE = [f"W{i:02d}" for i in range(WIDE_COUNT)]
 
 GRID_SPACING = 1.5e-3  # marching-cubes voxel [m]: resolves the thin left lobe
 NODE_TOLERANCE = 0.02  # accept a mesh within 2 % of the target node count...
@@ -270,12 +290,17 @@ def _lobe(p, centre, radii, squareness):
     return (np.sqrt(rho**2 + q[..., 2] ** 2) - 1.0) * radii.min()
 
 
-def _liver_field(seed: int):
-    """Implicit liver (negative inside) drawn from ``seed``; nominal size ~250 cm^3."""
+def _liver_field(seed: int, variety: float = 0.0):
+    """Implicit liver (negative inside) drawn from ``seed``; nominal size ~250 cm^3. ``variety`` widens the
+    draws: every relative jitter by (1 + 2 variety) (lobe sizes, aspect ratios, the dome's height, the left
+    lobe's taper and swing), and, drawn after L1..L5's draws so that those stay exactly as they are, an
+    overall stretch of the footprint, up to two more notches on the anterior border and up to four more
+    bulges and dents. The visceral face stays the plane z = 0 (the support's face)."""
     rng = np.random.default_rng(seed)
+    wide = 1.0 + 2.0 * variety
 
     def jitter(value, rel):
-        return np.asarray(value) * (1.0 + rel * rng.uniform(-1.0, 1.0, np.shape(value)))
+        return np.asarray(value) * (1.0 + wide * rel * rng.uniform(-1.0, 1.0, np.shape(value)))
 
     # right lobe: rounded-square footprint under a dome, thicker at the back (y > 0)
     r_centre = np.array([-0.022, 0.002, -0.002]) + [*rng.uniform(-0.004, 0.004, 2), 0.0]
@@ -290,8 +315,19 @@ def _liver_field(seed: int):
     notch_r = np.array([0.006, jitter(0.012, 0.25), 1.0])
     bumps = [(rng.uniform([-0.05, -0.03, 0.02], [0.04, 0.03, 0.045]), rng.uniform(-0.002, 0.003),
               rng.uniform(0.012, 0.025)) for _ in range(3)]
+    stretch, notches = np.ones(3), []
+    if variety:  # drawn last: L1..L5 (variety 0) draw exactly what they always drew
+        stretch = np.r_[1.0 + 0.15 * variety * rng.uniform(-1.0, 1.0, 2), 1.0]
+        for _ in range(rng.integers(0, 3)):
+            x0 = rng.uniform(-0.05, 0.04)
+            side = r_centre[1] - r_radii[1] if rng.uniform() < 0.7 else r_centre[1] + r_radii[1]
+            notches.append((np.array([x0, side, 0.0]), np.array([rng.uniform(0.004, 0.008),
+                                                                 rng.uniform(0.006, 0.014) * variety, 1.0])))
+        bumps += [(rng.uniform([-0.05, -0.03, 0.015], [0.04, 0.03, 0.045]), rng.uniform(-0.004, 0.004) * variety,
+                   rng.uniform(0.010, 0.022)) for _ in range(rng.integers(0, 5))]
 
     def field(p):
+        p = p / stretch
         x, y, z = p[..., 0], p[..., 1], p[..., 2]
         pr = p.copy()
         pr[..., 2] = z / (1.0 + r_back * np.clip(y / r_radii[1], -1.0, 1.0))
@@ -302,6 +338,8 @@ def _liver_field(seed: int):
         f = _smin(_lobe(pr, r_centre, r_radii, 2.4), _lobe(pl, l_centre, l_radii, 2.2), 0.02)
         notch = _lobe(p, np.array([notch_x, r_centre[1] - r_radii[1], 0.0]), notch_r, 2.0)
         f = -_smin(-f, notch, 0.006)  # smooth subtraction
+        for centre, radii in notches:
+            f = -_smin(-f, _lobe(p, centre, radii, 2.0), 0.006)
         for centre, amp, width in bumps:
             f = f - amp * np.exp(-np.sum((p - centre) ** 2, axis=-1) / width**2)
         return f
@@ -309,15 +347,17 @@ def _liver_field(seed: int):
     return field
 
 
-def _liver_dome(seed: int):
+def _liver_dome(seed: int, variety: float = 0.0):
     """Dense reference surface of the liver above z = 0: an open dome whose boundary
     loop lies exactly in the plane z = 0."""
     import pyvista as pv
 
-    lo, hi = np.array([-0.085, -0.065, -4 * GRID_SPACING]), np.array([0.085, 0.065, 0.075])
+    room = 1.0 + 0.3 * variety  # the box a wide liver is drawn in: stretched, it needs more
+    lo = np.array([-0.085 * room, -0.065 * room, -4 * GRID_SPACING])
+    hi = np.array([0.085, 0.065, 0.075]) * room
     dims = np.ceil((hi - lo) / GRID_SPACING).astype(int) + 1
     grid = pv.ImageData(dimensions=dims, spacing=(GRID_SPACING,) * 3, origin=lo)
-    grid["f"] = _liver_field(seed)(np.asarray(grid.points))
+    grid["f"] = _liver_field(seed, variety)(np.asarray(grid.points))
     surf = grid.contour([0.0], scalars="f").triangulate().clean()
     surf.points = np.asarray(surf.points, dtype=np.float64)
     dome = surf.clip(normal=(0, 0, -1), origin=(0, 0, 0)).triangulate().clean()
@@ -545,9 +585,10 @@ def procedural_liver(name_or_seed: str | int, target_nodes: int | None = None) -
     import pyvista as pv
 
     if isinstance(name_or_seed, str):
-        if name_or_seed not in LIVERS:
-            raise InputError(f"unknown anatomy {name_or_seed!r} (known: {', '.join(LIVERS)})")
-        spec = LIVERS[name_or_seed]
+        spec = LIVERS.get(name_or_seed) or wide_spec(name_or_seed)
+        if spec is None:
+            raise InputError(f"unknown anatomy {name_or_seed!r} (known: {', '.join(LIVERS)}, "
+                             f"W00..W{WIDE_COUNT - 1})")
     else:
         spec = LiverSpec(seed=int(name_or_seed), volume=SEED_VOLUME, nodes=SEED_NODES)
     target = spec.nodes if target_nodes is None else int(target_nodes)
@@ -555,7 +596,7 @@ def procedural_liver(name_or_seed: str | int, target_nodes: int | None = None) -
         raise InputError(f"target node count must be at least {MIN_TARGET_NODES}, got {target}")
 
     with _quiet():
-        dome = _liver_dome(spec.seed)
+        dome = _liver_dome(spec.seed, spec.variety)
         rim = dome.extract_feature_edges(boundary_edges=True, feature_edges=False,
                                          manifold_edges=False, non_manifold_edges=False)
 

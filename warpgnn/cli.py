@@ -261,7 +261,8 @@ def build_parser() -> argparse.ArgumentParser:
     a = sub.add_parser("anatomy", help="make a tetrahedral liver mesh (procedural or from a surface)")
     src = a.add_mutually_exclusive_group(required=True)
     src.add_argument("--seed", type=int, help="seed of a procedural liver")
-    src.add_argument("--name", choices=["L1", "L2", "L3", "L4", "L5"], help="one of the built-in anatomies")
+    src.add_argument("--name", metavar="NAME",
+                     help="a built-in anatomy: L1..L5 (the paper's), W00..W39 (the wide preset's)")
     src.add_argument("--surface", help="closed surface: STL, OBJ, PLY, VTK/VTP/VTU")
     a.add_argument("--scale", type=float, default=1.0, help="multiply surface coordinates (e.g. 0.001 for mm)")
     a.add_argument("--nodes", type=int, help="target node count (default: the paper's for --name, 600 otherwise)")
@@ -288,7 +289,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     g = sub.add_parser("generate", help="generate a dataset preset (resumable, shardable)")
     g.add_argument("--out", required=True)
-    g.add_argument("--preset", default="paper", choices=["paper", "smoke"])
+    g.add_argument("--preset", default="paper", choices=["paper", "smoke", "wide"],
+                   help="paper: the paper's 993 simulations on L1..L5; wide: 960 on 40 varied livers W00..W39 "
+                        "and the paper's L5 and Extra* sets; smoke: tiny, for a CPU")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--device", default=None)
     g.add_argument("--shard", default=None, help="i/n: this process takes every n-th file from i")
@@ -299,7 +302,9 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser("train", help="train the vanilla or hybrid network on a generated dataset",
                        argument_default=argparse.SUPPRESS, description="Trains --recipe (default: best); every "
                        "flag given overrides the recipe's value.")
-    t.add_argument("--data", required=True, metavar="DIR", help="dataset directory (L1..L5.h5 from 'generate')")
+    t.add_argument("--data", required=True, metavar="DIR",
+                   help="dataset directory from 'generate': trains on its preset's training files (paper: L1..L4, "
+                        "wide: W00..W39), validates on L5")
     t.add_argument("--out", required=True, metavar="RUN", help="run directory (last.pt, best.pt, log.csv)")
     t.add_argument("--recipe", default="best", choices=["best", "paper"],
                    help="best: the shipped network's (batch 32, lr 1e-3 -> 1e-5 exponentially over a 1800 s "

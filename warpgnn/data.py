@@ -7,6 +7,8 @@ on all 190, validation ones included); Extra and Extra* are their own files.
 
 from __future__ import annotations
 
+import fnmatch
+import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -75,11 +77,38 @@ def file_path(data_dir: Path, stem: str) -> Path:
     return path
 
 
-def load_splits(data_dir, device="cpu", train_fraction: float = 1.0, seed: int = 0, train_files=TRAIN_FILES,
+def dataset_stems(data_dir, patterns) -> list[str]:
+    """The stems of the folder's dataset files that names or globs in ``patterns`` pick, in their order, each once;
+    a pattern that picks nothing ends in one line."""
+    stems = sorted(p.stem for p in Path(data_dir).glob("*.h5"))
+    out = []
+    for pattern in patterns:
+        if not any(c in pattern for c in "*?["):  # a plain name: file_path says if it is missing
+            out += [pattern] if pattern not in out else []
+            continue
+        picked = [s for s in stems if fnmatch.fnmatchcase(s, pattern)]
+        if not picked:
+            raise InputError(f"{data_dir}: no dataset file matches {pattern!r}")
+        out += [s for s in picked if s not in out]
+    return out
+
+
+def preset_train_sets(data_dir) -> tuple[str, ...]:
+    """The training files the folder's preset names in its manifest (`generate` writes it; the wide preset's
+    W*), else L1..L4."""
+    for manifest in sorted(Path(data_dir).glob("manifest*.json")):
+        sets = json.loads(manifest.read_text()).get("train_sets")
+        if sets:
+            return tuple(sets)
+    return TRAIN_FILES
+
+
+def load_splits(data_dir, device="cpu", train_fraction: float = 1.0, seed: int = 0, train_files=None,
                 val_file: str = TEST_FILE, val_every: int = VALIDATION_EVERY) -> dict[str, list[Simulation]]:
     """Train (L1-L4, optionally a random ``train_fraction`` of them) and validation (20% of L5), or those of
-    other files of the folder."""
+    other files of the folder (``train_files``: names or globs; None: the folder's preset's)."""
     train = []
+    train_files = dataset_stems(data_dir, train_files or preset_train_sets(data_dir))
     for stem in train_files:
         path = file_path(data_dir, stem)
         names = sim_names(path)

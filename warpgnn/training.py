@@ -31,7 +31,6 @@ from tqdm.auto import tqdm
 from . import checkpoint, metrics
 from .data import (
     TEST_FILE,
-    TRAIN_FILES,
     VALIDATION_EVERY,
     Batch,
     BatchShape,
@@ -95,8 +94,9 @@ class TrainConfig:
     # isotropic material) for a network that is not rotation-invariant and sees few tool orientations
     rotate: bool = False
     train_fraction: float = 1.0  # data-scarcity study
-    # the data's sets: the training files, and the file every val_every-th simulation of which is validation
-    train_sets: tuple[str, ...] = TRAIN_FILES
+    # the data's sets: the training files (names or globs; None: the folder's preset's, paper L1..L4, wide W*), and
+    # the file every val_every-th simulation of which is validation
+    train_sets: tuple[str, ...] | None = None
     val_set: str = TEST_FILE
     val_every: int = VALIDATION_EVERY
     # fine-tuning: the weights and standardisation of this checkpoint (its model settings must be ``model``'s) are
