@@ -82,7 +82,16 @@ def _wide() -> Preset:
     return Preset(sets, train_sets=("W*",))
 
 
-PRESETS = {"paper": _paper, "smoke": _smoke, "wide": _wide}
+def _real() -> Preset:
+    """Test sets on three real livers (anatomy.REAL_LIVERS, docs/real-livers.md), 190 cases each as the paper's
+    test anatomy, the paper's load rules: never trained on (no training files)."""
+    from warpgnn.anatomy import REAL_LIVERS
+
+    return Preset([SimulationSet(name, name, 190, stream=200 + i) for i, name in enumerate(REAL_LIVERS)],
+                  train_sets=())
+
+
+PRESETS = {"paper": _paper, "smoke": _smoke, "wide": _wide, "real": _real}
 
 
 def sim_name(index: int) -> str:
@@ -90,11 +99,11 @@ def sim_name(index: int) -> str:
 
 
 def build_anatomy(name: str) -> TetMesh:
-    """The built-in anatomy ``name`` (imported here: meshing needs pyvista and tetgen, which
-    a GPU host that only simulates may lack)."""
-    from warpgnn.anatomy import procedural_liver
+    """The built-in anatomy ``name``: procedural (L1..L5, W00..W39) or real (anatomy.REAL_LIVERS). Imported
+    here: meshing needs pyvista and tetgen, which a GPU host that only simulates may lack."""
+    from warpgnn.anatomy import REAL_LIVERS, procedural_liver, real_liver
 
-    return procedural_liver(name)
+    return real_liver(name) if name in REAL_LIVERS else procedural_liver(name)
 
 
 def anatomy_mesh(out_dir: Path, name: str) -> TetMesh:

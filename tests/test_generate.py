@@ -158,3 +158,10 @@ def test_a_sets_stream_decides_its_simulations(tmp_path, tiny_preset, monkeypatc
     for name in dataset.simulation_names(tmp_path / "a" / "B.h5"):
         a, b = (dataset.read_simulation(tmp_path / d / "B.h5", name) for d in "ab")
         assert np.array_equal(a["q"], b["q"]) and np.array_equal(a["loaded"], b["loaded"])
+
+
+def test_real_preset_tests_three_real_livers_and_trains_on_none():
+    real = gen.PRESETS["real"]()
+    assert [(s.name, s.anatomy, s.count) for s in real.sets] == [
+        ("real_vhf", "real_vhf", 190), ("real_vhm", "real_vhm", 190), ("real_sofa", "real_sofa", 190)]
+    assert real.train_sets == () and len({s.stream for s in real.sets}) == 3

@@ -27,3 +27,19 @@ def test_shipped_modules_are_the_current_kernels():
 
 def test_a_device_takes_the_newest_build_of_its_major_version():
     assert [shipped.shipped_arch(a) for a in (75, 80, 86, 89, 90, 100, 120)] == [None, 80, 80, 80, 90, None, None]
+
+
+def test_a_network_of_the_shipped_width_loads_the_prebuilt_module_on_a_gpu():
+    """On an sm_80..sm_90 GPU a Network of width 64 loads kernels/aot's module (no compile); elsewhere it skips."""
+    import pytest
+    import warp as wp
+
+    if not wp.get_cuda_device_count() or shipped.shipped_arch(wp.get_device("cuda:0").arch) is None:
+        pytest.skip("needs an sm_80..sm_90 CUDA device")
+    from test_kernels import random_model, tool_topology
+    from synthetic import box
+
+    from warpgnn.kernels import Network
+
+    net = Network(random_model("hybrid", 1, 64), tool_topology(box((3, 3, 2)), 1, seed=0), device="cuda:0")
+    assert net.shipped_module

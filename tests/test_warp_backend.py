@@ -206,7 +206,7 @@ def test_cuda_graphs_replay_rollouts(sims):
     1e-4; a whole rollout's graph replayed, also under another torch stream, repeats it bit for bit."""
     from warpgnn.graphs import batch
 
-    model = random_model("hybrid", 2, 32, seed=13).cuda()
+    model = random_model("hybrid", 2, 64, seed=13).cuda()  # the shipped width: its module is prebuilt (kernels/aot)
     cuda = [replace(s, z=s.z.cuda(), u=s.u.cuda()) for s in sims]
     warp = WarpModel(model)
     for r, g in zip(rollout(model, cuda, chunk=2), rollout(warp, cuda, chunk=2)):

@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import heapq
 import logging
+import os
 import re
 import warnings
 from dataclasses import dataclass
@@ -79,6 +80,12 @@ def wide_spec(name: str) -> LiverSpec | None:
 
 
 WIDE = [f"W{i:02d}" for i in range(WIDE_COUNT)]
+# Real livers to test on, never to train on (generate preset "real"): surface files and the scale that makes each
+# enclose ~2.5e-4 m^3. They are not shipped (docs/real-livers.md: their sources, licences and how they were made);
+# they are read from $WARPGNN_SURFACES, by default ~/.cache/warpgnn/surfaces
+SURFACES = Path(os.environ.get("WARPGNN_SURFACES", Path.home() / ".cache" / "warpgnn" / "surfaces"))
+REAL_LIVERS = {"real_vhf": ("hra_vh_female.ply", 0.4892), "real_vhm": ("hra_vh_male.ply", 0.5187),
+               "real_sofa": ("sofa_liver.ply", 0.01853)}
 
 GRID_SPACING = 1.5e-3  # marching-cubes voxel [m]: resolves the thin left lobe
 NODE_TOLERANCE = 0.02  # accept a mesh within 2 % of the target node count...
@@ -620,6 +627,40 @@ def procedural_liver(name_or_seed: str | int, target_nodes: int | None = None) -
     mesh = TetMesh(nodes, mesh.tets)
     mesh.fixed = find_fixed_face(mesh)
     return mesh
+
+
+def upright(mesh: TetMesh) -> TetMesh:
+    """``mesh`` turned so that its fixed face lies down (the face's outward normal along -z), centred in x-y, its
+    lowest node at z = 0: L1..L5's pose, which the network assumes (it learnt turns about z only) and the RRMSE
+    too (it divides by the largest |q|: a liver far from the origin would read as error-free)."""
+    x, fixed = mesh.nodes, mesh.fixed.astype(bool)
+    face = x[fixed] - x[fixed].mean(axis=0)
+    n = np.linalg.svd(face, full_matrices=False)[2][-1]  # the face's plane normal
+    if n @ (x[fixed].mean(axis=0) - x.mean(axis=0)) < 0:
+        n = -n  # outward: from the liver's centre towards its fixed face
+    down = np.array([0.0, 0.0, -1.0])
+    axis, c = np.cross(n, down), float(n @ down)
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    turn = np.eye(3) + k + k @ k / (1.0 + c) if c > -1.0 + 1e-12 else np.diag([1.0, -1.0, -1.0])  # Rodrigues
+    y = x @ turn.T
+    y[:, :2] -= 0.5 * (y[:, :2].min(axis=0) + y[:, :2].max(axis=0))
+    y[:, 2] -= y[:, 2].min()
+    out = TetMesh(y, mesh.tets)  # a rotation keeps every tet's orientation
+    out.fixed = mesh.fixed.copy()
+    return out
+
+
+def real_liver(name: str, target_nodes: int = SEED_NODES) -> TetMesh:
+    """Real liver ``name`` (REAL_LIVERS) meshed like a user's surface and set upright."""
+    if name not in REAL_LIVERS:
+        raise InputError(f"unknown real liver {name!r} (known: {', '.join(REAL_LIVERS)})")
+    file, scale = REAL_LIVERS[name]
+    if not (SURFACES / file).is_file():
+        raise InputError(f"real liver {name}: {SURFACES / file} not found (set WARPGNN_SURFACES; where to get the "
+                         "file: docs/real-livers.md)")
+    with _quiet():
+        mesh, _ = mesh_from_surface(SURFACES / file, scale=scale, target_nodes=target_nodes)
+    return upright(mesh)
 
 
 # --------------------------------------------------------------- user surface

@@ -289,9 +289,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     g = sub.add_parser("generate", help="generate a dataset preset (resumable, shardable)")
     g.add_argument("--out", required=True)
-    g.add_argument("--preset", default="paper", choices=["paper", "smoke", "wide"],
+    g.add_argument("--preset", default="paper", choices=["paper", "smoke", "wide", "real"],
                    help="paper: the paper's 993 simulations on L1..L5; wide: 960 on 40 varied livers W00..W39 "
-                        "and the paper's L5 and Extra* sets; smoke: tiny, for a CPU")
+                        "and the paper's L5 and Extra* sets; real: 190 test cases on each of three real livers; "
+                        "smoke: tiny, for a CPU")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--device", default=None)
     g.add_argument("--shard", default=None, help="i/n: this process takes every n-th file from i")

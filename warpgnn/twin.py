@@ -1,7 +1,7 @@
 """``warpgnn twin``: the shipped network fine-tuned on one patient's liver.
 
 From a surface (a segmentation's STL, OBJ, PLY or VTK): the tetrahedral mesh with a support like the
-training livers' (anatomy.mesh_from_surface), FEM simulations of the paper's load rules on that mesh
+training livers' (anatomy.mesh_from_surface), set upright as they are (fixed face down, anatomy.upright), FEM simulations of the paper's load rules on that mesh
 (training, validation and held-out test cases, each set its own random stream), the shipped network
 scored on the test cases, fine-tuned on the training cases from its own weights and standardisation
 (its recipe's noise, a tenth of its learning rate, validation on the patient's validation cases, never
@@ -71,7 +71,7 @@ def _metrics_line(m: dict) -> str:
 
 def make_twin(cfg: TwinConfig, log=print) -> dict:
     """Run the whole chain (module docstring); returns the report twin.json holds."""
-    from .anatomy import fixed_fraction_warning, mesh_from_surface
+    from .anatomy import fixed_fraction_warning, mesh_from_surface, upright
     from .evaluation import evaluate
     from .fem_ref.generate import PRESETS as FEM_PRESETS
     from .fem_ref.generate import SimulationSet, generate_set
@@ -96,6 +96,7 @@ def make_twin(cfg: TwinConfig, log=print) -> dict:
                                          fixed_fraction=cfg.fixed_fraction)
         for line in report:
             log(line)
+        mesh = upright(mesh)  # the training livers' pose (the twin's files are in it)
         vtu.parent.mkdir(parents=True, exist_ok=True)
         mesh.save(vtu)
     warning = fixed_fraction_warning(mesh, "choose it with --fixed-fraction F (and --fixed-axis X Y Z)")
