@@ -207,5 +207,7 @@ def generate(out_dir, preset: str = "paper", seed: int = 0, device=None, shard: 
                "train_sets": list(p.train_sets), "sets": stats,
                "seconds": time.perf_counter() - t0}
     manifest = out_dir / (f"manifest.{i}-of-{n}.json" if n > 1 else "manifest.json")
+    if not p.train_sets and manifest.exists():  # a test-only preset (real) added to a folder: its training files stay
+        summary["train_sets"] = json.loads(manifest.read_text()).get("train_sets", [])
     dataset.write_text_atomically(manifest, json.dumps(summary, indent=2))
     return summary

@@ -14,6 +14,7 @@ from __future__ import annotations
 import lzma
 import shutil
 import tempfile
+import warnings
 from pathlib import Path
 
 import warp as wp
@@ -60,9 +61,14 @@ def load(spec: Spec, device, block_dim: int = BLOCK_DIM) -> bool:
     cubin, meta = files(spec, arch, block_dim)
     if not cubin.exists() or not meta.exists():
         return False
-    with tempfile.TemporaryDirectory() as tmp:
-        (Path(tmp) / cubin.stem).write_bytes(lzma.decompress(cubin.read_bytes()))  # NAME.smXX.cubin
-        shutil.copy(meta, tmp)
-        wp.load_aot_module(module_of(spec, block_dim), device=device, arch=arch, module_dir=tmp, use_ptx=False)
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            (Path(tmp) / cubin.stem).write_bytes(lzma.decompress(cubin.read_bytes()))  # NAME.smXX.cubin
+            shutil.copy(meta, tmp)
+            wp.load_aot_module(module_of(spec, block_dim), device=device, arch=arch, module_dir=tmp, use_ptx=False)
+    except Exception as exc:  # noqa: BLE001 - a damaged file or a driver that refuses it: compile as without one
+        warnings.warn(f"{cubin.name} not loaded ({type(exc).__name__}: {exc}); Warp compiles the module instead",
+                      stacklevel=2)
+        return False
     _loaded.add(key)
     return True

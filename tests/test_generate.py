@@ -165,3 +165,17 @@ def test_real_preset_tests_three_real_livers_and_trains_on_none():
     assert [(s.name, s.anatomy, s.count) for s in real.sets] == [
         ("real_vhf", "real_vhf", 190), ("real_vhm", "real_vhm", 190), ("real_sofa", "real_sofa", 190)]
     assert real.train_sets == () and len({s.stream for s in real.sets}) == 3
+
+
+def test_a_test_only_preset_keeps_the_folders_training_files(tmp_path, tiny_preset, monkeypatch):
+    """`generate --preset real` into a folder of another preset leaves the manifest's training files as they were
+    (train reads them there), where a preset with training files of its own sets them."""
+    from dataclasses import replace
+
+    wide_like = replace(tiny_preset, sets=tiny_preset.sets[:1], train_sets=("A*",))
+    test_only = replace(tiny_preset, sets=[replace(tiny_preset.sets[1], count=1)], train_sets=())
+    monkeypatch.setitem(gen.PRESETS, "w", lambda: wide_like)
+    monkeypatch.setitem(gen.PRESETS, "r", lambda: test_only)
+    gen.generate(tmp_path, "w", seed=1, device="cpu")
+    gen.generate(tmp_path, "r", seed=1, device="cpu")
+    assert json.loads((tmp_path / "manifest.json").read_text())["train_sets"] == ["A*"]

@@ -585,7 +585,7 @@ def _quiet():
 
 # ----------------------------------------------------------- procedural liver
 def procedural_liver(name_or_seed: str | int, target_nodes: int | None = None) -> TetMesh:
-    """Procedural liver ``"L1".."L5"`` (``LIVERS``) or from a bare integer seed.
+    """Procedural liver ``"L1".."L5"`` (``LIVERS``), ``"W00".."W39"`` (``WIDE``) or from a bare integer seed.
 
     Deterministic; coordinates in metres with the flat visceral face in the plane z = 0,
     centred in x-y; volume exactly the spec's; ``fixed`` set by ``find_fixed_face``."""
@@ -641,7 +641,7 @@ def upright(mesh: TetMesh) -> TetMesh:
     down = np.array([0.0, 0.0, -1.0])
     axis, c = np.cross(n, down), float(n @ down)
     k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    turn = np.eye(3) + k + k @ k / (1.0 + c) if c > -1.0 + 1e-12 else np.diag([1.0, -1.0, -1.0])  # Rodrigues
+    turn = np.eye(3) + k + k @ k / (1.0 + c) if c > -1.0 + 1e-6 else np.diag([1.0, -1.0, -1.0])  # Rodrigues
     y = x @ turn.T
     y[:, :2] -= 0.5 * (y[:, :2].min(axis=0) + y[:, :2].max(axis=0))
     y[:, 2] -= y[:, 2].min()

@@ -180,7 +180,10 @@ def start_from(model: TIGNN, path, device) -> None:
     if checkpoint.model_config(payload["model_config"], path) != model.config:
         raise InputError(f"{path} was trained with other model settings ({payload['model_config']}): "
                          "fine-tune it with its own")
-    model.load_state_dict(payload["model"])
+    try:
+        model.load_state_dict(payload["model"])
+    except RuntimeError as exc:
+        raise InputError(f"checkpoint {path} does not match this warpgnn's model: {str(exc).splitlines()[0]}") from None
 
 
 def budget_spent(cfg: TrainConfig, history: list[dict]) -> bool:
@@ -454,6 +457,10 @@ def train(cfg: TrainConfig, log=print) -> dict:
                 + ", ".join(f"{s.nodes} / {s.edges} / {s.actuator_edges}" for s in shapes))
         for b in firsts:
             warm_up(net, b, lead_rate=lead_rate)
+    if state is None and cfg.init_from:
+        # a fine-tuning budget is minutes: its warm-up (~130 s of compiling and recording on an H100) is not spent
+        # from it, nor would the first epoch's length, warm-up included, stand for the next ones (budget_spent)
+        t0 = time.perf_counter()
     if state is not None and firsts:
         # an uninterrupted run warms up (compiles, records the CUDA graphs) once, and that counts; doing it
         # again after an interruption (a device machine taken back) would shorten the budget's training by

@@ -1,28 +1,31 @@
 """``warpgnn twin``: the shipped network fine-tuned on one patient's liver.
 
 From a surface (a segmentation's STL, OBJ, PLY or VTK): the tetrahedral mesh with a support like the
-training livers' (anatomy.mesh_from_surface), set upright as they are (fixed face down, anatomy.upright), FEM simulations of the paper's load rules on that mesh
-(training, validation and held-out test cases, each set its own random stream), the shipped network
-scored on the test cases, fine-tuned on the training cases from its own weights and standardisation
-(its recipe's noise, a tenth of its learning rate, validation on the patient's validation cases, never
-worse than where it started), and scored again. DIR holds:
+training livers' (anatomy.mesh_from_surface), set upright as they stand (fixed face down, anatomy.upright),
+FEM simulations of the paper's load rules on that mesh (training, validation and held-out test cases, each
+set its own random stream), the shipped network scored on the test cases, fine-tuned on the training cases
+from its own weights and standardisation (its recipe's noise, a tenth of its learning rate, validation on
+the patient's validation cases, never worse than where it started), and scored again. DIR holds:
 
     data/anatomies/patient.vtu, data/{train,val,test}.h5    the patient's mesh and FEM data
     eval_before/, eval_after/                               metrics.json of each network on the test cases
     twin.pt                                                 the fine-tuned checkpoint (eval, demo, Simulator)
     run/                                                    the fine-tuning run (log.csv, last.pt)
     twin.json                                               the report: errors before and after, seconds a stage
+    twin-settings.json                                      the settings a twin cut short must resume with
 """
 
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from . import checkpoint
+from .dataset import write_text_atomically
 from .errors import InputError
 
 PATIENT = "patient"
@@ -41,8 +44,8 @@ class TwinPreset:
     epochs: int
 
 
-# paper: a fifth of a training anatomy's 190 cases and five minutes of fine-tuning, to fit ten minutes on a GPU with
-# the meshing and the FEM; smoke: seconds on a CPU, for CI
+# paper: about a training anatomy's 190 cases (160 of them to train on) and five minutes of fine-tuning, to fit ten
+# minutes on a GPU with the meshing and the FEM; smoke: seconds on a CPU, for CI
 PRESETS = {"paper": TwinPreset("paper", train=160, val=10, test=30, time_budget=300.0, epochs=100_000),
            "smoke": TwinPreset("smoke", train=3, val=1, test=2, time_budget=None, epochs=4)}
 
@@ -84,7 +87,19 @@ def make_twin(cfg: TwinConfig, log=print) -> dict:
     out, data = Path(cfg.out), Path(cfg.out) / "data"
     if (out / "twin.json").exists():
         raise InputError(f"{out} already holds a twin (twin.json): choose another --out")
+    if cfg.epochs is not None and cfg.epochs < 1:
+        raise InputError(f"--epochs must be >= 1, got {cfg.epochs}")
+    settings = {k: v for k, v in asdict(cfg).items() if k != "device"}
+    started = out / "twin-settings.json"  # a twin cut short resumes only with the settings it started with
+    if started.exists():
+        before = json.loads(started.read_text())
+        changed = sorted(k for k in settings if json.dumps(before.get(k)) != json.dumps(settings[k]))
+        if changed:
+            raise InputError(f"{out} holds a twin started with other {', '.join(changed)}: resume it with the same "
+                             "settings, or choose another --out")
     start_model, payload = checkpoint.load_model(cfg.checkpoint)  # a bad checkpoint ends before the meshing
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomically(started, json.dumps(settings, indent=1, default=str) + "\n")
     seconds, t0 = {}, time.perf_counter()
 
     vtu = data / "anatomies" / f"{PATIENT}.vtu"  # generate_set simulates this copy
@@ -110,7 +125,10 @@ def make_twin(cfg: TwinConfig, log=print) -> dict:
     fem = FEM_PRESETS[preset.fem]()
     for k, name in enumerate(SETS):
         spec = SimulationSet(name, PATIENT, getattr(preset, name))
-        stats = generate_set(data, spec, k, fem, cfg.seed, cfg.device, log=log)
+        try:
+            stats = generate_set(data, spec, k, fem, cfg.seed, cfg.device, log=log)
+        except (ValueError, RuntimeError) as exc:  # no room for the tools, or cases that keep failing: the mesh's
+            raise InputError(f"FEM on the patient's mesh: {exc} (check --scale and the fixed face)") from None
         log(f"FEM {name}: {spec.count} simulations ({stats['resampled']} redrawn) in {stats['seconds']:.1f} s")
     seconds["fem"] = time.perf_counter() - t0
 
@@ -121,14 +139,16 @@ def make_twin(cfg: TwinConfig, log=print) -> dict:
     t0 = time.perf_counter()
     base = payload.get("train_config") or {}
     name = "best" if base.get("lr_schedule", "exponential") == "exponential" else "paper"
-    budget = {"epochs": cfg.epochs} if cfg.epochs else {"epochs": preset.epochs, "time_budget": preset.time_budget}
+    budget = {"epochs": cfg.epochs} if cfg.epochs is not None else {"epochs": preset.epochs,
+                                                                     "time_budget": preset.time_budget}
     rates = RECIPES[name]
     tune = recipe(name, data=str(data), out=str(out / "run"), model=start_model.config, init_from=cfg.checkpoint,
                   train_sets=("train",), val_set="val", val_every=1, seed=cfg.seed, device=cfg.device, resume=True,
                   lr=cfg.lr_scale * rates.get("lr", 1e-3), lr_final=cfg.lr_scale * rates.get("lr_final", 1e-5),
                   **budget)
     result = train(tune, log=log)
-    shutil.copy(out / "run" / "best.pt", out / "twin.pt")
+    shutil.copy(out / "run" / "best.pt", out / "twin.pt.tmp")
+    os.replace(out / "twin.pt.tmp", out / "twin.pt")  # never half a checkpoint under its name
     seconds["fine_tune"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -142,7 +162,7 @@ def make_twin(cfg: TwinConfig, log=print) -> dict:
            "test": summary, "fine_tune": {"epochs": result["epochs"], "best_epoch": result["best_epoch"],
                                           "settings": {k: v for k, v in asdict(tune).items() if k != "model"}},
            "seconds": seconds | {"total": sum(seconds.values())}}
-    (out / "twin.json").write_text(json.dumps(doc, indent=1, default=str) + "\n")
+    write_text_atomically(out / "twin.json", json.dumps(doc, indent=1, default=str) + "\n")
     log(f"{PATIENT} test cases ({preset.test}), before: {_metrics_line(before)}")
     log(f"{PATIENT} test cases ({preset.test}), after:  {_metrics_line(after)}")
     kept = "the fine-tuned network" if result["best_epoch"] >= 0 else "the starting network (no epoch beat it)"

@@ -42,7 +42,7 @@ def main():
         print(f"{name:10} ({s['simulations']} cases): RMSE q {1e3 * s['rmse']['q']:.3f} mm, "
               f"v {1e3 * s['rmse']['v']:.2f} mm/s, sigma {1e-3 * s['rmse']['sigma']:.2f} kPa; "
               f"RRMSE sigma {s['rrmse']['sigma']:.3e}"
-              + (f"; x{s['over_reference']['rmse']['q']:.2f} L5's q RMSE" if "over_reference" in s else ""))
+              + (f"; x{s['over_reference']['rmse']['q']:.2f} {a.reference}'s q RMSE" if "over_reference" in s else ""))
     doc = provenance.record(a) | {"checkpoint": a.checkpoint, "reference": a.reference, "sets": scores}
     Path(a.json).write_text(json.dumps(doc, indent=1) + "\n")
 

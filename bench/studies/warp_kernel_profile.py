@@ -33,7 +33,7 @@ def kernel_means(net: Network, calls: int) -> dict:
             net.forward()
     out = {}
     for r in timer.timing_results:
-        name = r.name.split("__")[-1].rsplit("_", 1)[0].replace("locals__", "")  # "features", "edge_pass", ...
+        name = r.name.split("__")[-1].rsplit("_", 1)[0]  # "kernels__locals__edge_pass_ede081b5" -> "edge_pass"
         out.setdefault(name, []).append(r.elapsed * 1e3)
     return {k: {"mean_us": sum(v) / len(v), "per_forward": len(v) // calls} for k, v in out.items()}
 

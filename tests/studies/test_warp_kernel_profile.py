@@ -14,6 +14,7 @@ STUDY = Path(__file__).resolve().parents[2] / "bench" / "studies" / "warp_kernel
 
 @pytest.mark.skipif(wp.get_cuda_device_count() == 0, reason="needs a CUDA device (Warp's kernel timer)")
 def test_each_kernel_timed_per_launch(tmp_path):
+    pytest.importorskip("tetgen")  # the study meshes L5 itself without --mesh
     out = tmp_path / "profile.json"
     subprocess.run([sys.executable, str(STUDY), "--latent", "16", "--cases", "hybrid:3:1", "--calls", "2",
                     "--json", str(out), "--device", "test", "--command", "test"], check=True)
