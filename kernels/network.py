@@ -30,9 +30,9 @@ def build_kernels(spec: Spec) -> None:
 
 
 def default_block_dim(device) -> int:
-    """Threads a block of the tile kernels: 128 on CUDA (every launch the same, so one build a module),
-    one on the CPU (which runs one unless wp.config.enable_cpu_blocks)."""
-    return 128 if device.is_cuda else 1
+    """Threads a block of the tile kernels: shipped.BLOCK_DIM (128) on CUDA (every launch the same, so one build a
+    module, the one kernels/aot ships), one on the CPU (which runs one unless wp.config.enable_cpu_blocks)."""
+    return shipped.BLOCK_DIM if device.is_cuda else 1
 
 
 def _as_warp(x, device):

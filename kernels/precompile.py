@@ -33,12 +33,12 @@ def _modules(latents, block_dim: int, tile_rows: int = 32, k_chunk: int = 0) -> 
     return [shipped.module_of(s, block_dim) for s in specs]
 
 
-def compile_modules(latents, device=None, tile_rows: int = 32) -> float:
+def compile_modules(latents, device=None, tile_rows: int = 32, k_chunk: int = 0) -> float:
     """Build and load the module of each latent width on ``device`` (Warp's cache keeps them); seconds."""
     device = wp.get_device(device)
     block_dim = default_block_dim(device)
     t0 = time.perf_counter()
-    for m in _modules(latents, block_dim, tile_rows):
+    for m in _modules(latents, block_dim, tile_rows, k_chunk):
         wp.load_module(m, device=device, block_dim=block_dim)
     return time.perf_counter() - t0
 
@@ -83,7 +83,7 @@ def main(argv=None) -> None:
     parser.add_argument("--device", default=None, help="Warp device (default: Warp's default device)")
     parser.add_argument("--arch", type=int, default=None, help="build ahead of time for this GPU architecture")
     parser.add_argument("--out", default="aot", help="the folder of --arch's cubins (default aot)")
-    parser.add_argument("--k-chunk", type=int, default=0, help="Spec.k_chunk (default: Spec's)")
+    parser.add_argument("--k-chunk", type=int, default=0, help="Spec.k_chunk (default: Spec's; not --ship)")
     parser.add_argument("--ship", action="store_true", help="rebuild the shipped modules (kernels/aot)")
     args = parser.parse_args(argv)
     latents = sorted({int(x) for x in args.latent.split(",") if x.strip()})
@@ -93,7 +93,7 @@ def main(argv=None) -> None:
         seconds = compile_ahead(latents, args.arch, args.out, k_chunk=args.k_chunk)
         print(f"built latent {','.join(map(str, latents))} for sm_{args.arch} into {args.out} in {seconds:.1f} s")
     else:
-        seconds = compile_modules(latents, args.device)
+        seconds = compile_modules(latents, args.device, k_chunk=args.k_chunk)
         print(f"compiled latent {','.join(map(str, latents))} on {wp.get_device(args.device)} in {seconds:.1f} s")
 
 
