@@ -1,78 +1,99 @@
 """The decoders' MLPs, as tile kernels (one launch each).
 
+* ``node_fields`` (a function the last node pass runs, message_passing): delta_v on a tile of nodes ->
+  (dE, dS), from the node latents still in shared memory, so that they exist before the edge launch.
 * ``hybrid_fields``: delta_e on every mesh edge and self-loop (their latent rows are contiguous,
-  see graph.Layout) -> (l, m), 144 values a row; and delta_v on every node -> (dE, dS). The first
-  layers' per-node products were computed by the last node pass (message_passing), so here each
-  edge row costs e W_e + two gathers, and each node row none. generic_tail then combines them.
+  see graph.Layout) -> (l, m), 144 values a row, its first layer's per-node products computed by the
+  last node pass (each edge row costs e W_e + two gathers); then, with (l, m) still in shared memory and
+  the senders' (dE, dS) from the node pass, each row's port term L dE + M dS (generic_tail.port_terms):
+  12 values a row leave the launch instead of 144, and generic_tail only sums them per node.
 * ``vanilla_tail``: delta on every node, zdot (standardised and physical), the Euler update and
   the boundary conditions, in one launch: the (rows, 12) output tile stays in shared memory and
   each thread takes (node, component) items of it.
 """
 
-from __future__ import annotations
-
+# No `from __future__ import annotations`: row_vector(F) in signatures is evaluated when defined.
 import functools
 
 import warp as wp
 
+from .generic_tail import row_operators
 from .integrate import advance
 from .spec import N_GRAD, N_LM, STATE, Spec
-from .tiles import broadcast_row, helpers, matmul, silu
+from .tiles import broadcast_row, helpers, matmul, row_vector, silu
 
 
 @functools.cache
-def kernels(spec: Spec):
+def node_decoder(spec: Spec):
+    """The hybrid's delta_v on a tile of node latents, for the last node pass (message_passing)."""
     T, F = spec.tile_rows, spec.latent
-    _layer_norm, to_shared, _segment_sum, row_f, _project = helpers(spec)
-    mm_ff = matmul(T, F, spec.kc, F)
-    mm_lm = matmul(T, F, spec.kc, N_LM)
-    mm_grad = matmul(T, F, spec.kc, N_GRAD)
-    mm_state = matmul(T, F, spec.kc, STATE)
-    row_lm, row_grad, row_state = broadcast_row(T, N_LM), broadcast_row(T, N_GRAD), broadcast_row(T, STATE)
+    _layer_norm, to_shared, _segment_sum, row_f, _project, _gather = helpers(spec)
+    mm_ff, mm_grad, row_grad = matmul(T, F, spec.kc, F), matmul(T, F, spec.kc, N_GRAD), broadcast_row(T, N_GRAD)
 
     @wp.func
-    def edge_fields(lat: wp.array2d(dtype=float), row_recv: wp.array(dtype=wp.int32),
-                    row_send: wp.array(dtype=wp.int32), products: wp.array2d(dtype=float),
-                    w_e: wp.array2d(dtype=float), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
-                    b2: wp.array2d(dtype=float), row0: int, lm: wp.array2d(dtype=float), out_row: int):
-        """delta_e on a tile of mesh edges or self-loops (receiver = sender = the node) -> (l, m)."""
-        e = wp.tile_load(lat, shape=(T, F), offset=(row0, 0), storage="shared")
-        ri = wp.tile_load(row_recv, shape=T, offset=row0)
-        si = wp.tile_load(row_send, shape=T, offset=row0)
+    def node_fields(y: wp.tile(dtype=float, shape=(T, F)), w1: wp.array2d(dtype=float), w1_row: int, w1_col: int,
+                    b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float), row0: int,
+                    grads: wp.array2d(dtype=float)):
+        """delta_v on a tile y of node latents -> (dE, dS); its first layer is W1[w1_row:, w1_col:] (weights.proj)."""
         h = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
         h += row_f(b1, 0)
-        h += wp.tile_load_indexed(products, indices=ri, shape=(T, F), offset=(0, 0), axis=0)
-        h += wp.tile_load_indexed(products, indices=si, shape=(T, F), offset=(0, F), axis=0)
-        mm_ff(e, w_e, 0, 0, h)
-        hs = to_shared(wp.tile_map(silu, h))
-        o = wp.tile_zeros(shape=(T, N_LM), dtype=float, storage="shared")
-        o += row_lm(b2, 0)
-        mm_lm(hs, w2, 0, 0, o)
-        wp.tile_store(lm, o, offset=(out_row, 0))
-
-    @wp.func
-    def node_fields(products: wp.array2d(dtype=float), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
-                    b2: wp.array2d(dtype=float), row0: int, grads: wp.array2d(dtype=float)):
-        """delta_v on a tile of nodes -> (dE, dS); its first layer's product is the node products' third block."""
-        h = wp.tile_load(products, shape=(T, F), offset=(row0, 2 * F)) + row_f(b1, 0)
+        mm_ff(y, w1, w1_row, w1_col, h)
         hs = to_shared(wp.tile_map(silu, h))
         o = wp.tile_zeros(shape=(T, N_GRAD), dtype=float, storage="shared")
         o += row_grad(b2, 0)
         mm_grad(hs, w2, 0, 0, o)
         wp.tile_store(grads, o, offset=(row0, 0))
 
+    return node_fields
+
+
+@functools.cache
+def kernels(spec: Spec):
+    T, F = spec.tile_rows, spec.latent
+    _layer_norm, to_shared, _segment_sum, row_f, _project, gather_pair = helpers(spec)
+    mm_ff = matmul(T, F, spec.kc, F)
+    mm_lm = matmul(T, F, spec.kc, N_LM)
+    row_lm = broadcast_row(T, N_LM)
+    port_terms = row_operators(spec)
+
+    @wp.func
+    def edge_fields(lat: wp.array2d(dtype=float), row_recv: wp.array(dtype=wp.int32),
+                    row_send: wp.array(dtype=wp.int32), products: wp.array2d(dtype=row_vector(F)),
+                    w_e: wp.array2d(dtype=float), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
+                    b2: wp.array2d(dtype=float), row0: int, grads: wp.array2d(dtype=float), out_row: int,
+                    self_loops: int, node0: int, ports: wp.array2d(dtype=float), node_terms: wp.array2d(dtype=float),
+                    lane: int):
+        """delta_e on a tile of mesh edges or self-loops (receiver = sender = the node) -> (l, m) -> port terms."""
+        e = wp.tile_load(lat, shape=(T, F), offset=(row0, 0), storage="shared")
+        h = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
+        gather_pair(h, b1, 0, products, row_recv, 0, row_send, 0, F, row0, lane)
+        mm_ff(e, w_e, 0, 0, h)
+        hs = to_shared(wp.tile_map(silu, h))
+        o = wp.tile_zeros(shape=(T, N_LM), dtype=float, storage="shared")
+        o += row_lm(b2, 0)
+        mm_lm(hs, w2, 0, 0, o)
+        port_terms(o, row_send, row0, grads, out_row, self_loops, node0, ports, node_terms, lane)
+
     @wp.kernel(enable_backward=False, module=spec.module)
     def hybrid_fields(lat: wp.array2d(dtype=float), row_recv: wp.array(dtype=wp.int32),
-                      row_send: wp.array(dtype=wp.int32), products: wp.array2d(dtype=float),
+                      row_send: wp.array(dtype=wp.int32), products: wp.array2d(dtype=row_vector(F)),
                       de_e: wp.array2d(dtype=float), de_b1: wp.array2d(dtype=float), de_w2: wp.array2d(dtype=float),
-                      de_b2: wp.array2d(dtype=float), dv_b1: wp.array2d(dtype=float), dv_w2: wp.array2d(dtype=float),
-                      dv_b2: wp.array2d(dtype=float), mesh_row: int, edge_tiles: int,
-                      lm: wp.array2d(dtype=float), grads: wp.array2d(dtype=float)):
-        blk, _lane = wp.tid()
-        if blk < edge_tiles:  # mesh edges, then self-loops: contiguous latent rows, lm rows from 0
-            edge_fields(lat, row_recv, row_send, products, de_e, de_b1, de_w2, de_b2, mesh_row + blk * T, lm, blk * T)
-        else:
-            node_fields(products, dv_b1, dv_w2, dv_b2, (blk - edge_tiles) * T, grads)
+                      de_b2: wp.array2d(dtype=float), grads: wp.array2d(dtype=float), mesh_row: int, mesh_tiles: int,
+                      ports: wp.array2d(dtype=float), node_terms: wp.array2d(dtype=float)):
+        blk, lane = wp.tid()  # mesh edges, then self-loops: contiguous latent rows, ports rows from 0
+        self_loops = wp.where(blk >= mesh_tiles, 1, 0)
+        edge_fields(lat, row_recv, row_send, products, de_e, de_b1, de_w2, de_b2, mesh_row + blk * T, grads, blk * T,
+                    self_loops, (blk - mesh_tiles) * T, ports, node_terms, lane)
+
+    return hybrid_fields
+
+
+@functools.cache
+def vanilla_kernel(spec: Spec):
+    """vanilla_tail on the node tiles (spec.nodes), in spec's module."""
+    T, F = spec.node_tile, spec.latent
+    _layer_norm, to_shared, _segment_sum, row_f, _project, _gather = helpers(spec.nodes)
+    mm_state, row_state = matmul(T, F, spec.kc, STATE), broadcast_row(T, STATE)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def vanilla_tail(products: wp.array2d(dtype=float), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
@@ -99,20 +120,19 @@ def kernels(spec: Spec):
                 zdot[i, c] = zp
                 z_next[i, c] = advance(i, c, z, zp, dt, rest, node_type, presc_tool, presc_weight, u_next)
 
-    return hybrid_fields, vanilla_tail
+    return vanilla_tail
 
 
 def launches(net, block_dim: int) -> list:
-    hybrid_fields, vanilla_tail = kernels(net.spec)
+    hybrid_fields, vanilla_tail = kernels(net.spec), vanilla_kernel(net.spec)
     lay, w, g, dev = net.layout, net.weights, net.graph, net.device
     if w.kind == "hybrid":
-        edge_tiles = lay.tiles(lay.edges_pad + lay.nodes_pad)
         return [wp.launch_tiled(
-            hybrid_fields, dim=[edge_tiles + lay.tiles(lay.nodes_pad)], block_dim=block_dim, device=dev,
+            hybrid_fields, dim=[lay.tiles(lay.edges_pad + lay.nodes_pad)], block_dim=block_dim, device=dev,
             record_cmd=True,
-            inputs=[net.lat, g.row_recv, g.row_send, net.products, w.de_e, w.de_b1, w.de_w2, w.de_b2, w.dv_b1,
-                    w.dv_w2, w.dv_b2, lay.mesh_row, edge_tiles, net.lm, net.grads])]
+            inputs=[net.lat, g.row_recv, g.row_send, net.product_rows, w.de_e, w.de_b1, w.de_w2, w.de_b2, net.grads,
+                    lay.mesh_row, lay.tiles(lay.edges_pad), net.ports, net.node_terms])]
     return [wp.launch_tiled(
-        vanilla_tail, dim=[lay.tiles(lay.nodes_pad)], block_dim=block_dim, device=dev, record_cmd=True,
+        vanilla_tail, dim=[lay.nodes_pad // net.spec.node_tile], block_dim=block_dim, device=dev, record_cmd=True,
         inputs=[net.products, w.vd_b1, w.vd_w2, w.vd_b2, w.zdot_scale, net.z, net.dt, g.rest, g.node_type,
                 g.presc_tool, g.presc_weight, net.u_next, lay.n_nodes, net.zdot, net.zdot_std, net.z_next])]

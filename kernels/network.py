@@ -19,7 +19,8 @@ import warp as wp
 
 from . import decoders, features, generic_tail, integrate, message_passing, shipped
 from .graph import build
-from .spec import FEATURE_WIDTH, N_GRAD, N_LM, STATE, Spec
+from .spec import FEATURE_WIDTH, N_GRAD, STATE, Spec
+from .tiles import row_view
 from .weights import pack
 
 
@@ -27,6 +28,8 @@ def build_kernels(spec: Spec) -> None:
     """Create every kernel of ``spec`` before any launch: they share one Warp module, compiled once."""
     for module in (features, message_passing, decoders, generic_tail, integrate):
         module.kernels(spec)
+    message_passing.node_kernel(spec)
+    decoders.vanilla_kernel(spec)
 
 
 def default_block_dim(device) -> int:
@@ -49,15 +52,16 @@ def _as_warp(x, device):
 
 
 class Network:
-    def __init__(self, model, topology, device=None, tile_rows: int = 32, block_dim: int | None = None,
-                 k_chunk: int = 0, weights=None):
+    def __init__(self, model, topology, device=None, tile_rows: int = Spec.tile_rows, block_dim: int | None = None,
+                 k_chunk: int = Spec.k_chunk, weights=None, node_rows: int = Spec.node_rows):
         """``model``: a warpgnn TIGNN (its config and weights are read once); ``topology``: a
-        warpgnn.graphs.Topology, one simulation or a stacked batch. ``block_dim``: threads a block
+        warpgnn.graphs.Topology, one simulation or a stacked batch. ``tile_rows``, ``node_rows``, ``k_chunk``:
+        the kernels' Spec (its defaults are the shipped module's). ``block_dim``: threads a block
         of the tile kernels (default_block_dim). ``weights``: the
         model already packed on ``device`` (weights.pack), so Networks of many topologies share one copy."""
         self.device = wp.get_device(device)
         self.weights = w = weights if weights is not None else pack(model, self.device)
-        self.spec = Spec(w.latent, tile_rows, k_chunk)
+        self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk)
         build_kernels(self.spec)
         self.block_dim = block_dim or default_block_dim(self.device)
         self.shipped_module = shipped.load(self.spec, self.device, self.block_dim)  # else Warp compiles it
@@ -75,11 +79,19 @@ class Network:
         # scratch: features and latents of every row, node (and tool) products, decoder fields
         self.feat = zeros(lay.rows, FEATURE_WIDTH)
         self.lat = zeros(lay.rows, F)
+        self.lat_rows = row_view(self.lat, F)  # the same rows as vectors, for the node pass's CSR sums
         hybrid = w.kind == "hybrid"
         self.products = zeros(lay.nodes_pad + w.passes * lay.tools_pad, 3 * F)
+        self.product_rows = row_view(self.products, F)  # as vectors, for the edge MLPs' gathers
         self.self_loop = w.self_loop if hybrid else zeros(1, F)
-        self.lm = zeros(lay.edges_pad + lay.nodes_pad, N_LM) if hybrid else None
+        # the hybrid's (dE, dS) a node, port terms L dE + M dS a mesh edge and self-loop, and each node's
+        # per-component shares of its degeneracy residual and entropy production (generic_tail)
         self.grads = zeros(lay.nodes_pad, N_GRAD) if hybrid else None
+        self.ports = zeros(lay.edges_pad + lay.nodes_pad, STATE) if hybrid else None
+        self.node_terms = zeros(lay.nodes_pad, 2 * STATE) if hybrid else None
+        placeholder = zeros(1, 1)  # the vanilla's node pass has no delta_v
+        self.node_decoder_args = ((w.dv_b1, w.dv_w2, w.dv_b2, self.grads) if hybrid
+                                  else (placeholder,) * 4)
         # outputs
         self.zdot, self.zdot_std, self.z_next = zeros(n, STATE), zeros(n, STATE), zeros(n, STATE)
         self.degeneracy = zeros(n) if hybrid else None

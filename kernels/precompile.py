@@ -26,36 +26,38 @@ from .network import build_kernels, default_block_dim
 from .spec import Spec
 
 
-def _modules(latents, block_dim: int, tile_rows: int = 32, k_chunk: int = 0) -> list:
-    specs = [Spec(F, tile_rows, k_chunk) for F in latents]
+def _modules(latents, block_dim: int, **shape) -> list:
+    """``shape``: Spec's tile_rows, node_rows, k_chunk (its defaults where absent)."""
+    specs = [Spec(F, **shape) for F in latents]
     for spec in specs:
         build_kernels(spec)
     return [shipped.module_of(s, block_dim) for s in specs]
 
 
-def compile_modules(latents, device=None, tile_rows: int = 32, k_chunk: int = 0) -> float:
+def compile_modules(latents, device=None, **shape) -> float:
     """Build and load the module of each latent width on ``device`` (Warp's cache keeps them); seconds."""
     device = wp.get_device(device)
     block_dim = default_block_dim(device)
     t0 = time.perf_counter()
-    for m in _modules(latents, block_dim, tile_rows, k_chunk):
+    for m in _modules(latents, block_dim, **shape):
         wp.load_module(m, device=device, block_dim=block_dim)
     return time.perf_counter() - t0
 
 
-def compile_ahead(latents, arch: int, out, tile_rows: int = 32, k_chunk: int = 0) -> float:
+def compile_ahead(latents, arch: int, out, block_dim: int = shipped.BLOCK_DIM, **shape) -> float:
     """Build the modules for GPU architecture ``arch`` into the folder ``out`` (cubins) without a GPU; seconds."""
     t0 = time.perf_counter()
-    for m in _modules(latents, shipped.BLOCK_DIM, tile_rows, k_chunk):
+    for m in _modules(latents, block_dim, **shape):
         wp.compile_aot_module(m, arch=arch, module_dir=str(out), use_ptx=False)
     return time.perf_counter() - t0
 
 
-def load(folder, latents, device, tile_rows: int = 32, k_chunk: int = 0) -> float:
-    """Load modules that compile_ahead built; a Network of the same spec then compiles nothing. Seconds."""
+def load(folder, latents, device, block_dim: int = shipped.BLOCK_DIM, **shape) -> float:
+    """Load modules that compile_ahead built; a Network of the same spec and block_dim then compiles nothing.
+    Seconds."""
     device = wp.get_device(device)
     t0 = time.perf_counter()
-    for m in _modules(latents, shipped.BLOCK_DIM, tile_rows, k_chunk):
+    for m in _modules(latents, block_dim, **shape):
         wp.load_aot_module(m, device=device, arch=device.arch, module_dir=str(folder), use_ptx=False)
     return time.perf_counter() - t0
 
@@ -84,16 +86,21 @@ def main(argv=None) -> None:
     parser.add_argument("--arch", type=int, default=None, help="build ahead of time for this GPU architecture")
     parser.add_argument("--out", default="aot", help="the folder of --arch's cubins (default aot)")
     parser.add_argument("--k-chunk", type=int, default=0, help="Spec.k_chunk (default: Spec's; not --ship)")
+    parser.add_argument("--tile-rows", type=int, default=Spec.tile_rows, help="Spec.tile_rows (not --ship)")
+    parser.add_argument("--node-rows", type=int, default=Spec.node_rows, help="Spec.node_rows (not --ship)")
+    parser.add_argument("--block-dim", type=int, default=shipped.BLOCK_DIM,
+                        help="threads a block, with --arch (default %(default)s; not --ship)")
     parser.add_argument("--ship", action="store_true", help="rebuild the shipped modules (kernels/aot)")
     args = parser.parse_args(argv)
     latents = sorted({int(x) for x in args.latent.split(",") if x.strip()})
+    shape = {"tile_rows": args.tile_rows, "node_rows": args.node_rows, "k_chunk": args.k_chunk}
     if args.ship:
         ship()
     elif args.arch is not None:
-        seconds = compile_ahead(latents, args.arch, args.out, k_chunk=args.k_chunk)
+        seconds = compile_ahead(latents, args.arch, args.out, args.block_dim, **shape)
         print(f"built latent {','.join(map(str, latents))} for sm_{args.arch} into {args.out} in {seconds:.1f} s")
     else:
-        seconds = compile_modules(latents, args.device, k_chunk=args.k_chunk)
+        seconds = compile_modules(latents, args.device, **shape)
         print(f"compiled latent {','.join(map(str, latents))} on {wp.get_device(args.device)} in {seconds:.1f} s")
 
 

@@ -25,6 +25,10 @@ STAT_WIDTH = 9  # widest standardised raw feature set (the node's v, sigma)
 class Spec:
     latent: int  # F
     tile_rows: int = 32  # rows (edges or nodes) per tile, one tile per block
+    # rows per tile of the node launches (0: tile_rows), a divisor of tile_rows. L5's 670 nodes are 21 tiles of 32
+    # for an H100's 132 SMs: on 84 tiles of 8 its node launch took 30 us instead of 62 (16 rows: 41 us), the 5-pass
+    # step 335 us instead of 499 (bench/results/warp_tile_shapes_h100.json)
+    node_rows: int = 8
     # K extent of each partial product (0: the largest divisor of F up to 32): (K, F) weight slices keep
     # a block's shared memory bounded at F = 128, where one (F, F) fp32 weight is 64 KiB
     k_chunk: int = 0
@@ -37,8 +41,21 @@ class Spec:
         return kc
 
     @property
+    def node_tile(self) -> int:
+        n = self.node_rows or self.tile_rows
+        if self.tile_rows % n:
+            raise ValueError(f"node_rows {n} must divide tile_rows {self.tile_rows}")
+        return n
+
+    @property
+    def nodes(self) -> "Spec":
+        """The tile shape of the node launches (their tile helpers; the kernels stay in this spec's module)."""
+        return Spec(self.latent, self.node_tile, 0, self.k_chunk)
+
+    @property
     def module(self) -> str:
-        return f"warpgnn_kernels_F{self.latent}_T{self.tile_rows}_K{self.kc}"
+        nodes = f"_N{self.node_tile}" if self.node_tile != self.tile_rows else ""
+        return f"warpgnn_kernels_F{self.latent}_T{self.tile_rows}{nodes}_K{self.kc}"
 
 
 def check_config(config) -> None:

@@ -17,9 +17,9 @@ import pytest
 import torch
 import warp as wp
 from synthetic import box
-from warpgnn.kernels import Network
 
 from warpgnn.graphs import batch, make_topology
+from warpgnn.kernels import Network
 from warpgnn.model import TIGNN, ModelConfig
 from warpgnn.normalization import FEATURES
 
@@ -171,7 +171,8 @@ def test_every_output_written_and_runs_repeat(kind):
     z, u_now, u_next = random_inputs(top, 7)
     net = Network(model, top, device="cpu")
     net.set_inputs(z, u_now, u_next, DT)
-    for name in ("feat", "lat", "products", "lm", "grads", "zdot", "zdot_std", "degeneracy", "entropy", "z_next"):
+    for name in ("feat", "lat", "products", "grads", "ports", "node_terms", "zdot", "zdot_std", "degeneracy",
+                 "entropy", "z_next"):
         buf = getattr(net, name)
         if buf is not None:
             buf.fill_(float("nan"))
@@ -190,6 +191,14 @@ def test_several_threads_a_block(monkeypatch):
     top = tool_topology(box((3, 3, 2)), 2)
     for kind in ("hybrid", "vanilla"):
         check(random_model(kind, 2, 16, seed=11), top, seed=11, block_dim=5)
+
+
+@pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
+def test_node_tiles_smaller_than_edge_tiles(kind):
+    """The node launches on tiles of 8 rows in a layout padded to tiles of 16 (Spec.node_rows), several
+    threads a block: the same answer as the reference."""
+    top = tool_topology(box((4, 3, 2)), 2, seed=5)
+    check(random_model(kind, 2, 16, seed=5), top, seed=5, tile_rows=16, node_rows=8)
 
 
 def test_unsupported_configuration_refused_in_one_line():

@@ -18,7 +18,7 @@ from warpgnn.cli import main  # noqa: E402
 from warpgnn.data import load_file  # noqa: E402
 from warpgnn.errors import InputError  # noqa: E402
 from warpgnn.metrics import mean_rrmse  # noqa: E402
-from warpgnn.twin import TwinConfig, make_twin  # noqa: E402
+from warpgnn.twin import TwinConfig, make_twin, resume_settings  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -77,8 +77,12 @@ def test_a_twin_cut_short_resumes_only_with_the_settings_it_started_with(tmp_pat
     out = tmp_path / "t"
     out.mkdir()
     started = TwinConfig("patient.stl", str(out), scale=0.001, preset="smoke")
-    settings = {k: v for k, v in started.__dict__.items() if k != "device"}
-    (out / "twin-settings.json").write_text(json.dumps(settings, default=str))
+    (out / "twin-settings.json").write_text(json.dumps(resume_settings(started), default=str))
+    # the folder moved, the shipped network named by another path to the same file: the same twin
+    shipped = checkpoint.PRETRAINED_HYBRID
+    moved = TwinConfig("patient.stl", str(tmp_path / "elsewhere"), scale=0.001, preset="smoke",
+                       checkpoint=str(shipped.parent / ".." / "weights" / shipped.name))
+    assert resume_settings(moved) == resume_settings(started)
     with pytest.raises(InputError, match="started with other scale"):
         make_twin(TwinConfig("patient.stl", str(out), scale=1.0, preset="smoke"))
     with pytest.raises(InputError, match="--epochs must be >= 1"):

@@ -72,6 +72,15 @@ def _metrics_line(m: dict) -> str:
             f"sigma {m['rrmse']['sigma']:.3e}")
 
 
+def resume_settings(cfg: TwinConfig) -> dict:
+    """What a twin cut short must be resumed with (DIR/twin-settings.json): not the device, nor the folder's own
+    path, and the shipped network by name, so that a twin started in one checkout or machine goes on in another."""
+    settings = {k: v for k, v in asdict(cfg).items() if k not in ("device", "out")}
+    if Path(cfg.checkpoint).resolve() == checkpoint.PRETRAINED_HYBRID.resolve():
+        settings["checkpoint"] = "shipped"
+    return settings
+
+
 def make_twin(cfg: TwinConfig, log=print) -> dict:
     """Run the whole chain (module docstring); returns the report twin.json holds."""
     from .anatomy import fixed_fraction_warning, mesh_from_surface, upright
@@ -89,7 +98,7 @@ def make_twin(cfg: TwinConfig, log=print) -> dict:
         raise InputError(f"{out} already holds a twin (twin.json): choose another --out")
     if cfg.epochs is not None and cfg.epochs < 1:
         raise InputError(f"--epochs must be >= 1, got {cfg.epochs}")
-    settings = {k: v for k, v in asdict(cfg).items() if k != "device"}
+    settings = resume_settings(cfg)
     started = out / "twin-settings.json"  # a twin cut short resumes only with the settings it started with
     if started.exists():
         before = json.loads(started.read_text())

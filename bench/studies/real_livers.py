@@ -1,6 +1,7 @@
 """How a network does on the real livers (generate preset `real`, docs/real-livers.md) beside L5: each set rolled
 out and scored as `warpgnn eval` does, and each real set's RMSE and RRMSE over L5's (issue 57's target: within
-1.3x). A CPU runs it on the first few cases of each set, made with the same random streams as the full sets:
+1.3x). A CPU runs it on the first few cases of each set, made with the same random streams as the full sets; a GPU
+(`--on cuda`) on the full sets:
 
     python bench/studies/real_livers.py CHECKPOINT.pt DATA_DIR --sets real_vhf,real_vhm,real_sofa,L5 \
         --json OUT.json --device "..." --command "..."
@@ -25,6 +26,7 @@ def main():
     ap.add_argument("data", help="folder of the sets' files (SET.h5)")
     ap.add_argument("--sets", default="real_vhf,real_vhm,real_sofa,L5")
     ap.add_argument("--reference", default="L5", help="the set the others are compared with")
+    ap.add_argument("--on", default="cpu", help="where the rollouts run: cpu or cuda (default cpu)")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
@@ -32,7 +34,7 @@ def main():
     scores = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name in sets:
-            m = evaluate(a.checkpoint, Path(a.data) / f"{name}.h5", Path(tmp) / name, device="cpu", plots=False,
+            m = evaluate(a.checkpoint, Path(a.data) / f"{name}.h5", Path(tmp) / name, device=a.on, plots=False,
                          log=lambda *_: None)
             scores[name] = {"simulations": m["simulations"], "rmse": m["rmse"], "rrmse": m["rrmse"]}
     ref = scores.get(a.reference)

@@ -1,25 +1,30 @@
-"""Where a Warp step's time goes: each kernel's mean duration over uncaptured forward() calls (Warp's
-CUDA activity timer), on the bench case (L5, two tools, random weights), for a few (model, passes,
-batch) cases. It found the batch-1 step bound by a constant ~190 us of the hybrid's non-pass kernels
-(the GENERIC tail alone 120-135 us) and ~90 us a pass (the node pass two thirds of it).
+"""Where a Warp step's time goes, and which tile shape serves it best: each kernel's mean duration over
+uncaptured forward() calls (Warp's CUDA activity timer) and the captured step's median time (CUDA events),
+on the bench case (L5, two tools, random weights), for a few (model, passes, batch) cases and tile shapes
+(Spec's tile_rows and node_rows, and threads a block). Its first run found the batch-1 step bound by a
+constant ~190 us of the hybrid's non-pass kernels (the GENERIC tail alone 120-135 us) and ~90 us a pass
+(the node pass two thirds of it): bench/results/warp_kernel_profile_h100.json.
 
     python bench/studies/warp_kernel_profile.py --latent 64 --cases hybrid:1:1,vanilla:1:1,hybrid:5:64 \
-        [--aot FOLDER] --json OUT.json --device "..." --command "..."
+        [--shapes 32:32:128,32:16:128] [--aot FOLDER] --json OUT.json --device "..." --command "..."
 
-``--aot``: load the latent's module from an ahead-of-time build (python -m warpgnn.kernels.precompile
---arch 90 --out FOLDER) instead of compiling it here.
+``--aot``: load each module from an ahead-of-time build instead of compiling it here: FOLDER holds, for each
+shape T:N:B, a folder F{latent}_T{T}_N{N}_B{B} of `python -m warpgnn.kernels.precompile --arch 90 --latent F
+--tile-rows T --node-rows N --block-dim B --out ...`.
 """
 
 import argparse
 import json
+import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/: provenance.py
 import provenance
 import warp as wp
 
-from warpgnn.benchmark import DT, l5_case, random_model
+from warpgnn.benchmark import DT, l5_case, random_model, warp_clock
 from warpgnn.kernels import Network, precompile
 
 
@@ -38,6 +43,28 @@ def kernel_means(net: Network, calls: int) -> dict:
     return {k: {"mean_us": sum(v) / len(v), "per_forward": len(v) // calls} for k, v in out.items()}
 
 
+def _without(argv: list, flags: tuple) -> list:
+    """``argv`` less each of ``flags`` and its value (``--flag value`` or ``--flag=value``)."""
+    out, skip = [], False
+    for x in argv:
+        if skip:
+            skip = False
+        elif x in flags:
+            skip = True
+        elif not x.startswith(tuple(f + "=" for f in flags)):
+            out.append(x)
+    return out
+
+
+def captured_step_ms(net: Network, repeats: int) -> tuple[float, float, float]:
+    """p10, median and p90 [ms] of the captured forward (one CUDA graph launch)."""
+    net.capture()
+    for _ in range(20):
+        net.forward()
+    times = sorted(warp_clock(str(net.device)).times(net.forward, repeats))
+    return times[len(times) // 10], times[len(times) // 2], times[9 * len(times) // 10]
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--latent", type=int, default=64)
@@ -45,22 +72,43 @@ def main():
     ap.add_argument("--mesh", default=None, help="the L5 mesh (`warpgnn anatomy --name L5`) where meshing is missing")
     ap.add_argument("--aot", default=None)
     ap.add_argument("--calls", type=int, default=10)
+    ap.add_argument("--shapes", default="32:0:128", help="tile_rows:node_rows:block_dim, comma-separated")
+    ap.add_argument("--repeats", type=int, default=300, help="captured steps timed a case")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
-    if a.aot:
-        precompile.load(a.aot, [a.latent], "cuda:0")
+    shapes = a.shapes.split(",")
+    if len(shapes) > 1:  # one process a shape: Warp's module hashes can depend on the modules built before in a
+        # process (the second and third of three shapes compiled on the H100 though their cubins were in the cache)
+        cases = []
+        for shape in shapes:
+            with tempfile.TemporaryDirectory() as tmp:
+                one = Path(tmp) / "one.json"
+                subprocess.run([sys.executable, __file__, *_without(sys.argv[1:], ("--shapes", "--json")),
+                                "--shapes", shape, "--json", str(one)], check=True)
+                cases += json.loads(one.read_text())["cases"]
+        Path(a.json).write_text(json.dumps(provenance.record(a) | {"cases": cases}, indent=1) + "\n")
+        return
     base = l5_case(a.mesh)
     cases = []
-    for item in a.cases.split(","):
-        kind, passes, batch = item.split(":")
-        case = base.stacked(int(batch))
-        net = Network(random_model(kind, int(passes), a.latent), case.topology, device="cuda:0")
-        net.set_inputs(case.z, case.u_now, case.u_next, DT)
-        kernels = kernel_means(net, a.calls)
-        cases.append({"model": kind, "passes": int(passes), "batch": int(batch), "latent": a.latent,
-                      "kernels": kernels})
-        print(kind, passes, batch, {k: round(v["mean_us"], 1) for k, v in kernels.items()})
+    for shape in shapes:
+        T, N, B = (int(x) for x in shape.split(":"))
+        tiles = {"tile_rows": T, "node_rows": N}
+        if a.aot:
+            precompile.load(Path(a.aot) / f"F{a.latent}_T{T}_N{N or T}_B{B}", [a.latent], "cuda:0", B, **tiles)
+        for item in a.cases.split(","):
+            kind, passes, batch = item.split(":")
+            case = base.stacked(int(batch))
+            net = Network(random_model(kind, int(passes), a.latent), case.topology, device="cuda:0", block_dim=B,
+                          **tiles)
+            net.set_inputs(case.z, case.u_now, case.u_next, DT)
+            kernels = kernel_means(net, a.calls)
+            p10, median, p90 = captured_step_ms(net, a.repeats)
+            cases.append({"model": kind, "passes": int(passes), "batch": int(batch), "latent": a.latent,
+                          "tile_rows": T, "node_rows": N or T, "block_dim": B, "step_ms": median,
+                          "step_p10_ms": p10, "step_p90_ms": p90, "launches": net.n_launches, "kernels": kernels})
+            print(f"T{T} N{N or T} B{B}", kind, passes, batch, f"step {median * 1e3:.1f} us",
+                  {k: round(v["mean_us"], 1) for k, v in kernels.items()}, flush=True)
     Path(a.json).write_text(json.dumps(provenance.record(a) | {"cases": cases}, indent=1) + "\n")
 
 
