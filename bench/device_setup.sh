@@ -1,5 +1,6 @@
 # Sourced at the start of every command on a lent GPU machine, which has torch but neither warp-lang nor this
 # package installed, and no pyvista/tetgen to mesh the anatomies (a machine's calls share no environment).
+# A 4-GPU machine costs the same device time as one: run independent jobs side by side, one a GPU.
 # Here, once: ../shared/tools/warp-for-device.sh (makes .devwheels/a and .devwheels/b),
 # echo /.devdata/ >> .git/info/exclude, and
 # python -c "from warpgnn.fem_ref.generate import anatomy_mesh as a; [a('.devdata', f'L{i}') for i in range(1, 6)]"
@@ -24,6 +25,14 @@ mkdir -p /opt/bin && printf '#!/bin/sh\nexec python3 -m warpgnn.cli "$@"\n' > /o
 chmod +x /opt/bin/warpgnn
 export PATH=/opt/bin:$PATH
 mkdir -p /opt/data/anatomies && cp -n .devdata/anatomies/*.vtu /opt/data/anatomies/ 2>/dev/null || true
+# Modules built here ahead of time (python -m warpgnn.kernels.precompile --arch 90 --out .devdata/aot/NAME, xz'd), put
+# where Warp's cache looks (CACHE/<module id>/<module id>.sm90.cubin and .meta), so that no process there compiles
+# one (150 s each). A process that builds several tile shapes may still compile all but its first (docs/kernels.md).
+for meta in .devdata/aot/*/*.meta; do
+  [ -e "$meta" ] || break
+  id=$(basename "$meta" .meta); dir=$HOME/.cache/warp/1.19.0/$id; mkdir -p "$dir"; cp "$meta" "$dir/"
+  for c in "$(dirname "$meta")/$id".*.cubin.xz; do [ -e "$c" ] && xz -dc "$c" > "$dir/$(basename "$c" .xz)"; done
+done
 # torch.compile's cache from an earlier session, if carried (ignored .devcache/inductor.tgz; a 12-pass run's first
 # epoch took 192 s on a fresh machine, 48 s with its cache): pack it with
 # tar -C /tmp -czf $OUT/inductor.tgz torchinductor_root
