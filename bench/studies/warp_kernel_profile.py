@@ -25,7 +25,8 @@ import provenance
 import warp as wp
 
 from warpgnn.benchmark import DT, l5_case, random_model, warp_clock
-from warpgnn.kernels import Network, precompile
+from warpgnn.kernels import Network, precompile, shipped
+from warpgnn.kernels.spec import Spec
 
 
 def kernel_means(net: Network, calls: int) -> dict:
@@ -72,7 +73,8 @@ def main():
     ap.add_argument("--mesh", default=None, help="the L5 mesh (`warpgnn anatomy --name L5`) where meshing is missing")
     ap.add_argument("--aot", default=None)
     ap.add_argument("--calls", type=int, default=10)
-    ap.add_argument("--shapes", default="32:0:128", help="tile_rows:node_rows:block_dim, comma-separated")
+    ap.add_argument("--shapes", default=f"{Spec.tile_rows}:{Spec.node_rows}:{shipped.BLOCK_DIM}",
+                    help="tile_rows:node_rows:block_dim, comma-separated (default: the shipped shape, %(default)s)")
     ap.add_argument("--repeats", type=int, default=300, help="captured steps timed a case")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
