@@ -7,6 +7,8 @@
 # There: call 1 carries .devwheels/a and runs  mkdir -p /opt/dw && cp .devwheels/a/* /opt/dw/
 #        call 2 carries .devwheels/b and .devdata and starts with  source bench/device_setup.sh
 #   (a call carries at most 64 MiB with the working tree: split a wheel part with split -b over two calls if not)
+# Make call 2 at once after call 1 (the machine goes back 30 s after a call; a fresh one cost 50-330 s of device time
+# here, the most when H100s were asked for and did not come: name the kind the last reply gave, e.g. nvidia-h200-x4).
 # A machine is given back soon after a call ends, and after 30 minutes held: make every call copy what must
 # survive (checkpoints, logs) into $OUT (bench/wait_runs.sh RUNS SECONDS $OUT [DATA] does, evaluating each run as
 # it finishes), and resume a cut-off run from its last.pt on a fresh machine (`warpgnn train --resume`).

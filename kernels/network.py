@@ -30,6 +30,7 @@ def build_kernels(spec: Spec) -> None:
         module.kernels(spec)
     message_passing.node_kernel(spec)
     decoders.vanilla_kernel(spec)
+    wp.get_module(spec.module).options["enable_mathdx_gemm"] = spec.gemm == "mathdx"  # part of the module's hash
 
 
 def default_block_dim(device) -> int:
@@ -53,15 +54,15 @@ def _as_warp(x, device):
 
 class Network:
     def __init__(self, model, topology, device=None, tile_rows: int = Spec.tile_rows, block_dim: int | None = None,
-                 k_chunk: int = Spec.k_chunk, weights=None, node_rows: int = Spec.node_rows):
+                 k_chunk: int = Spec.k_chunk, weights=None, node_rows: int = Spec.node_rows, gemm: str = Spec.gemm):
         """``model``: a warpgnn TIGNN (its config and weights are read once); ``topology``: a
-        warpgnn.graphs.Topology, one simulation or a stacked batch. ``tile_rows``, ``node_rows``, ``k_chunk``:
-        the kernels' Spec (its defaults are the shipped module's). ``block_dim``: threads a block
+        warpgnn.graphs.Topology, one simulation or a stacked batch. ``tile_rows``, ``node_rows``, ``k_chunk``,
+        ``gemm``: the kernels' Spec (its defaults are the shipped module's). ``block_dim``: threads a block
         of the tile kernels (default_block_dim). ``weights``: the
         model already packed on ``device`` (weights.pack), so Networks of many topologies share one copy."""
         self.device = wp.get_device(device)
         self.weights = w = weights if weights is not None else pack(model, self.device)
-        self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk)
+        self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm)
         build_kernels(self.spec)
         self.block_dim = block_dim or default_block_dim(self.device)
         self.shipped_module = shipped.load(self.spec, self.device, self.block_dim)  # else Warp compiles it

@@ -1,12 +1,13 @@
 """Kernel modules shipped prebuilt (kernels/aot/), so that a user's first step loads instead of compiling.
 
-Warp compiles a module on its first launch: the F = 64 module took 149 s on an H100 and 150 s on a
-2-core CPU (its tile products are cuBLASDx code, one per product shape). The shipped network's width
-is shipped built for sm_80 (A100, and by binary compatibility sm_86/sm_89) and sm_90 (H100, H200), as
-xz-compressed cubins of ~0.9 MB; loading the sm_90 one took 0.62 s on the H100
-(bench/results/warp_kernel_profile_h100.json's run). A file is named by Warp's module identifier, which
-holds a hash of the kernels' code and options: a changed kernel finds no file and compiles as before,
-and tests/test_shipped_modules.py fails until ``python -m warpgnn.kernels.precompile --ship`` rebuilds them.
+Warp compiles a module on its first launch: the F = 64 module builds in ~30 s on a 2-core CPU with the
+default scalar tile products (Spec.gemm; with cuBLASDx products, one per product shape, it took 149 s on an
+H100 and 287 s here). The shipped network's width is shipped built for sm_80 (A100, and by binary
+compatibility sm_86/sm_89) and sm_90 (H100, H200), as xz-compressed cubins of ~0.13 MB; loading the sm_90 one
+took 3 ms on an H200 (bench/results/warp_gemm_h200.json's run; the cuBLASDx module took 0.6 s). A file is named
+by Warp's module identifier, which holds a hash of the kernels' code and options: a changed kernel finds no file
+and compiles as before, and tests/test_shipped_modules.py fails until ``python -m warpgnn.kernels.precompile
+--ship`` rebuilds them.
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ LayerNorm, broadcast rows, and the CSR segment sum that feeds a tile.
 A tile is ``tile_rows`` rows (edges or nodes) of one block. Weights are read as (K chunk, N) slices
 straight into shared memory by ``tile_load``: at F = 128 a whole (F, F) fp32 weight is 64 KiB, so
 chunks of 32 rows keep a block's shared memory within an SM's while the product stays one
-``tile_matmul`` per chunk (cuBLASDx on the GPU, a scalar GEMM on the CPU).
+``tile_matmul`` per chunk (Warp's cooperative scalar GEMM by default, Spec.gemm; cuBLASDx on request).
 """
 
 # No `from __future__ import annotations`: the tile and vector types in wp.func signatures are evaluated when

@@ -209,6 +209,21 @@ def test_unsupported_configuration_refused_in_one_line():
     assert "hidden_layers" in message and "\n" not in message
 
 
+def test_gemm_choice_is_its_own_module():
+    """Spec.gemm picks the tile products: each choice its own Warp module with Warp's mathdx option set to match
+    (part of the module's hash, so a cuBLASDx build is never loaded for the scalar one); others refused."""
+    from warpgnn.kernels.network import build_kernels
+    from warpgnn.kernels.spec import Spec
+
+    specs = {g: Spec(16, gemm=g) for g in ("scalar", "mathdx")}
+    assert specs["scalar"].module != specs["mathdx"].module
+    for g, spec in specs.items():
+        build_kernels(spec)
+        assert wp.get_module(spec.module).options["enable_mathdx_gemm"] == (g == "mathdx")
+    with pytest.raises(ValueError, match="gemm 'tf32'"):
+        Spec(16, gemm="tf32")
+
+
 # ----------------------------------------------------------------------------- the shipped network
 @pytest.fixture(scope="module")
 def shipped_case():

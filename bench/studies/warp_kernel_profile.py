@@ -1,7 +1,7 @@
 """Where a Warp step's time goes, and which tile shape serves it best: each kernel's mean duration over
 uncaptured forward() calls (Warp's CUDA activity timer) and the captured step's median time (CUDA events),
 on the bench case (L5, two tools, random weights), for a few (model, passes, batch) cases and tile shapes
-(Spec's tile_rows and node_rows, and threads a block). Its first run found the batch-1 step bound by a
+(Spec's tile_rows, node_rows, k_chunk and gemm, and threads a block). Its first run found the batch-1 step bound by a
 constant ~190 us of the hybrid's non-pass kernels (the GENERIC tail alone 120-135 us) and ~90 us a pass
 (the node pass two thirds of it): bench/results/warp_kernel_profile_h100.json.
 
@@ -44,6 +44,20 @@ def kernel_means(net: Network, calls: int) -> dict:
     return {k: {"mean_us": sum(v) / len(v), "per_forward": len(v) // calls} for k, v in out.items()}
 
 
+def shape_args(shape: str) -> dict:
+    """"T:N:B[:K[:GEMM]]" -> Network's tile_rows, node_rows, block_dim, k_chunk (0: Spec's), gemm (Spec.gemm)."""
+    T, N, B, *rest = shape.split(":")
+    return {"tile_rows": int(T), "node_rows": int(N), "block_dim": int(B), "k_chunk": int(rest[0]) if rest else 0,
+            "gemm": rest[1] if len(rest) > 1 else Spec.gemm}
+
+
+def aot_folder(root, latent: int, shape: dict) -> Path:
+    """Where `precompile --arch 90 --out` put a shape's module: ROOT/F{F}_T{T}_N{N}_B{B}[_K{K}][_{GEMM}]."""
+    k = f"_K{shape['k_chunk']}" if shape["k_chunk"] else ""
+    g = f"_{shape['gemm']}" if shape["gemm"] != Spec.gemm else ""
+    return Path(root) / f"F{latent}_T{shape['tile_rows']}_N{shape['node_rows']}_B{shape['block_dim']}{k}{g}"
+
+
 def _without(argv: list, flags: tuple) -> list:
     """``argv`` less each of ``flags`` and its value (``--flag value`` or ``--flag=value``)."""
     out, skip = [], False
@@ -74,7 +88,8 @@ def main():
     ap.add_argument("--aot", default=None)
     ap.add_argument("--calls", type=int, default=10)
     ap.add_argument("--shapes", default=f"{Spec.tile_rows}:{Spec.node_rows}:{shipped.BLOCK_DIM}",
-                    help="tile_rows:node_rows:block_dim, comma-separated (default: the shipped shape, %(default)s)")
+                    help="tile_rows:node_rows:block_dim[:k_chunk[:gemm]], comma-separated (default: the shipped shape, "
+                    "%(default)s)")
     ap.add_argument("--repeats", type=int, default=300, help="captured steps timed a case")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
@@ -94,10 +109,11 @@ def main():
     base = l5_case(a.mesh)
     cases = []
     for shape in shapes:
-        T, N, B = (int(x) for x in shape.split(":"))
-        tiles = {"tile_rows": T, "node_rows": N}
+        sh = shape_args(shape)
+        T, N, B, K, G = sh["tile_rows"], sh["node_rows"], sh["block_dim"], sh["k_chunk"], sh["gemm"]
+        tiles = {"tile_rows": T, "node_rows": N, "k_chunk": K, "gemm": G}
         if a.aot:
-            precompile.load(Path(a.aot) / f"F{a.latent}_T{T}_N{N or T}_B{B}", [a.latent], "cuda:0", B, **tiles)
+            precompile.load(aot_folder(a.aot, a.latent, sh), [a.latent], "cuda:0", B, **tiles)
         for item in a.cases.split(","):
             kind, passes, batch = item.split(":")
             case = base.stacked(int(batch))
@@ -107,9 +123,10 @@ def main():
             kernels = kernel_means(net, a.calls)
             p10, median, p90 = captured_step_ms(net, a.repeats)
             cases.append({"model": kind, "passes": int(passes), "batch": int(batch), "latent": a.latent,
-                          "tile_rows": T, "node_rows": N or T, "block_dim": B, "step_ms": median,
-                          "step_p10_ms": p10, "step_p90_ms": p90, "launches": net.n_launches, "kernels": kernels})
-            print(f"T{T} N{N or T} B{B}", kind, passes, batch, f"step {median * 1e3:.1f} us",
+                          "tile_rows": T, "node_rows": N or T, "block_dim": B, "k_chunk": K, "gemm": G,
+                          "step_ms": median, "step_p10_ms": p10, "step_p90_ms": p90, "launches": net.n_launches,
+                          "kernels": kernels})
+            print(f"T{T} N{N or T} B{B} K{K} {G}", kind, passes, batch, f"step {median * 1e3:.1f} us",
                   {k: round(v["mean_us"], 1) for k, v in kernels.items()}, flush=True)
     Path(a.json).write_text(json.dumps(provenance.record(a) | {"cases": cases}, indent=1) + "\n")
 
