@@ -387,7 +387,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_fixed_rule_flags(w)
     w.add_argument("--checkpoint", help="the network to start from (default: the shipped one)")
     w.add_argument("--preset", choices=["paper", "smoke"], default="paper",
-                   help="paper: 160/10/30 cases and 5 minutes of fine-tuning (a GPU); smoke: about 20 s on a CPU")
+                   help="paper: 480/10/30 cases and 5.5 minutes of fine-tuning (a GPU); smoke: about 20 s on a CPU")
     w.add_argument("--epochs", type=int, help="fine-tune this many epochs instead of the preset's time budget")
     w.add_argument("--seed", type=int, default=0)
     w.add_argument("--device", default=None)
