@@ -66,7 +66,7 @@ def kernels(spec: Spec):
         """delta_e on a tile of mesh edges or self-loops (receiver = sender = the node) -> (l, m) -> port terms."""
         e = wp.tile_load(lat, shape=(T, F), offset=(row0, 0), storage="shared")
         h = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
-        gather_pair(h, b1, 0, products, row_recv, 0, row_send, 0, F, row0, lane)
+        gather_pair(h, b1, 0, products, row_recv, 0, row_send, 0, F, row0)
         mm_ff(e, w_e, 0, 0, h)
         hs = to_shared(wp.tile_map(silu, h))
         o = wp.tile_zeros(shape=(T, N_LM), dtype=float, storage="shared")

@@ -25,6 +25,7 @@ import warp as wp
 
 from .decoders import node_decoder
 from .spec import FEATURE_WIDTH, Spec
+from . import rows
 from .tiles import helpers, matmul, row_vector, silu
 
 FW = FEATURE_WIDTH
@@ -86,7 +87,7 @@ def kernels(spec: Spec):
                   w_e: wp.array2d(dtype=float), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
                   b2: wp.array2d(dtype=float), gain: wp.array2d(dtype=float), shift: wp.array2d(dtype=float),
                   eps: float, p: int, mesh_row: int, mesh_tiles: int, act_row: int, tools_pad: int):
-        blk, lane = wp.tid()
+        blk, _lane = wp.tid()
         s = wp.int32(0)  # edge set: 0 mesh (receiver products in columns [0, F), sender [F, 2F))
         row0 = mesh_row + blk * T
         recv_col = wp.int32(0)
@@ -99,7 +100,7 @@ def kernels(spec: Spec):
         wi = 2 * p + s
         e = wp.tile_load(lat, shape=(T, F), offset=(row0, 0), storage="shared")
         h = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
-        gather_pair(h, b1, wi, products, row_recv, recv_col, row_send, send_row, F, row0, lane)
+        gather_pair(h, b1, wi, products, row_recv, recv_col, row_send, send_row, F, row0)
         mm_ff(e, w_e, wi * F, 0, h)
         hs = to_shared(wp.tile_map(silu, h))
         o = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
@@ -127,18 +128,18 @@ def node_kernel(spec: Spec):
                   mesh_row: int, act_row: int, n_nodes: int, actuators: int, proj_chunks: int,
                   products: wp.array2d(dtype=float), decode: int, dv_b1: wp.array2d(dtype=float),
                   dv_w2: wp.array2d(dtype=float), dv_b2: wp.array2d(dtype=float), grads: wp.array2d(dtype=float)):
-        blk, lane = wp.tid()
+        blk, _lane = wp.tid()
         row0 = blk * T
         x = wp.tile_load(lat, shape=(T, F), offset=(row0, 0), storage="shared")
         agg_m = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
         agg_w = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
-        segment_sum(agg_m, lat_rows, mesh_off, mesh_row, row0, n_nodes, lane)
+        segment_sum(agg_m, lat_rows, mesh_off, mesh_row, row0, n_nodes)
         h = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
         h += row_f(b1, p)
         mm_ff(x, w1, 3 * p * F, 0, h)
         mm_ff(agg_m, w1, (3 * p + 1) * F, 0, h)
         if actuators != 0:
-            segment_sum(agg_w, lat_rows, act_off, act_row, row0, n_nodes, lane)
+            segment_sum(agg_w, lat_rows, act_off, act_row, row0, n_nodes)
             mm_ff(agg_w, w1, (3 * p + 2) * F, 0, h)
         hs = to_shared(wp.tile_map(silu, h))
         o = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
@@ -169,11 +170,22 @@ def launches(net, block_dim: int) -> list:
                 net.lat, net.products])]
     mesh_tiles = lay.tiles(lay.edges_pad)
     edge_tiles = mesh_tiles + lay.tiles(lay.act_pad)
+    by_rows = net.spec.gemm == "rows"
+    if by_rows:  # a thread per edge row, weights read as rows of vectors
+        edge_rows = rows.edge_kernel(net.spec)
+        ew = [w.ew_e, w.ew_b1, w.ew_w2, w.ew_b2, w.ew_g, w.ew_be]
     for p in range(w.passes):
-        out.append(wp.launch_tiled(
-            edge_pass, dim=[edge_tiles], block_dim=block_dim, device=dev, record_cmd=True,
-            inputs=[net.lat, net.graph.row_recv, net.graph.row_send, net.product_rows, w.ew_e, w.ew_b1, w.ew_w2,
-                    w.ew_b2, w.ew_g, w.ew_be, w.eps, p, lay.mesh_row, mesh_tiles, lay.act_row, lay.tools_pad]))
+        if by_rows:
+            out.append(wp.launch(
+                edge_rows, dim=lay.edges_pad + lay.act_pad, block_dim=block_dim, device=dev, record_cmd=True,
+                inputs=[net.lat, net.graph.row_recv, net.graph.row_send, net.products, *ew, w.eps, p,
+                        lay.mesh_row, lay.edges_pad, lay.act_row, lay.tools_pad]))
+        else:
+            out.append(wp.launch_tiled(
+                edge_pass, dim=[edge_tiles], block_dim=block_dim, device=dev, record_cmd=True,
+                inputs=[net.lat, net.graph.row_recv, net.graph.row_send, net.product_rows, w.ew_e, w.ew_b1,
+                        w.ew_w2, w.ew_b2, w.ew_g, w.ew_be, w.eps, p, lay.mesh_row, mesh_tiles, lay.act_row,
+                        lay.tools_pad]))
         last = p == w.passes - 1
         decode = 1 if last and w.kind == "hybrid" else 0  # then (dE, dS) too, from the third block of proj
         chunks = (2 if decode else 1) if last else pass_chunks  # the decoder's edge products, or the vanilla's

@@ -22,11 +22,6 @@ def silu(v: float):
     return v / (1.0 + wp.exp(-v))
 
 
-@wp.func
-def inv_sqrt(var: float, eps: float):
-    return 1.0 / wp.sqrt(var + eps)
-
-
 @functools.cache
 def matmul(rows: int, k: int, kc: int, n: int):
     """acc (rows, n) += a (rows, k, shared) @ W[row0:row0 + k, col0:col0 + n], K in chunks of kc."""
@@ -64,21 +59,159 @@ def row_view(a: wp.array, latent: int):
                     capacity=a.capacity)
 
 
+# Block-cooperative steps written in C++ (wp.func_native) where Warp's tile built-ins close every element write or
+# reduction step with a barrier: one barrier a step here. The same code runs on Warp's CPU device (one thread a
+# block, or CPU fibers) except where __CUDA_ARCH__ picks warp shuffles. (``float`` is a macro in Warp's generated code.)
+ROW_STATS = r"""
+    using Shape = typename tile_o::Layout::Shape;
+    constexpr int T = Shape::dim(0);
+    constexpr int F = Shape::dim(1);
+    bool done = false;
+#if defined(__CUDA_ARCH__)
+    if constexpr (WP_TILE_BLOCK_DIM % 32 == 0) {  // a warp a row: lanes sum strided columns, then shuffles
+        constexpr int W = WP_TILE_BLOCK_DIM / 32;
+        const int warp = threadIdx.x / 32, lane = threadIdx.x % 32;
+#pragma unroll
+        for (int r = warp; r < T; r += W) {
+            wp::float32 s = wp::float32(0);
+#pragma unroll
+            for (int c = lane; c < F; c += 32)
+                s += o.data(wp::tile_coord(r, c));
+#pragma unroll
+            for (int m = 16; m > 0; m >>= 1)
+                s += __shfl_xor_sync(0xffffffffu, s, m);
+            const wp::float32 mean = s / wp::float32(F);
+            wp::float32 v = wp::float32(0);
+#pragma unroll
+            for (int c = lane; c < F; c += 32) {
+                const wp::float32 d = o.data(wp::tile_coord(r, c)) - mean;
+                v += d * d;
+            }
+#pragma unroll
+            for (int m = 16; m > 0; m >>= 1)
+                v += __shfl_xor_sync(0xffffffffu, v, m);
+            if (lane == 0) {
+                stats.data(wp::tile_coord(r, 0)) = mean;
+                stats.data(wp::tile_coord(r, 1)) = wp::float32(1) / sqrtf(v / wp::float32(F) + eps);
+            }
+        }
+        done = true;
+    }
+#endif
+    if (!done) {  // a thread a row, in column order
+        for (int r = WP_TILE_THREAD_IDX; r < T; r += WP_TILE_BLOCK_DIM) {
+            wp::float32 s = wp::float32(0);
+            for (int c = 0; c < F; ++c)
+                s += o.data(wp::tile_coord(r, c));
+            const wp::float32 mean = s / wp::float32(F);
+            wp::float32 v = wp::float32(0);
+            for (int c = 0; c < F; ++c) {
+                const wp::float32 d = o.data(wp::tile_coord(r, c)) - mean;
+                v += d * d;
+            }
+            stats.data(wp::tile_coord(r, 0)) = mean;
+            stats.data(wp::tile_coord(r, 1)) = wp::float32(1) / sqrt(v / wp::float32(F) + eps);
+        }
+    }
+    WP_TILE_SYNC();
+"""
+
+GATHER_PAIR = r"""
+    using Shape = typename tile_h::Layout::Shape;
+    constexpr int T = Shape::dim(0);
+    constexpr int F = Shape::dim(1);
+    using Vec = typename wp::remove_reference<decltype(wp::index(products, 0, 0))>::type;
+    constexpr int V = sizeof(Vec) / sizeof(wp::float32);
+    constexpr int FV = F / V;
+    constexpr int N = T * FV;
+    constexpr int PER = (N + WP_TILE_BLOCK_DIM - 1) / WP_TILE_BLOCK_DIM;
+    Vec a[PER], b[PER];
+#pragma unroll
+    for (int k = 0; k < PER; ++k) {  // every load of the thread issued before the first use
+        const int idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM;
+        if (idx < N) {
+            const int r = idx / FV, c = idx - (idx / FV) * FV;
+            a[k] = wp::index(products, wp::index(recv, row0 + r), recv_col / V + c);
+            b[k] = wp::index(products, send_row + wp::index(send, row0 + r), send_col / V + c);
+        }
+    }
+#pragma unroll
+    for (int k = 0; k < PER; ++k) {
+        const int idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM;
+        if (idx < N) {
+            const int r = idx / FV, c = idx - (idx / FV) * FV;
+            for (int j = 0; j < V; ++j)
+                h.data(wp::tile_coord(r, c * V + j)) = (wp::index(bias, bias_row, c * V + j) + a[k][j]) + b[k][j];
+        }
+    }
+    WP_TILE_SYNC();
+"""
+
+
+SEGMENT_SUM = r"""
+    using Shape = typename tile_agg::Layout::Shape;
+    constexpr int T = Shape::dim(0);
+    constexpr int F = Shape::dim(1);
+    using Vec = typename wp::remove_reference<decltype(wp::index(lat, 0, 0))>::type;
+    constexpr int V = sizeof(Vec) / sizeof(wp::float32);
+    constexpr int FV = F / V;
+    constexpr int N = T * FV;
+    constexpr int PER = (N + WP_TILE_BLOCK_DIM - 1) / WP_TILE_BLOCK_DIM;
+    Vec acc[PER];
+#pragma unroll
+    for (int k = 0; k < PER; ++k) {
+        acc[k] = Vec(wp::float32(0));
+        const int idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM;
+        const int r = idx / FV, c = idx - (idx / FV) * FV, i = node0 + r;
+        if (idx < N && i < n_nodes) {
+            int e = wp::index(offsets, i);
+            const int end = wp::index(offsets, i + 1);
+            while (e < end) {  // eight rows in flight, clamped at the segment's end and not added past it
+                const int last = end - 1;
+                Vec x[8];
+#pragma unroll
+                for (int m = 0; m < 8; ++m)
+                    x[m] = wp::index(lat, base_row + (e + m < last ? e + m : last), c);
+#pragma unroll
+                for (int m = 0; m < 8; ++m)
+                    if (e + m < end)
+                        acc[k] = acc[k] + x[m];
+                e += 8;
+            }
+        }
+    }
+#pragma unroll
+    for (int k = 0; k < PER; ++k) {
+        const int idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM;
+        if (idx < N) {
+            const int r = idx / FV, c = idx - (idx / FV) * FV;
+            for (int j = 0; j < V; ++j)
+                agg.data(wp::tile_coord(r, c * V + j)) = acc[k][j];
+        }
+    }
+    WP_TILE_SYNC();
+"""
+
+
 @functools.cache
 def helpers(spec: Spec):
     T, F = spec.tile_rows, spec.latent
     row_f = broadcast_row(T, F)
 
+    @wp.func_native(ROW_STATS)
+    def row_stats(o: wp.tile(dtype=float, shape=(T, F)), stats: wp.tile(dtype=float, shape=(T, 2)), eps: float): ...
+
     @wp.func
     def layer_norm(o: wp.tile(dtype=float, shape=(T, F)), gain: wp.array2d(dtype=float),
                    shift: wp.array2d(dtype=float), row: int, eps: float):
-        """torch.nn.LayerNorm over each row (two-pass mean and biased variance, as torch)."""
-        inv = 1.0 / float(F)
-        mean = wp.tile_sum(o, axis=1) * inv
-        c = o - wp.tile_broadcast(wp.tile_reshape(mean, shape=(T, 1)), shape=(T, F))
-        var = wp.tile_sum(wp.tile_map(wp.mul, c, c), axis=1) * inv
-        rstd = wp.tile_map(inv_sqrt, var, eps)
-        y = wp.tile_map(wp.mul, c, wp.tile_broadcast(wp.tile_reshape(rstd, shape=(T, 1)), shape=(T, F)))
+        """torch.nn.LayerNorm over each row of the shared tile o (two-pass mean and biased variance, as torch): the
+        row statistics a warp a row (row_stats; Warp's tile_sum(axis=1) reduced the rows one after another, with a
+        shared-memory round trip between steps: ~22 % of the edge pass's stall samples, warp_stalls_h200.json)."""
+        stats = wp.tile_zeros(shape=(T, 2), dtype=float, storage="shared")
+        row_stats(o, stats, eps)
+        mean = wp.tile_broadcast(wp.tile_view(stats, offset=(0, 0), shape=(T, 1)), shape=(T, F))
+        rstd = wp.tile_broadcast(wp.tile_view(stats, offset=(0, 1), shape=(T, 1)), shape=(T, F))
+        y = wp.tile_map(wp.mul, o - mean, rstd)
         return wp.tile_map(wp.mul, y, row_f(gain, row)) + row_f(shift, row)
 
     @wp.func
@@ -91,83 +224,29 @@ def helpers(spec: Spec):
     FV = F // V
     vec = row_vector(F)
 
-    @wp.func
+    @wp.func_native(SEGMENT_SUM)
     def segment_sum(agg: wp.tile(dtype=float, shape=(T, F)), lat: wp.array2d(dtype=vec),
-                    offsets: wp.array(dtype=wp.int32), base_row: int, node0: int, n_nodes: int, lane: int):
+                    offsets: wp.array(dtype=wp.int32), base_row: int, node0: int, n_nodes: int):
         """agg[r, :] = sum of lat[base_row + e, :] over node (node0 + r)'s CSR segment e, in segment order.
         ``lat`` is the latent buffer seen as rows of F / V vectors (row_view). Threads take (row, vector)
         items, consecutive threads consecutive vectors (coalesced); eight rows are loaded before the first
         add, so a thread keeps 8 V floats in flight and a round costs one L2 latency per eight edges (one
         float and four rows in flight made the node launch latency-bound: 56-62 us at L5 on an H100, where
         the bytes need ~3 us). Rows past the segment's end are loaded (clamped) but not added, so the sum
-        is the plain sequential one. Every thread runs the same number of rounds, as the masked scatter
-        synchronises."""
-        total = T * FV
-        bd = wp.block_dim()
-        for it in range((total + bd - 1) // bd):
-            idx = it * bd + lane
-            ok = idx < total
-            r = idx // FV
-            c = idx - r * FV
-            v = vec()
-            i = node0 + r
-            if ok and i < n_nodes:
-                e = wp.int32(offsets[i])
-                end = wp.int32(offsets[i + 1])
-                while e < end:
-                    last = end - 1
-                    x0 = lat[base_row + e, c]
-                    x1 = lat[base_row + wp.min(e + 1, last), c]
-                    x2 = lat[base_row + wp.min(e + 2, last), c]
-                    x3 = lat[base_row + wp.min(e + 3, last), c]
-                    x4 = lat[base_row + wp.min(e + 4, last), c]
-                    x5 = lat[base_row + wp.min(e + 5, last), c]
-                    x6 = lat[base_row + wp.min(e + 6, last), c]
-                    x7 = lat[base_row + wp.min(e + 7, last), c]
-                    v += x0
-                    if e + 1 < end:
-                        v += x1
-                    if e + 2 < end:
-                        v += x2
-                    if e + 3 < end:
-                        v += x3
-                    if e + 4 < end:
-                        v += x4
-                    if e + 5 < end:
-                        v += x5
-                    if e + 6 < end:
-                        v += x6
-                    if e + 7 < end:
-                        v += x7
-                    e += 8
-            rr = wp.min(r, T - 1)
-            for k in range(V):
-                wp.tile_scatter_masked(agg, rr, c * V + k, v[k], ok)
+        is the plain sequential one; the tile is written with one barrier."""
+        ...
 
-    @wp.func
+    @wp.func_native(GATHER_PAIR)
     def gather_pair(h: wp.tile(dtype=float, shape=(T, F)), bias: wp.array2d(dtype=float), bias_row: int,
                     products: wp.array2d(dtype=vec), recv: wp.array(dtype=wp.int32), recv_col: int,
-                    send: wp.array(dtype=wp.int32), send_row: int, send_col: int, row0: int, lane: int):
+                    send: wp.array(dtype=wp.int32), send_row: int, send_col: int, row0: int):
         """h[r] = bias[bias_row] + P[recv[row0 + r], recv_col:] + P[send_row + send[row0 + r], send_col:] (F
         columns each; ``products`` seen as vectors, row_view, the columns in floats): an edge MLP's first
-        layer split per node. Plain per-thread vector loads, both rows of an item in flight at once (Warp's
-        tile_load_indexed gathers cost 36 us a pass more than their bytes at F = 128; calibration notes);
-        added in the order of the reference's sum."""
-        total = T * FV
-        bd = wp.block_dim()
-        for it in range((total + bd - 1) // bd):
-            idx = it * bd + lane
-            ok = idx < total
-            r = wp.min(idx // FV, T - 1)
-            c = idx - (idx // FV) * FV
-            a = vec()
-            b = vec()
-            if ok:
-                a = products[recv[row0 + r], recv_col // V + c]
-                b = products[send_row + send[row0 + r], send_col // V + c]
-            for k in range(V):
-                col = wp.min(c * V + k, F - 1)
-                wp.tile_scatter_masked(h, r, col, (bias[bias_row, col] + a[k]) + b[k], ok)
+        layer split per node, added in the order of the reference's sum. Each thread's vector loads are all in
+        flight before its first write and the tile is written with one barrier (Warp's tile_scatter_masked closes
+        each element with one: a load round per four elements); Warp's tile_load_indexed gathers cost 36 us a pass
+        more than their bytes at F = 128 (calibration notes)."""
+        ...
 
     mm_ff = matmul(T, F, spec.kc, F)
 
