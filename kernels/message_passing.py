@@ -25,7 +25,6 @@ import warp as wp
 
 from .decoders import node_decoder
 from .spec import FEATURE_WIDTH, Spec
-from . import rows
 from .tiles import helpers, matmul, row_vector, silu
 
 FW = FEATURE_WIDTH
@@ -35,8 +34,8 @@ FW = FEATURE_WIDTH
 def kernels(spec: Spec):
     T, F = spec.tile_rows, spec.latent
     layer_norm, to_shared, _segment_sum, row_f, project, gather_pair = helpers(spec)
-    mm_ff = matmul(T, F, spec.kc, F)
-    mm_in = matmul(T, FW, FW, F)
+    mm_ff = matmul(T, F, spec.kc, F, spec.staged)
+    mm_in = matmul(T, FW, FW, F, spec.staged)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def encode(feat: wp.array2d(dtype=float), w1: wp.array2d(dtype=float), b1: wp.array2d(dtype=float),
@@ -87,7 +86,7 @@ def kernels(spec: Spec):
                   w_e: wp.array2d(dtype=float), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
                   b2: wp.array2d(dtype=float), gain: wp.array2d(dtype=float), shift: wp.array2d(dtype=float),
                   eps: float, p: int, mesh_row: int, mesh_tiles: int, act_row: int, tools_pad: int):
-        blk, _lane = wp.tid()
+        blk, lane = wp.tid()
         s = wp.int32(0)  # edge set: 0 mesh (receiver products in columns [0, F), sender [F, 2F))
         row0 = mesh_row + blk * T
         recv_col = wp.int32(0)
@@ -100,7 +99,7 @@ def kernels(spec: Spec):
         wi = 2 * p + s
         e = wp.tile_load(lat, shape=(T, F), offset=(row0, 0), storage="shared")
         h = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
-        gather_pair(h, b1, wi, products, row_recv, recv_col, row_send, send_row, F, row0)
+        gather_pair(h, b1, wi, products, row_recv, recv_col, row_send, send_row, F, row0, lane)
         mm_ff(e, w_e, wi * F, 0, h)
         hs = to_shared(wp.tile_map(silu, h))
         o = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
@@ -117,7 +116,7 @@ def node_kernel(spec: Spec):
     T, F = spec.node_tile, spec.latent
     layer_norm, to_shared, segment_sum, row_f, project, _gather = helpers(spec.nodes)
     node_fields = node_decoder(spec.nodes)
-    mm_ff = matmul(T, F, spec.kc, F)
+    mm_ff = matmul(T, F, spec.kc, F, spec.staged)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def node_pass(lat: wp.array2d(dtype=float), lat_rows: wp.array2d(dtype=row_vector(F)),
@@ -170,22 +169,11 @@ def launches(net, block_dim: int) -> list:
                 net.lat, net.products])]
     mesh_tiles = lay.tiles(lay.edges_pad)
     edge_tiles = mesh_tiles + lay.tiles(lay.act_pad)
-    by_rows = net.spec.gemm == "rows"
-    if by_rows:  # a thread per edge row, weights read as rows of vectors
-        edge_rows = rows.edge_kernel(net.spec)
-        ew = [w.ew_e, w.ew_b1, w.ew_w2, w.ew_b2, w.ew_g, w.ew_be]
     for p in range(w.passes):
-        if by_rows:
-            out.append(wp.launch(
-                edge_rows, dim=lay.edges_pad + lay.act_pad, block_dim=block_dim, device=dev, record_cmd=True,
-                inputs=[net.lat, net.graph.row_recv, net.graph.row_send, net.products, *ew, w.eps, p,
-                        lay.mesh_row, lay.edges_pad, lay.act_row, lay.tools_pad]))
-        else:
-            out.append(wp.launch_tiled(
-                edge_pass, dim=[edge_tiles], block_dim=block_dim, device=dev, record_cmd=True,
-                inputs=[net.lat, net.graph.row_recv, net.graph.row_send, net.product_rows, w.ew_e, w.ew_b1,
-                        w.ew_w2, w.ew_b2, w.ew_g, w.ew_be, w.eps, p, lay.mesh_row, mesh_tiles, lay.act_row,
-                        lay.tools_pad]))
+        out.append(wp.launch_tiled(
+            edge_pass, dim=[edge_tiles], block_dim=block_dim, device=dev, record_cmd=True,
+            inputs=[net.lat, net.graph.row_recv, net.graph.row_send, net.product_rows, w.ew_e, w.ew_b1, w.ew_w2,
+                    w.ew_b2, w.ew_g, w.ew_be, w.eps, p, lay.mesh_row, mesh_tiles, lay.act_row, lay.tools_pad]))
         last = p == w.passes - 1
         decode = 1 if last and w.kind == "hybrid" else 0  # then (dE, dS) too, from the third block of proj
         chunks = (2 if decode else 1) if last else pass_chunks  # the decoder's edge products, or the vanilla's

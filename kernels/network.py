@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from . import decoders, features, generic_tail, integrate, message_passing, rows, shipped
+from . import decoders, features, generic_tail, integrate, message_passing, shipped
 from .graph import build
 from .spec import FEATURE_WIDTH, N_GRAD, STATE, Spec
 from .tiles import row_view
@@ -29,8 +29,6 @@ def build_kernels(spec: Spec) -> None:
     for module in (features, message_passing, decoders, generic_tail, integrate):
         module.kernels(spec)
     message_passing.node_kernel(spec)
-    if spec.gemm == "rows":
-        rows.edge_kernel(spec)
     decoders.vanilla_kernel(spec)
     wp.get_module(spec.module).options["enable_mathdx_gemm"] = spec.gemm == "mathdx"  # part of the module's hash
 

@@ -22,17 +22,84 @@ def silu(v: float):
     return v / (1.0 + wp.exp(-v))
 
 
-@functools.cache
-def matmul(rows: int, k: int, kc: int, n: int):
-    """acc (rows, n) += a (rows, k, shared) @ W[row0:row0 + k, col0:col0 + n], K in chunks of kc."""
-    @wp.func
-    def matmul_acc(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
-                   acc: wp.tile(dtype=float, shape=(rows, n))):
-        for c in range(k // kc):
-            wp.tile_matmul(wp.tile_view(a, offset=(0, c * kc), shape=(rows, kc)),
-                           wp.tile_load(w, shape=(kc, n), offset=(row0 + c * kc, col0), storage="shared"), acc)
+STAGE = r"""
+    using Shape = typename tile_dst::Layout::Shape;
+    constexpr int R = Shape::dim(0);
+    constexpr int C = Shape::dim(1);
+    bool done = false;
+#if defined(__CUDA_ARCH__)
+    if constexpr (C % 4 == 0) {  // 16-byte asynchronous copies (cp.async): no registers hold the data in flight
+        constexpr int C4 = C / 4;
+        for (int i = WP_TILE_THREAD_IDX; i < R * C4; i += WP_TILE_BLOCK_DIM) {
+            const int r = i / C4, c = (i - (i / C4) * C4) * 4;
+            const unsigned d = static_cast<unsigned>(__cvta_generic_to_shared(&dst.data(wp::tile_coord(r, c))));
+            asm volatile("cp.async.cg.shared.global [%0], [%1], 16;\n" :: "r"(d), "l"(&wp::index(w, row0 + r, col0 + c)));
+        }
+        asm volatile("cp.async.commit_group;\n" ::);
+        done = true;
+    }
+#endif
+    if (!done)
+        for (int i = WP_TILE_THREAD_IDX; i < R * C; i += WP_TILE_BLOCK_DIM)
+            dst.data(wp::tile_coord(i / C, i - (i / C) * C)) = wp::index(w, row0 + i / C, col0 + i - (i / C) * C);
+"""
 
-    return matmul_acc
+STAGED = r"""
+#if defined(__CUDA_ARCH__)
+    asm volatile("cp.async.wait_all;\n" ::);
+#endif
+    WP_TILE_SYNC();
+"""
+
+
+@functools.cache
+def stage(rows: int, cols: int):
+    """stage(dst, W, row0, col0): start copying W[row0:row0 + rows, col0:col0 + cols] into the shared tile dst
+    (asynchronously on CUDA); staged(dst) waits for every copy started and syncs the block."""
+    @wp.func_native(STAGE)
+    def stage_copy(dst: wp.tile(dtype=float, shape=(rows, cols)), w: wp.array2d(dtype=float), row0: int,
+                   col0: int): ...
+
+    @wp.func_native(STAGED)
+    def staged(dst: wp.tile(dtype=float, shape=(rows, cols))): ...
+
+    return stage_copy, staged
+
+
+@functools.cache
+def matmul(rows: int, k: int, kc: int, n: int, staged_weights: bool = False):
+    """acc (rows, n) += a (rows, k, shared) @ W[row0:row0 + k, col0:col0 + n], K in chunks of kc. With
+    ``staged_weights`` the chunks are double-buffered: chunk c + 1 is copied asynchronously while chunk c's
+    product runs, so a product waits for one weight load, not one a chunk, and the chunk loop is a loop (one copy
+    of the product's code, not one a chunk: the instruction cache)."""
+    if not staged_weights:
+        @wp.func
+        def matmul_acc(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
+                       acc: wp.tile(dtype=float, shape=(rows, n))):
+            for c in range(k // kc):
+                wp.tile_matmul(wp.tile_view(a, offset=(0, c * kc), shape=(rows, kc)),
+                               wp.tile_load(w, shape=(kc, n), offset=(row0 + c * kc, col0), storage="shared"), acc)
+
+        return matmul_acc
+    chunks, kc2 = k // kc, 2 * kc
+    stage_copy, staged = stage(kc, n)
+
+    @wp.func
+    def matmul_staged(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
+                      acc: wp.tile(dtype=float, shape=(rows, n))):
+        buf = wp.tile_empty(shape=(kc2, n), dtype=float, storage="shared")
+        stage_copy(wp.tile_view(buf, offset=(0, 0), shape=(kc, n)), w, row0, col0)
+        c = int(0)
+        while c < chunks:  # a while loop: Warp does not unroll it
+            b = wp.tile_view(buf, offset=((c % 2) * kc, 0), shape=(kc, n))
+            staged(b)  # chunk c is in; every thread is done with chunk c - 1's buffer
+            if c + 1 < chunks:
+                stage_copy(wp.tile_view(buf, offset=(((c + 1) % 2) * kc, 0), shape=(kc, n)), w,
+                           row0 + (c + 1) * kc, col0)
+            wp.tile_matmul(wp.tile_view(a, offset=(0, c * kc), shape=(rows, kc)), b, acc)
+            c += 1
+
+    return matmul_staged
 
 
 @functools.cache
@@ -115,38 +182,6 @@ ROW_STATS = r"""
     }
     WP_TILE_SYNC();
 """
-
-GATHER_PAIR = r"""
-    using Shape = typename tile_h::Layout::Shape;
-    constexpr int T = Shape::dim(0);
-    constexpr int F = Shape::dim(1);
-    using Vec = typename wp::remove_reference<decltype(wp::index(products, 0, 0))>::type;
-    constexpr int V = sizeof(Vec) / sizeof(wp::float32);
-    constexpr int FV = F / V;
-    constexpr int N = T * FV;
-    constexpr int PER = (N + WP_TILE_BLOCK_DIM - 1) / WP_TILE_BLOCK_DIM;
-    Vec a[PER], b[PER];
-#pragma unroll
-    for (int k = 0; k < PER; ++k) {  // every load of the thread issued before the first use
-        const int idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM;
-        if (idx < N) {
-            const int r = idx / FV, c = idx - (idx / FV) * FV;
-            a[k] = wp::index(products, wp::index(recv, row0 + r), recv_col / V + c);
-            b[k] = wp::index(products, send_row + wp::index(send, row0 + r), send_col / V + c);
-        }
-    }
-#pragma unroll
-    for (int k = 0; k < PER; ++k) {
-        const int idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM;
-        if (idx < N) {
-            const int r = idx / FV, c = idx - (idx / FV) * FV;
-            for (int j = 0; j < V; ++j)
-                h.data(wp::tile_coord(r, c * V + j)) = (wp::index(bias, bias_row, c * V + j) + a[k][j]) + b[k][j];
-        }
-    }
-    WP_TILE_SYNC();
-"""
-
 
 SEGMENT_SUM = r"""
     using Shape = typename tile_agg::Layout::Shape;
@@ -236,19 +271,32 @@ def helpers(spec: Spec):
         is the plain sequential one; the tile is written with one barrier."""
         ...
 
-    @wp.func_native(GATHER_PAIR)
+    @wp.func
     def gather_pair(h: wp.tile(dtype=float, shape=(T, F)), bias: wp.array2d(dtype=float), bias_row: int,
                     products: wp.array2d(dtype=vec), recv: wp.array(dtype=wp.int32), recv_col: int,
-                    send: wp.array(dtype=wp.int32), send_row: int, send_col: int, row0: int):
+                    send: wp.array(dtype=wp.int32), send_row: int, send_col: int, row0: int, lane: int):
         """h[r] = bias[bias_row] + P[recv[row0 + r], recv_col:] + P[send_row + send[row0 + r], send_col:] (F
         columns each; ``products`` seen as vectors, row_view, the columns in floats): an edge MLP's first
-        layer split per node, added in the order of the reference's sum. Each thread's vector loads are all in
-        flight before its first write and the tile is written with one barrier (Warp's tile_scatter_masked closes
-        each element with one: a load round per four elements); Warp's tile_load_indexed gathers cost 36 us a pass
-        more than their bytes at F = 128 (calibration notes)."""
-        ...
+        layer split per node. Plain per-thread vector loads, both rows of an item in flight at once (Warp's
+        tile_load_indexed gathers cost 36 us a pass more than their bytes at F = 128; calibration notes);
+        added in the order of the reference's sum."""
+        total = T * FV
+        bd = wp.block_dim()
+        for it in range((total + bd - 1) // bd):
+            idx = it * bd + lane
+            ok = idx < total
+            r = wp.min(idx // FV, T - 1)
+            c = idx - (idx // FV) * FV
+            a = vec()
+            b = vec()
+            if ok:
+                a = products[recv[row0 + r], recv_col // V + c]
+                b = products[send_row + send[row0 + r], send_col // V + c]
+            for k in range(V):
+                col = wp.min(c * V + k, F - 1)
+                wp.tile_scatter_masked(h, r, col, (bias[bias_row, col] + a[k]) + b[k], ok)
 
-    mm_ff = matmul(T, F, spec.kc, F)
+    mm_ff = matmul(T, F, spec.kc, F, spec.staged)
 
     @wp.func
     def project(y: wp.tile(dtype=float, shape=(T, F)), w: wp.array2d(dtype=float), row0: int, col0: int,
