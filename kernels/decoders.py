@@ -28,7 +28,7 @@ def node_decoder(spec: Spec):
     """The hybrid's delta_v on a tile of node latents, for the last node pass (message_passing)."""
     T, F = spec.tile_rows, spec.latent
     _layer_norm, to_shared, _segment_sum, row_f, _project, _gather = helpers(spec)
-    mm_ff, mm_grad, row_grad = matmul(T, F, spec.kc, F, spec.staged), matmul(T, F, spec.kc, N_GRAD, spec.staged), broadcast_row(T, N_GRAD)
+    mm_ff, mm_grad, row_grad = matmul(T, F, spec.kc, F), matmul(T, F, spec.kc, N_GRAD), broadcast_row(T, N_GRAD)
 
     @wp.func
     def node_fields(y: wp.tile(dtype=float, shape=(T, F)), w1: wp.array2d(dtype=float), w1_row: int, w1_col: int,
@@ -51,8 +51,8 @@ def node_decoder(spec: Spec):
 def kernels(spec: Spec):
     T, F = spec.tile_rows, spec.latent
     _layer_norm, to_shared, _segment_sum, row_f, _project, gather_pair = helpers(spec)
-    mm_ff = matmul(T, F, spec.kc, F, spec.staged)
-    mm_lm = matmul(T, F, spec.kc, N_LM, spec.staged)
+    mm_ff = matmul(T, F, spec.kc, F)
+    mm_lm = matmul(T, F, spec.kc, N_LM)
     row_lm = broadcast_row(T, N_LM)
     port_terms = row_operators(spec)
 
@@ -93,7 +93,7 @@ def vanilla_kernel(spec: Spec):
     """vanilla_tail on the node tiles (spec.nodes), in spec's module."""
     T, F = spec.node_tile, spec.latent
     _layer_norm, to_shared, _segment_sum, row_f, _project, _gather = helpers(spec.nodes)
-    mm_state, row_state = matmul(T, F, spec.kc, STATE, spec.staged), broadcast_row(T, STATE)
+    mm_state, row_state = matmul(T, F, spec.kc, STATE), broadcast_row(T, STATE)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def vanilla_tail(products: wp.array2d(dtype=float), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),

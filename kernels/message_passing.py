@@ -34,8 +34,8 @@ FW = FEATURE_WIDTH
 def kernels(spec: Spec):
     T, F = spec.tile_rows, spec.latent
     layer_norm, to_shared, _segment_sum, row_f, project, gather_pair = helpers(spec)
-    mm_ff = matmul(T, F, spec.kc, F, spec.staged)
-    mm_in = matmul(T, FW, FW, F, spec.staged)
+    mm_ff = matmul(T, F, spec.kc, F)
+    mm_in = matmul(T, FW, FW, F)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def encode(feat: wp.array2d(dtype=float), w1: wp.array2d(dtype=float), b1: wp.array2d(dtype=float),
@@ -116,7 +116,7 @@ def node_kernel(spec: Spec):
     T, F = spec.node_tile, spec.latent
     layer_norm, to_shared, segment_sum, row_f, project, _gather = helpers(spec.nodes)
     node_fields = node_decoder(spec.nodes)
-    mm_ff = matmul(T, F, spec.kc, F, spec.staged)
+    mm_ff = matmul(T, F, spec.kc, F)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def node_pass(lat: wp.array2d(dtype=float), lat_rows: wp.array2d(dtype=row_vector(F)),

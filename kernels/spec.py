@@ -19,7 +19,7 @@ N_LM = N_L + N_M  # delta_e's outputs per edge and self-loop
 N_GRAD = 2 * STATE  # delta_v's outputs per node: dE, dS
 FEATURE_WIDTH = 24  # widest encoder input (18: the single-graph node features) padded to a multiple of 8
 STAT_WIDTH = 9  # widest standardised raw feature set (the node's v, sigma)
-GEMMS = ("scalar", "mathdx", "staged")
+GEMMS = ("scalar", "mathdx")
 
 
 @dataclass(frozen=True)
@@ -43,10 +43,6 @@ class Spec:
     def __post_init__(self):
         if self.gemm not in GEMMS:
             raise ValueError(f"gemm {self.gemm!r}: expected one of {', '.join(GEMMS)}")
-
-    @property
-    def staged(self) -> bool:
-        return self.gemm == "staged"
 
     @property
     def kc(self) -> int:

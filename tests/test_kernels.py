@@ -193,6 +193,14 @@ def test_several_threads_a_block(monkeypatch):
         check(random_model(kind, 2, 16, seed=11), top, seed=11, block_dim=5)
 
 
+def test_weight_chunks_double_buffered(monkeypatch):
+    """Products over four K chunks (k_chunk 8 at F = 32): the next chunk's weights are staged while the current
+    one's product runs (tiles.matmul), with 5 threads a block (CPU fibers, so the block's row LayerNorm and
+    CSR sums take several threads too): the reference's answer."""
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    check(random_model("hybrid", 2, 32, seed=3), tool_topology(box((3, 3, 2)), 2), seed=3, k_chunk=8, block_dim=5)
+
+
 @pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
 def test_node_tiles_smaller_than_edge_tiles(kind):
     """The node launches on tiles of 8 rows in a layout padded to tiles of 16 (Spec.node_rows), several
