@@ -28,17 +28,14 @@ def node_decoder(spec: Spec):
     """The hybrid's delta_v on a tile of node latents, for the last node pass (message_passing)."""
     T, F = spec.tile_rows, spec.latent
     _layer_norm, to_shared, _segment_sum, row_f, _project, _gather = helpers(spec)
-    mm_ff, mm_grad, row_grad = matmul(T, F, spec.kc, F), matmul(T, F, spec.kc, N_GRAD), broadcast_row(T, N_GRAD)
+    mm_grad, row_grad = matmul(T, F, spec.kc, N_GRAD), broadcast_row(T, N_GRAD)
 
     @wp.func
-    def node_fields(y: wp.tile(dtype=float, shape=(T, F)), w1: wp.array2d(dtype=float), w1_row: int, w1_col: int,
-                    b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float), row0: int,
-                    grads: wp.array2d(dtype=float)):
-        """delta_v on a tile y of node latents -> (dE, dS); its first layer is W1[w1_row:, w1_col:] (weights.proj)."""
-        h = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
-        h += row_f(b1, 0)
-        mm_ff(y, w1, w1_row, w1_col, h)
-        hs = to_shared(wp.tile_map(silu, h))
+    def node_fields(pre: wp.tile(dtype=float, shape=(T, F)), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
+                    b2: wp.array2d(dtype=float), row0: int, grads: wp.array2d(dtype=float)):
+        """delta_v on a tile of node latents -> (dE, dS), from its first layer's product ``pre`` (y W1, the third block
+        of the node products that the last node pass computes anyway: weights.proj)."""
+        hs = to_shared(wp.tile_map(silu, pre + row_f(b1, 0)))
         o = wp.tile_zeros(shape=(T, N_GRAD), dtype=float, storage="shared")
         o += row_grad(b2, 0)
         mm_grad(hs, w2, 0, 0, o)

@@ -8,10 +8,11 @@ Launches: one for the four encoders, then two per pass:
   on a tet mesh, ~14 edges a node, two thirds of the first layer's FLOPs go away), SiLU, second
   layer, LayerNorm and the residual fused, written back in place (one read, one write a row).
 * ``node_pass``: a tile of nodes per block: the CSR sums of the updated messages (no atomics),
-  f_v on [x, sum_j x'_ij, sum_k w'_kj] as three partial products (no concatenated tensor),
-  LayerNorm, residual, and then the node products of the next stage (next pass's f_m receiver
-  and sender and f_w receiver, or the decoder's first layer), so no separate projection launch; on the
-  hybrid's last pass also its node decoder delta_v -> (dE, dS) (decoders.node_decoder).
+  f_v's first layer as one product over the shared tile [x | sum_j x'_ij | sum_k w'_kj] (T, 3F),
+  LayerNorm, residual, and then the node products of the next stage as one (F, 3F) product (next pass's
+  f_m receiver and sender and f_w receiver, or the decoder's first layers), so no separate projection
+  launch; on the hybrid's last pass also its node decoder delta_v -> (dE, dS) from that product's third
+  block (decoders.node_decoder).
 
 The encoder launch also writes the pass-0 node products, every pass's tool products (actuator latents
 never change, so a @ W_s(f_w) of all passes is computed once per step, each pass's by blocks of its own
@@ -114,9 +115,10 @@ def kernels(spec: Spec):
 def node_kernel(spec: Spec):
     """node_pass on the node tiles (spec.nodes: they may be smaller than the edges'), in spec's module."""
     T, F = spec.node_tile, spec.latent
-    layer_norm, to_shared, segment_sum, row_f, project, _gather = helpers(spec.nodes)
+    layer_norm, to_shared, segment_sum, row_f, _project, _gather = helpers(spec.nodes)
     node_fields = node_decoder(spec.nodes)
-    mm_ff = matmul(T, F, spec.kc, F)
+    F3 = 3 * F
+    mm_ff, mm_in, mm_out = matmul(T, F, spec.kc, F), matmul(T, F3, spec.kc, F), matmul(T, F, spec.kc, F3)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def node_pass(lat: wp.array2d(dtype=float), lat_rows: wp.array2d(dtype=row_vector(F)),
@@ -124,32 +126,37 @@ def node_kernel(spec: Spec):
                   act_off: wp.array(dtype=wp.int32), w1: wp.array2d(dtype=float), b1: wp.array2d(dtype=float),
                   w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float), gain: wp.array2d(dtype=float),
                   shift: wp.array2d(dtype=float), proj: wp.array2d(dtype=float), eps: float, p: int,
-                  mesh_row: int, act_row: int, n_nodes: int, actuators: int, proj_chunks: int,
+                  mesh_row: int, act_row: int, n_nodes: int, actuators: int,
                   products: wp.array2d(dtype=float), decode: int, dv_b1: wp.array2d(dtype=float),
                   dv_w2: wp.array2d(dtype=float), dv_b2: wp.array2d(dtype=float), grads: wp.array2d(dtype=float)):
         blk, _lane = wp.tid()
         row0 = blk * T
-        x = wp.tile_load(lat, shape=(T, F), offset=(row0, 0), storage="shared")
-        agg_m = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
-        agg_w = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
-        segment_sum(agg_m, lat_rows, mesh_off, mesh_row, row0, n_nodes)
+        # f_v's input [x | sum of mesh messages | sum of actuator messages] as one (T, 3F) tile, so its first layer is
+        # one product over 3F (its weight chunks double-buffered end to end; zeros without actuator graphs, whose
+        # weight block is zero too): the same chunks in the same order as three products, one code path
+        xin = wp.tile_zeros(shape=(T, F3), dtype=float, storage="shared")
+        wp.tile_assign(xin, wp.tile_load(lat, shape=(T, F), offset=(row0, 0)), offset=(0, 0))
+        x = wp.tile_view(xin, offset=(0, 0), shape=(T, F))
+        segment_sum(wp.tile_view(xin, offset=(0, F), shape=(T, F)), lat_rows, mesh_off, mesh_row, row0, n_nodes)
+        if actuators != 0:
+            segment_sum(wp.tile_view(xin, offset=(0, 2 * F), shape=(T, F)), lat_rows, act_off, act_row, row0,
+                        n_nodes)
         h = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
         h += row_f(b1, p)
-        mm_ff(x, w1, 3 * p * F, 0, h)
-        mm_ff(agg_m, w1, (3 * p + 1) * F, 0, h)
-        if actuators != 0:
-            segment_sum(agg_w, lat_rows, act_off, act_row, row0, n_nodes)
-            mm_ff(agg_w, w1, (3 * p + 2) * F, 0, h)
+        mm_in(xin, w1, 3 * p * F, 0, h)
         hs = to_shared(wp.tile_map(silu, h))
         o = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
         o += row_f(b2, p)
         mm_ff(hs, w2, p * F, 0, o)
         y = to_shared(x + layer_norm(o, gain, shift, p, eps))
         wp.tile_store(lat, y, offset=(row0, 0))
-        for c in range(proj_chunks):  # the next stage's node products
-            project(y, proj, (p + 1) * F, c * F, products, row0, c * F)
+        # the next stage's node products, its three (F, F) blocks as one product (blocks a stage does not use are
+        # zero weights, or read by no launch)
+        nxt = wp.tile_zeros(shape=(T, F3), dtype=float, storage="shared")
+        mm_out(y, proj, (p + 1) * F, 0, nxt)
+        wp.tile_store(products, nxt, offset=(row0, 0))
         if decode != 0:  # the hybrid's last pass: delta_v here, so (dE, dS) exist before the decoder's edge launch
-            node_fields(y, proj, (p + 1) * F, 2 * F, dv_b1, dv_w2, dv_b2, row0, grads)
+            node_fields(wp.tile_view(nxt, offset=(0, 2 * F), shape=(T, F)), dv_b1, dv_w2, dv_b2, row0, grads)
 
     return node_pass
 
@@ -176,10 +183,9 @@ def launches(net, block_dim: int) -> list:
                     w.ew_b2, w.ew_g, w.ew_be, w.eps, p, lay.mesh_row, mesh_tiles, lay.act_row, lay.tools_pad]))
         last = p == w.passes - 1
         decode = 1 if last and w.kind == "hybrid" else 0  # then (dE, dS) too, from the third block of proj
-        chunks = (2 if decode else 1) if last else pass_chunks  # the decoder's edge products, or the vanilla's
         out.append(wp.launch_tiled(
             node_pass, dim=[lay.nodes_pad // net.spec.node_tile], block_dim=block_dim, device=dev, record_cmd=True,
             inputs=[net.lat, net.lat_rows, net.graph.mesh_off, net.graph.act_off, w.nv_w1, w.nv_b1, w.nv_w2, w.nv_b2,
-                    w.nv_g, w.nv_be, w.proj, w.eps, p, lay.mesh_row, lay.act_row, lay.n_nodes, A, chunks,
+                    w.nv_g, w.nv_be, w.proj, w.eps, p, lay.mesh_row, lay.act_row, lay.n_nodes, A,
                     net.products, decode, *net.node_decoder_args]))
     return out
