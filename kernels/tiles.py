@@ -56,7 +56,9 @@ STAGED = r"""
 @functools.cache
 def stage(rows: int, cols: int):
     """stage(dst, W, row0, col0): start copying W[row0:row0 + rows, col0:col0 + cols] into the shared tile dst
-    (asynchronously on CUDA); staged(dst) waits for every copy started and syncs the block."""
+    (asynchronously on CUDA); staged(dst) waits for every copy started and syncs the block. The 16-byte copies need
+    cols, W's row length and col0 to be multiples of 4 floats: every packed weight here is (weights.py: widths F, 3F,
+    12, 24, 144; column blocks at multiples of F), and a width not a multiple of 4 takes the element-wise copy."""
     @wp.func_native(STAGE)
     def stage_copy(dst: wp.tile(dtype=float, shape=(rows, cols)), w: wp.array2d(dtype=float), row0: int,
                    col0: int): ...
