@@ -20,24 +20,26 @@ import warp as wp
 from .generic_tail import row_operators
 from .integrate import advance
 from .spec import N_GRAD, N_LM, STATE, Spec
-from .tiles import broadcast_row, helpers, matmul, row_vector, silu
+from .tiles import helpers, matmul, row_steps, row_vector
 
 
 @functools.cache
 def node_decoder(spec: Spec):
     """The hybrid's delta_v on a tile of node latents, for the last node pass (message_passing)."""
     T, F = spec.tile_rows, spec.latent
-    _layer_norm, to_shared, _segment_sum, row_f, _project, _gather = helpers(spec)
-    mm_grad, row_grad = matmul(T, F, spec.kc, N_GRAD), broadcast_row(T, N_GRAD)
+    _layer_norm, _fill, activate, _segment_sum, _project, _gather = helpers(spec)
+    mm_grad, (fill_grad, _activate_grad) = matmul(T, F, spec.kc, N_GRAD, spec.gemm), row_steps(T, N_GRAD)
 
     @wp.func
     def node_fields(pre: wp.tile(dtype=float, shape=(T, F)), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
                     b2: wp.array2d(dtype=float), row0: int, grads: wp.array2d(dtype=float)):
         """delta_v on a tile of node latents -> (dE, dS), from its first layer's product ``pre`` (y W1, the third block
         of the node products that the last node pass computes anyway: weights.proj)."""
-        hs = to_shared(wp.tile_map(silu, pre + row_f(b1, 0)))
-        o = wp.tile_zeros(shape=(T, N_GRAD), dtype=float, storage="shared")
-        o += row_grad(b2, 0)
+        hs = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+        wp.tile_assign(hs, pre)  # a copy: the products' sub-views of a view would take the view's strides as (F, 1)
+        activate(hs, b1, 0, 1)
+        o = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
+        fill_grad(o, b2, 0)
         mm_grad(hs, w2, 0, 0, o)
         wp.tile_store(grads, o, offset=(row0, 0))
 
@@ -47,10 +49,10 @@ def node_decoder(spec: Spec):
 @functools.cache
 def kernels(spec: Spec):
     T, F = spec.tile_rows, spec.latent
-    _layer_norm, to_shared, _segment_sum, row_f, _project, gather_pair = helpers(spec)
-    mm_ff = matmul(T, F, spec.kc, F)
-    mm_lm = matmul(T, F, spec.kc, N_LM)
-    row_lm = broadcast_row(T, N_LM)
+    _layer_norm, _fill, activate, _segment_sum, _project, gather_pair = helpers(spec)
+    mm_ff = matmul(T, F, spec.kc, F, spec.gemm)
+    mm_lm = matmul(T, F, spec.kc, N_LM, spec.gemm)
+    fill_lm, _activate_lm = row_steps(T, N_LM)
     port_terms = row_operators(spec)
 
     @wp.func
@@ -62,13 +64,13 @@ def kernels(spec: Spec):
                     lane: int):
         """delta_e on a tile of mesh edges or self-loops (receiver = sender = the node) -> (l, m) -> port terms."""
         e = wp.tile_load(lat, shape=(T, F), offset=(row0, 0), storage="shared")
-        h = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
-        gather_pair(h, b1, 0, products, row_recv, 0, row_send, 0, F, row0, lane)
+        h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+        gather_pair(h, b1, 0, products, row_recv, 0, row_send, 0, F, row0)
         mm_ff(e, w_e, 0, 0, h)
-        hs = to_shared(wp.tile_map(silu, h))
-        o = wp.tile_zeros(shape=(T, N_LM), dtype=float, storage="shared")
-        o += row_lm(b2, 0)
-        mm_lm(hs, w2, 0, 0, o)
+        activate(h, b1, 0, 0)
+        o = wp.tile_empty(shape=(T, N_LM), dtype=float, storage="shared")
+        fill_lm(o, b2, 0)
+        mm_lm(h, w2, 0, 0, o)
         port_terms(o, row_send, row0, grads, out_row, self_loops, node0, ports, node_terms, lane)
 
     @wp.kernel(enable_backward=False, module=spec.module)
@@ -89,8 +91,8 @@ def kernels(spec: Spec):
 def vanilla_kernel(spec: Spec):
     """vanilla_tail on the node tiles (spec.nodes), in spec's module."""
     T, F = spec.node_tile, spec.latent
-    _layer_norm, to_shared, _segment_sum, row_f, _project, _gather = helpers(spec.nodes)
-    mm_state, row_state = matmul(T, F, spec.kc, STATE), broadcast_row(T, STATE)
+    _layer_norm, _fill, activate, _segment_sum, _project, _gather = helpers(spec.nodes)
+    mm_state, (fill_state, _activate_state) = matmul(T, F, spec.kc, STATE, spec.gemm), row_steps(T, STATE)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def vanilla_tail(products: wp.array2d(dtype=float), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
@@ -101,11 +103,11 @@ def vanilla_kernel(spec: Spec):
                      zdot_std: wp.array2d(dtype=float), z_next: wp.array2d(dtype=float)):
         blk, lane = wp.tid()
         row0 = blk * T
-        h = wp.tile_load(products, shape=(T, F), offset=(row0, 0)) + row_f(b1, 0)
-        hs = to_shared(wp.tile_map(silu, h))
-        o = wp.tile_zeros(shape=(T, STATE), dtype=float, storage="shared")
-        o += row_state(b2, 0)
-        mm_state(hs, w2, 0, 0, o)
+        h = wp.tile_load(products, shape=(T, F), offset=(row0, 0), storage="shared")
+        activate(h, b1, 0, 1)
+        o = wp.tile_empty(shape=(T, STATE), dtype=float, storage="shared")
+        fill_state(o, b2, 0)
+        mm_state(h, w2, 0, 0, o)
         for idx in range(lane, T * STATE, wp.block_dim()):  # per-thread epilogue, reads of a shared tile
             r = idx // STATE
             c = idx - r * STATE

@@ -26,7 +26,7 @@ import warp as wp
 
 from .decoders import node_decoder
 from .spec import FEATURE_WIDTH, Spec
-from .tiles import helpers, matmul, row_vector, silu
+from .tiles import helpers, matmul, row_vector
 
 FW = FEATURE_WIDTH
 
@@ -34,9 +34,9 @@ FW = FEATURE_WIDTH
 @functools.cache
 def kernels(spec: Spec):
     T, F = spec.tile_rows, spec.latent
-    layer_norm, to_shared, _segment_sum, row_f, project, gather_pair = helpers(spec)
-    mm_ff = matmul(T, F, spec.kc, F)
-    mm_in = matmul(T, FW, FW, F)
+    layer_norm, fill, activate, _segment_sum, project, gather_pair = helpers(spec)
+    mm_ff = matmul(T, F, spec.kc, F, spec.gemm)
+    mm_in = matmul(T, FW, FW, F, spec.gemm)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def encode(feat: wp.array2d(dtype=float), w1: wp.array2d(dtype=float), b1: wp.array2d(dtype=float),
@@ -55,7 +55,9 @@ def kernels(spec: Spec):
         row0 = blk * T
         if row0 >= self_row and row0 < act_row:
             # self-loop rows: the hybrid's learned edge latent x_ii, the same for every node
-            wp.tile_store(lat, row_f(self_loop, 0), offset=(row0, 0))
+            loop = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+            fill(loop, self_loop, 0)
+            wp.tile_store(lat, loop, offset=(row0, 0))
             return
         cls = wp.int32(0)  # node, mesh edge, actuator edge, tool: the rows of weights.ENCODERS
         if row0 >= tool_row:
@@ -65,14 +67,14 @@ def kernels(spec: Spec):
         elif row0 >= mesh_row:
             cls = 1
         x = wp.tile_load(feat, shape=(T, FW), offset=(row0, 0), storage="shared")
-        h = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
-        h += row_f(b1, cls)
+        h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+        fill(h, b1, cls)
         mm_in(x, w1, cls * FW, 0, h)
-        hs = to_shared(wp.tile_map(silu, h))
-        o = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
-        o += row_f(b2, cls)
-        mm_ff(hs, w2, cls * F, 0, o)
-        y = to_shared(layer_norm(o, gain, shift, cls, eps))
+        activate(h, b1, 0, 0)
+        y = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+        fill(y, b2, cls)
+        mm_ff(h, w2, cls * F, 0, y)
+        layer_norm(y, gain, shift, cls, eps, y, 0)
         if tool_pass == 0:
             wp.tile_store(lat, y, offset=(row0, 0))
         if cls == 0:
@@ -87,7 +89,7 @@ def kernels(spec: Spec):
                   w_e: wp.array2d(dtype=float), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
                   b2: wp.array2d(dtype=float), gain: wp.array2d(dtype=float), shift: wp.array2d(dtype=float),
                   eps: float, p: int, mesh_row: int, mesh_tiles: int, act_row: int, tools_pad: int):
-        blk, lane = wp.tid()
+        blk, _lane = wp.tid()
         s = wp.int32(0)  # edge set: 0 mesh (receiver products in columns [0, F), sender [F, 2F))
         row0 = mesh_row + blk * T
         recv_col = wp.int32(0)
@@ -99,14 +101,15 @@ def kernels(spec: Spec):
             send_row = p * tools_pad
         wi = 2 * p + s
         e = wp.tile_load(lat, shape=(T, F), offset=(row0, 0), storage="shared")
-        h = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
-        gather_pair(h, b1, wi, products, row_recv, recv_col, row_send, send_row, F, row0, lane)
+        h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+        gather_pair(h, b1, wi, products, row_recv, recv_col, row_send, send_row, F, row0)
         mm_ff(e, w_e, wi * F, 0, h)
-        hs = to_shared(wp.tile_map(silu, h))
-        o = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
-        o += row_f(b2, wi)
-        mm_ff(hs, w2, wi * F, 0, o)
-        wp.tile_store(lat, e + layer_norm(o, gain, shift, wi, eps), offset=(row0, 0))
+        activate(h, b1, 0, 0)
+        o = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+        fill(o, b2, wi)
+        mm_ff(h, w2, wi * F, 0, o)
+        layer_norm(o, gain, shift, wi, eps, e, 1)
+        wp.tile_store(lat, o, offset=(row0, 0))
 
     return encode, edge_pass
 
@@ -115,10 +118,11 @@ def kernels(spec: Spec):
 def node_kernel(spec: Spec):
     """node_pass on the node tiles (spec.nodes: they may be smaller than the edges'), in spec's module."""
     T, F = spec.node_tile, spec.latent
-    layer_norm, to_shared, segment_sum, row_f, _project, _gather = helpers(spec.nodes)
+    layer_norm, fill, activate, segment_sum, _project, _gather = helpers(spec.nodes)
     node_fields = node_decoder(spec.nodes)
     F3 = 3 * F
-    mm_ff, mm_in, mm_out = matmul(T, F, spec.kc, F), matmul(T, F3, spec.kc, F), matmul(T, F, spec.kc, F3)
+    mm_ff, mm_in = matmul(T, F, spec.kc, F, spec.gemm), matmul(T, F3, spec.kc, F, spec.gemm)
+    mm_out = matmul(T, F, spec.kc, F3, spec.gemm)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def node_pass(lat: wp.array2d(dtype=float), lat_rows: wp.array2d(dtype=row_vector(F)),
@@ -141,14 +145,14 @@ def node_kernel(spec: Spec):
         if actuators != 0:
             segment_sum(wp.tile_view(xin, offset=(0, 2 * F), shape=(T, F)), lat_rows, act_off, act_row, row0,
                         n_nodes)
-        h = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
-        h += row_f(b1, p)
+        h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+        fill(h, b1, p)
         mm_in(xin, w1, 3 * p * F, 0, h)
-        hs = to_shared(wp.tile_map(silu, h))
-        o = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
-        o += row_f(b2, p)
-        mm_ff(hs, w2, p * F, 0, o)
-        y = to_shared(x + layer_norm(o, gain, shift, p, eps))
+        activate(h, b1, 0, 0)
+        y = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+        fill(y, b2, p)
+        mm_ff(h, w2, p * F, 0, y)
+        layer_norm(y, gain, shift, p, eps, x, 1)
         wp.tile_store(lat, y, offset=(row0, 0))
         # the next stage's node products, its three (F, F) blocks as one product (blocks a stage does not use are
         # zero weights, or read by no launch)

@@ -8,7 +8,7 @@ a machine without one (Warp's compiler builds for any architecture), for the shi
 A folder of ``--arch`` cubins is loaded on the GPU machine with ``load(folder, latents, device)``: Warp
 builds the same module there, so the hashes match where the code does. Modules build one after another:
 Warp's builds do not overlap (four cuBLASDx modules started at once on the H100 had not finished after 580 s,
-one took 150 s; a module of the default scalar products builds in ~30 s on a 2-core CPU).
+one took 150 s; a module of the default products builds in ~15-30 s on a 2-core CPU).
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """Kernel modules shipped prebuilt (kernels/aot/), so that a user's first step loads instead of compiling.
 
-Warp compiles a module on its first launch: the F = 64 module builds in ~30 s on a 2-core CPU with the
-default scalar tile products (Spec.gemm; with cuBLASDx products, one per product shape, it took 149 s on an
-H100 and 287 s here). The shipped network's width is shipped built for sm_80 (A100, and by binary
+Warp compiles a module on its first launch: the F = 64 module builds in ~15-30 s on a 2-core CPU with the
+default products (Spec.gemm; with cuBLASDx products, one per product shape, it took 149 s on an H100 and 287 s
+here). The shipped network's width is shipped built for sm_80 (A100, and by binary
 compatibility sm_86/sm_89) and sm_90 (H100, H200), as xz-compressed cubins of ~0.13 MB; loading the sm_90 one
 took 3 ms on an H200 (bench/results/warp_gemm_h200.json's run; the cuBLASDx module took 0.6 s). A file is named
 by Warp's module identifier, which holds a hash of the kernels' code and options: a changed kernel finds no file

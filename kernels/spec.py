@@ -19,7 +19,7 @@ N_LM = N_L + N_M  # delta_e's outputs per edge and self-loop
 N_GRAD = 2 * STATE  # delta_v's outputs per node: dE, dS
 FEATURE_WIDTH = 24  # widest encoder input (18: the single-graph node features) padded to a multiple of 8
 STAT_WIDTH = 9  # widest standardised raw feature set (the node's v, sigma)
-GEMMS = ("scalar", "mathdx")
+GEMMS = ("native", "scalar", "mathdx")  # the first is the default
 
 
 @dataclass(frozen=True)
@@ -33,12 +33,12 @@ class Spec:
     # K extent of each partial product (0: the largest divisor of F up to 32): (K, F) weight slices keep
     # a block's shared memory bounded at F = 128, where one (F, F) fp32 weight is 64 KiB
     k_chunk: int = 0
-    # the tile products: "scalar", Warp's cooperative scalar GEMM, or "mathdx", cuBLASDx. On an H200 (L5, F = 64)
-    # the scalar GEMM gave the same numbers bit for bit, steps 2-4 % faster (hybrid 5 passes 323 against 335 us,
-    # batch 64 9.50 against 9.85 ms) and a module built in 28 s instead of 287 s: the products are not what bounds
-    # these kernels (bench/results/warp_gemm_h200.json, warp_stalls_h200.json). TF32 cuBLASDx products were slower
-    # still (359 us) and 3e-3 to 6e-3 off, so they are not offered. The CPU always runs the scalar GEMM
-    gemm: str = "scalar"
+    # the tile products: "native", C++ over shared tiles (tiles.GEMM: a thread a (4, 4) or (1, 4) block held in
+    # registers, rows read as 16-byte vectors, the K loop rolled); "scalar", Warp's cooperative scalar GEMM (on an
+    # H200 it matched cuBLASDx bit for bit, steps 2-4 % faster and a module built in 28 s instead of 287 s:
+    # bench/results/warp_gemm_h200.json); "mathdx", cuBLASDx. TF32 cuBLASDx products were slower still (359 us at
+    # 5 passes against 335) and 3e-3 to 6e-3 off, so they are not offered. The CPU runs "mathdx" as "scalar"
+    gemm: str = GEMMS[0]
 
     def __post_init__(self):
         if self.gemm not in GEMMS:
@@ -66,7 +66,7 @@ class Spec:
     @property
     def module(self) -> str:
         nodes = f"_N{self.node_tile}" if self.node_tile != self.tile_rows else ""
-        gemm = "" if self.gemm == "scalar" else f"_{self.gemm}"
+        gemm = "" if self.gemm == GEMMS[0] else f"_{self.gemm}"
         return f"warpgnn_kernels_F{self.latent}_T{self.tile_rows}{nodes}_K{self.kc}{gemm}"
 
 

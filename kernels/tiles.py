@@ -1,11 +1,12 @@
-"""Tile building blocks shared by the MLP kernels: partial products over K chunks, SiLU, fused
-LayerNorm, broadcast rows, and the CSR segment sum that feeds a tile.
+"""Tile building blocks shared by the MLP kernels: products over K chunks, bias rows, SiLU, LayerNorm with its
+residual, the edge MLP's gather and the CSR segment sum that feeds a tile.
 
-A tile is ``tile_rows`` rows (edges or nodes) of one block. Weights are copied as (K chunk, N) slices into
-shared memory, the next chunk while the current one's product runs (``stage``: cp.async on CUDA): at F = 128 a
-whole (F, F) fp32 weight is 64 KiB, so chunks of 32 rows keep a block's shared memory within an SM's while the
-product stays one ``tile_matmul`` per chunk (Warp's cooperative scalar GEMM by default, Spec.gemm; cuBLASDx on
-request).
+A tile is ``tile_rows`` rows (edges or nodes) of one block, in shared memory. Weights are copied as (K chunk, N)
+slices into shared memory, the next chunk while the current one's product runs (``stage``: cp.async on CUDA): at
+F = 128 a whole (F, F) fp32 weight is 64 KiB, so chunks of 32 rows keep a block's shared memory within an SM's.
+The steps between products are C++ block steps (wp.func_native) over the shared tiles, each ending in one barrier:
+Warp's tile built-ins (broadcast, map, assign, tile_sum) each build a register tile and its coordinates and close
+with a barrier, and were most of the kernels' instructions (the edge pass's code 110 KB with them, 57 KB without).
 """
 
 # No `from __future__ import annotations`: the tile and vector types in wp.func signatures are evaluated when
@@ -16,12 +17,6 @@ import math
 import warp as wp
 
 from .spec import Spec
-
-
-@wp.func
-def silu(v: float):
-    return v / (1.0 + wp.exp(-v))
-
 
 STAGE = r"""
     using Shape = typename tile_dst::Layout::Shape;
@@ -69,8 +64,109 @@ def stage(rows: int, cols: int):
     return stage_copy, staged
 
 
+# acc += a @ b for shared tiles, a thread an (RM, CN) block of acc held in registers over K: rows of a and b read as
+# 16-byte vectors on CUDA (a's 4 k a load, b's 4 columns), the K loop rolled (kept in the instruction cache) rather
+# than unrolled as Warp's scalar GEMM does for K <= 32. RM is chosen for the fewest multiply-adds and loads on the
+# busiest thread: 4 rows for tiles of 32 edge rows, 1 for node tiles of 8 (every thread busy).
+GEMM = r"""
+    using LA = typename tile_a::Layout;
+    using LB = typename tile_b::Layout;
+    using LC = typename tile_acc::Layout;
+    constexpr int M = LC::Shape::dim(0), N = LC::Shape::dim(1), K = LA::Shape::dim(1);
+    constexpr int SA = LA::Stride::dim(0), SB = LB::Stride::dim(0), SC = LC::Stride::dim(0);
+    static_assert(LA::Stride::dim(1) == 1 && LB::Stride::dim(1) == 1 && LC::Stride::dim(1) == 1, "row-major tiles");
+    constexpr int BD = WP_TILE_BLOCK_DIM;
+    constexpr int CN = N % 4 == 0 ? 4 : 1;  // columns a thread
+    constexpr int KV = K % 4 == 0 ? 4 : 1;  // k a load of a
+    constexpr int NC = N / CN;
+    constexpr int cost4 = M % 4 ? 1 << 30 : (M / 4 * NC + BD - 1) / BD * (5 * CN + 1);
+    constexpr int cost2 = M % 2 ? 1 << 30 : (M / 2 * NC + BD - 1) / BD * (3 * CN + 1);
+    constexpr int cost1 = (M * NC + BD - 1) / BD * (2 * CN);
+    constexpr int RM = cost4 <= cost2 && cost4 <= cost1 ? 4 : cost2 <= cost1 ? 2 : 1;
+    constexpr int ITEMS = M / RM * NC;
+    constexpr bool VA = KV == 4 && SA % 4 == 0, VB = CN == 4 && SB % 4 == 0, VC = CN == 4 && SC % 4 == 0;
+    const wp::float32* __restrict__ pa = a.data.ptr;
+    const wp::float32* __restrict__ pb = b.data.ptr;
+    wp::float32* __restrict__ pc = acc.data.ptr;
+    for (int t = WP_TILE_THREAD_IDX; t < ITEMS; t += BD) {
+        const int r0 = t / NC * RM, c0 = (t - t / NC * NC) * CN;
+        wp::float32 s[RM][CN];
+#pragma unroll
+        for (int i = 0; i < RM; ++i)
+#pragma unroll
+            for (int j = 0; j < CN; ++j)
+                s[i][j] = wp::float32(0);
+#pragma unroll 2
+        for (int k = 0; k < K; k += KV) {
+            wp::float32 av[RM][KV];
+#pragma unroll
+            for (int i = 0; i < RM; ++i) {
+                const wp::float32* src = pa + (r0 + i) * SA + k;
+#if defined(__CUDA_ARCH__)
+                if constexpr (VA) {
+                    const float4 v = *reinterpret_cast<const float4*>(src);
+                    av[i][0] = v.x; av[i][KV > 1 ? 1 : 0] = v.y; av[i][KV > 2 ? 2 : 0] = v.z; av[i][KV - 1] = v.w;
+                } else
+#endif
+                {
+#pragma unroll
+                    for (int q = 0; q < KV; ++q)
+                        av[i][q] = src[q];
+                }
+            }
+#pragma unroll
+            for (int q = 0; q < KV; ++q) {
+                wp::float32 bv[CN];
+                const wp::float32* src = pb + (k + q) * SB + c0;
+#if defined(__CUDA_ARCH__)
+                if constexpr (VB) {
+                    const float4 v = *reinterpret_cast<const float4*>(src);
+                    bv[0] = v.x; bv[CN > 1 ? 1 : 0] = v.y; bv[CN > 2 ? 2 : 0] = v.z; bv[CN - 1] = v.w;
+                } else
+#endif
+                {
+#pragma unroll
+                    for (int j = 0; j < CN; ++j)
+                        bv[j] = src[j];
+                }
+#pragma unroll
+                for (int i = 0; i < RM; ++i)
+#pragma unroll
+                    for (int j = 0; j < CN; ++j)
+                        s[i][j] = wp::muladd(av[i][q], bv[j], s[i][j]);
+            }
+        }
+#pragma unroll
+        for (int i = 0; i < RM; ++i)
+#pragma unroll
+            for (int j = 0; j < CN; ++j)
+                pc[(r0 + i) * SC + c0 + j] += s[i][j];
+    }
+    WP_TILE_SYNC();
+"""  # noqa: E501 (C++ inside)
+
+
 @functools.cache
-def matmul(rows: int, k: int, kc: int, n: int):
+def gemm(rows: int, k: int, n: int, kind: str):
+    """acc (rows, n) += a (rows, k) @ b (k, n), shared tiles: Warp's wp.tile_matmul ("scalar", "mathdx": Spec.gemm)
+    or GEMM above ("native")."""
+    if kind != "native":
+        @wp.func
+        def product(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(k, n)),
+                    acc: wp.tile(dtype=float, shape=(rows, n))):
+            wp.tile_matmul(a, b, acc)
+
+        return product
+
+    @wp.func_native(GEMM)
+    def native(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(k, n)),
+               acc: wp.tile(dtype=float, shape=(rows, n))): ...
+
+    return native
+
+
+@functools.cache
+def matmul(rows: int, k: int, kc: int, n: int, kind: str):
     """acc (rows, n) += a (rows, k, shared) @ W[row0:row0 + k, col0:col0 + n], K in chunks of kc, double-buffered:
     chunk c + 1 is copied into shared memory (cp.async on CUDA) while chunk c's product runs, so a product waits for
     one weight load rather than one a chunk. On an H200 (L5, F = 64) this took the batch-64 step from 8.89 to 7.99
@@ -78,6 +174,7 @@ def matmul(rows: int, k: int, kc: int, n: int):
     (bench/results/warp_staged_h200.json, warp_staged_f128_h200.json)."""
     chunks, kc2 = k // kc, 2 * kc
     stage_copy, staged = stage(kc, n)
+    product = gemm(rows, kc, n, kind)
 
     @wp.func
     def matmul_acc(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
@@ -91,20 +188,10 @@ def matmul(rows: int, k: int, kc: int, n: int):
             if c + 1 < chunks:
                 stage_copy(wp.tile_view(buf, offset=(((c + 1) % 2) * kc, 0), shape=(kc, n)), w,
                            row0 + (c + 1) * kc, col0)
-            wp.tile_matmul(wp.tile_view(a, offset=(0, c * kc), shape=(rows, kc)), b, acc)
+            product(wp.tile_view(a, offset=(0, c * kc), shape=(rows, kc)), b, acc)
             c += 1
 
     return matmul_acc
-
-
-@functools.cache
-def broadcast_row(rows: int, n: int):
-    """(rows, n) tile repeating row ``row`` of a 2D array (a bias, a LayerNorm gain)."""
-    @wp.func
-    def row_tile(a: wp.array2d(dtype=float), row: int):
-        return wp.tile_broadcast(wp.tile_load(a, shape=(1, n), offset=(row, 0)), shape=(rows, n))
-
-    return row_tile
 
 
 @functools.cache
@@ -124,37 +211,49 @@ def row_view(a: wp.array, latent: int):
 # Block-cooperative steps written in C++ (wp.func_native) where Warp's tile built-ins close every element write or
 # reduction step with a barrier: one barrier a step here. The same code runs on Warp's CPU device (one thread a
 # block, or CPU fibers) except where __CUDA_ARCH__ picks warp shuffles. (``float`` is a macro in Warp's generated code.)
-ROW_STATS = r"""
-    using Shape = typename tile_o::Layout::Shape;
-    constexpr int T = Shape::dim(0);
-    constexpr int F = Shape::dim(1);
+LAYER_NORM = r"""
+    using L = typename tile_o::Layout;
+    using LR = typename tile_res::Layout;
+    constexpr int T = L::Shape::dim(0), F = L::Shape::dim(1), S = L::Stride::dim(0), SR = LR::Stride::dim(0);
+    wp::float32* __restrict__ po = o.data.ptr;
+    const wp::float32* __restrict__ pr = res.data.ptr;
     bool done = false;
 #if defined(__CUDA_ARCH__)
-    if constexpr (WP_TILE_BLOCK_DIM % 32 == 0) {  // a warp a row: lanes sum strided columns, then shuffles
-        constexpr int W = WP_TILE_BLOCK_DIM / 32;
-        const int warp = threadIdx.x / 32, lane = threadIdx.x % 32;
+    // G lanes a row (G a power of two, F / G columns each, at most 8), 32 / G rows a warp at once: the sums take
+    // log2(G) shuffles for 32 / G rows together
+    constexpr int G = F >= 256 ? 32 : F >= 128 ? 16 : F >= 64 ? 8 : F >= 32 ? 4 : F >= 16 ? 2 : 1;
+    if constexpr (WP_TILE_BLOCK_DIM % 32 == 0 && F % G == 0) {
+        constexpr int W = WP_TILE_BLOCK_DIM / 32 * (32 / G), PER = F / G;
+        const int group = threadIdx.x / G, lane = threadIdx.x % G;
 #pragma unroll
-        for (int r = warp; r < T; r += W) {
-            wp::float32 s = wp::float32(0);
+        for (int r0 = 0; r0 < T; r0 += W) {
+            const int r = r0 + group;
+            const bool live = r < T;
+            wp::float32 x[PER], s = wp::float32(0);
 #pragma unroll
-            for (int c = lane; c < F; c += 32)
-                s += o.data(wp::tile_coord(r, c));
+            for (int j = 0; j < PER; ++j) {
+                x[j] = live ? po[r * S + lane * PER + j] : wp::float32(0);
+                s += x[j];
+            }
 #pragma unroll
-            for (int m = 16; m > 0; m >>= 1)
+            for (int m = G / 2; m > 0; m >>= 1)
                 s += __shfl_xor_sync(0xffffffffu, s, m);
             const wp::float32 mean = s / wp::float32(F);
             wp::float32 v = wp::float32(0);
 #pragma unroll
-            for (int c = lane; c < F; c += 32) {
-                const wp::float32 d = o.data(wp::tile_coord(r, c)) - mean;
-                v += d * d;
-            }
+            for (int j = 0; j < PER; ++j)
+                v += (x[j] - mean) * (x[j] - mean);
 #pragma unroll
-            for (int m = 16; m > 0; m >>= 1)
+            for (int m = G / 2; m > 0; m >>= 1)
                 v += __shfl_xor_sync(0xffffffffu, v, m);
-            if (lane == 0) {
-                stats.data(wp::tile_coord(r, 0)) = mean;
-                stats.data(wp::tile_coord(r, 1)) = wp::float32(1) / sqrtf(v / wp::float32(F) + eps);
+            const wp::float32 rstd = wp::float32(1) / sqrtf(v / wp::float32(F) + eps);
+            if (live) {
+#pragma unroll
+                for (int j = 0; j < PER; ++j) {
+                    const int c = lane * PER + j;
+                    const wp::float32 y = (x[j] - mean) * rstd * wp::index(gain, row, c) + wp::index(shift, row, c);
+                    po[r * S + c] = residual ? pr[r * SR + c] + y : y;
+                }
             }
         }
         done = true;
@@ -164,15 +263,74 @@ ROW_STATS = r"""
         for (int r = WP_TILE_THREAD_IDX; r < T; r += WP_TILE_BLOCK_DIM) {
             wp::float32 s = wp::float32(0);
             for (int c = 0; c < F; ++c)
-                s += o.data(wp::tile_coord(r, c));
+                s += po[r * S + c];
             const wp::float32 mean = s / wp::float32(F);
             wp::float32 v = wp::float32(0);
+            for (int c = 0; c < F; ++c)
+                v += (po[r * S + c] - mean) * (po[r * S + c] - mean);
+            const wp::float32 rstd = wp::float32(1) / sqrt(v / wp::float32(F) + eps);
             for (int c = 0; c < F; ++c) {
-                const wp::float32 d = o.data(wp::tile_coord(r, c)) - mean;
-                v += d * d;
+                const wp::float32 y = (po[r * S + c] - mean) * rstd * wp::index(gain, row, c)
+                    + wp::index(shift, row, c);
+                po[r * S + c] = residual ? pr[r * SR + c] + y : y;
             }
-            stats.data(wp::tile_coord(r, 0)) = mean;
-            stats.data(wp::tile_coord(r, 1)) = wp::float32(1) / sqrt(v / wp::float32(F) + eps);
+        }
+    }
+    WP_TILE_SYNC();
+"""
+
+# dst = src[row] in every row (a bias), or dst = silu(dst [+ src[row]]) in place: element loops without Warp's tile
+# temporaries (a register tile, its coordinates and a barrier for each of broadcast, map and assign).
+FILL_ROWS = r"""
+    using L = typename tile_dst::Layout;
+    constexpr int R = L::Shape::dim(0), C = L::Shape::dim(1), S = L::Stride::dim(0);
+    wp::float32* __restrict__ d = dst.data.ptr;
+#pragma unroll 4
+    for (int i = WP_TILE_THREAD_IDX; i < R * C; i += WP_TILE_BLOCK_DIM)
+        d[i / C * S + i % C] = wp::index(src, row, i % C);
+    WP_TILE_SYNC();
+"""
+
+ACTIVATE = r"""
+    using L = typename tile_dst::Layout;
+    constexpr int R = L::Shape::dim(0), C = L::Shape::dim(1), S = L::Stride::dim(0);
+    wp::float32* __restrict__ d = dst.data.ptr;
+#pragma unroll 4
+    for (int i = WP_TILE_THREAD_IDX; i < R * C; i += WP_TILE_BLOCK_DIM) {
+        wp::float32 v = d[i / C * S + i % C];
+        if (with_bias)
+            v += wp::index(src, row, i % C);
+        d[i / C * S + i % C] = v / (wp::float32(1) + wp::exp(-v));
+    }
+    WP_TILE_SYNC();
+"""
+
+GATHER_PAIR = r"""
+    using Shape = typename tile_h::Layout::Shape;
+    constexpr int T = Shape::dim(0);
+    constexpr int F = Shape::dim(1);
+    using Vec = typename wp::remove_reference<decltype(wp::index(products, 0, 0))>::type;
+    constexpr int V = sizeof(Vec) / sizeof(wp::float32);
+    constexpr int FV = F / V;
+    constexpr int N = T * FV;
+    constexpr int PER = (N + WP_TILE_BLOCK_DIM - 1) / WP_TILE_BLOCK_DIM;
+    Vec a[PER], b[PER];
+#pragma unroll
+    for (int k = 0; k < PER; ++k) {  // every load of the thread issued before the first use
+        const int idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM;
+        if (idx < N) {
+            const int r = idx / FV, c = idx - (idx / FV) * FV;
+            a[k] = wp::index(products, wp::index(recv, row0 + r), recv_col / V + c);
+            b[k] = wp::index(products, send_row + wp::index(send, row0 + r), send_col / V + c);
+        }
+    }
+#pragma unroll
+    for (int k = 0; k < PER; ++k) {
+        const int idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM;
+        if (idx < N) {
+            const int r = idx / FV, c = idx - (idx / FV) * FV;
+            for (int j = 0; j < V; ++j)
+                h.data(wp::tile_coord(r, c * V + j)) = (wp::index(bias, bias_row, c * V + j) + a[k][j]) + b[k][j];
         }
     }
     WP_TILE_SYNC();
@@ -224,34 +382,35 @@ SEGMENT_SUM = r"""
 
 
 @functools.cache
+def row_steps(rows: int, n: int):
+    """fill(dst, src, row): every row of the shared (rows, n) tile dst = src[row] (a bias); activate(dst, src, row,
+    with_bias): dst = silu(dst + src[row]) in place (or silu(dst) when with_bias is 0). C++ element loops: Warp's
+    tile_broadcast / tile_map / tile_assign each built a register tile, its coordinates and a barrier."""
+    @wp.func_native(FILL_ROWS)
+    def fill(dst: wp.tile(dtype=float, shape=(rows, n)), src: wp.array2d(dtype=float), row: int): ...
+
+    @wp.func_native(ACTIVATE)
+    def activate(dst: wp.tile(dtype=float, shape=(rows, n)), src: wp.array2d(dtype=float), row: int,
+                 with_bias: int): ...
+
+    return fill, activate
+
+
+@functools.cache
 def helpers(spec: Spec):
     T, F = spec.tile_rows, spec.latent
-    row_f = broadcast_row(T, F)
 
-    @wp.func_native(ROW_STATS)
-    def row_stats(o: wp.tile(dtype=float, shape=(T, F)), stats: wp.tile(dtype=float, shape=(T, 2)), eps: float): ...
-
-    @wp.func
+    @wp.func_native(LAYER_NORM)
     def layer_norm(o: wp.tile(dtype=float, shape=(T, F)), gain: wp.array2d(dtype=float),
-                   shift: wp.array2d(dtype=float), row: int, eps: float):
-        """torch.nn.LayerNorm over each row of the shared tile o (two-pass mean and biased variance, as torch): the
-        row statistics a warp a row (row_stats; Warp's tile_sum(axis=1) reduced the rows one after another, with a
-        shared-memory round trip between steps: ~22 % of the edge pass's stall samples, warp_stalls_h200.json)."""
-        stats = wp.tile_zeros(shape=(T, 2), dtype=float, storage="shared")
-        row_stats(o, stats, eps)
-        mean = wp.tile_broadcast(wp.tile_view(stats, offset=(0, 0), shape=(T, 1)), shape=(T, F))
-        rstd = wp.tile_broadcast(wp.tile_view(stats, offset=(0, 1), shape=(T, 1)), shape=(T, F))
-        y = wp.tile_map(wp.mul, o - mean, rstd)
-        return wp.tile_map(wp.mul, y, row_f(gain, row)) + row_f(shift, row)
+                   shift: wp.array2d(dtype=float), row: int, eps: float, res: wp.tile(dtype=float, shape=(T, F)),
+                   residual: int):
+        """o = res + LayerNorm(o) in place (o = LayerNorm(o) when residual is 0), torch.nn.LayerNorm over each row of
+        the shared tile (two-pass mean and biased variance, as torch) with gain and shift from row ``row``: on CUDA a
+        row in the registers of a few lanes, summed by shuffles, several rows a warp at once (Warp's
+        tile_sum(axis=1) reduced the rows one after another through shared memory: ~22 % of the edge pass's stall
+        samples, warp_stalls_h200.json)."""
+        ...
 
-    @wp.func
-    def to_shared(t: wp.tile(dtype=float, shape=(T, F))):
-        s = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
-        wp.tile_assign(s, t)
-        return s
-
-    V = row_vector(F)._length_
-    FV = F // V
     vec = row_vector(F)
 
     @wp.func_native(SEGMENT_SUM)
@@ -266,32 +425,18 @@ def helpers(spec: Spec):
         is the plain sequential one; the tile is written with one barrier."""
         ...
 
-    @wp.func
+    @wp.func_native(GATHER_PAIR)
     def gather_pair(h: wp.tile(dtype=float, shape=(T, F)), bias: wp.array2d(dtype=float), bias_row: int,
                     products: wp.array2d(dtype=vec), recv: wp.array(dtype=wp.int32), recv_col: int,
-                    send: wp.array(dtype=wp.int32), send_row: int, send_col: int, row0: int, lane: int):
+                    send: wp.array(dtype=wp.int32), send_row: int, send_col: int, row0: int):
         """h[r] = bias[bias_row] + P[recv[row0 + r], recv_col:] + P[send_row + send[row0 + r], send_col:] (F
         columns each; ``products`` seen as vectors, row_view, the columns in floats): an edge MLP's first
-        layer split per node. Plain per-thread vector loads, both rows of an item in flight at once (Warp's
-        tile_load_indexed gathers cost 36 us a pass more than their bytes at F = 128; calibration notes);
-        added in the order of the reference's sum."""
-        total = T * FV
-        bd = wp.block_dim()
-        for it in range((total + bd - 1) // bd):
-            idx = it * bd + lane
-            ok = idx < total
-            r = wp.min(idx // FV, T - 1)
-            c = idx - (idx // FV) * FV
-            a = vec()
-            b = vec()
-            if ok:
-                a = products[recv[row0 + r], recv_col // V + c]
-                b = products[send_row + send[row0 + r], send_col // V + c]
-            for k in range(V):
-                col = wp.min(c * V + k, F - 1)
-                wp.tile_scatter_masked(h, r, col, (bias[bias_row, col] + a[k]) + b[k], ok)
+        layer split per node. Plain per-thread vector loads, every load of a thread issued before the first
+        add (Warp's tile_load_indexed gathers cost 36 us a pass more than their bytes at F = 128; calibration
+        notes); added in the order of the reference's sum; one barrier."""
+        ...
 
-    mm_ff = matmul(T, F, spec.kc, F)
+    mm_ff = matmul(T, F, spec.kc, F, spec.gemm)
 
     @wp.func
     def project(y: wp.tile(dtype=float, shape=(T, F)), w: wp.array2d(dtype=float), row0: int, col0: int,
@@ -301,4 +446,5 @@ def helpers(spec: Spec):
         mm_ff(y, w, row0, col0, acc)
         wp.tile_store(out, acc, offset=(out_row, out_col))
 
-    return layer_norm, to_shared, segment_sum, row_f, project, gather_pair
+    fill, activate = row_steps(T, F)
+    return layer_norm, fill, activate, segment_sum, project, gather_pair

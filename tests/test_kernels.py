@@ -221,10 +221,10 @@ def test_gemm_choice_is_its_own_module():
     """Spec.gemm picks the tile products: each choice its own Warp module with Warp's mathdx option set to match
     (part of the module's hash, so a cuBLASDx build is never loaded for the scalar one); others refused."""
     from warpgnn.kernels.network import build_kernels
-    from warpgnn.kernels.spec import Spec
+    from warpgnn.kernels.spec import GEMMS, Spec
 
-    specs = {g: Spec(16, gemm=g) for g in ("scalar", "mathdx")}
-    assert specs["scalar"].module != specs["mathdx"].module
+    specs = {g: Spec(16, gemm=g) for g in GEMMS}
+    assert len({s.module for s in specs.values()}) == len(GEMMS)
     for g, spec in specs.items():
         build_kernels(spec)
         assert wp.get_module(spec.module).options["enable_mathdx_gemm"] == (g == "mathdx")
@@ -275,11 +275,12 @@ def test_shipped_network_rollout_on_L5(shipped_case):
 
 # ----------------------------------------------------------------------------- GPU only
 @pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device")
-def test_cuda_graph_step_equals_eager():
+@pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
+def test_cuda_graph_step_equals_eager(kind):
     """On CUDA a whole step is one captured graph; its replay equals the launches one by one and the
-    reference (the tile kernels' GPU path: cuBLASDx products, many threads a block). Latent 64: the shipped width,
-    whose module kernels/aot holds prebuilt (no 150 s compile)."""
-    model = random_model("hybrid", 2, 64, seed=13)
+    reference (the tile kernels' GPU path: 16-byte vector loads, warp shuffles, many threads a block). Latent 64:
+    the shipped width, whose module kernels/aot holds prebuilt (no compile)."""
+    model = random_model(kind, 2, 64, seed=13)
     top = tool_topology(box((5, 4, 3)), 3, seed=13)
     z, u_now, u_next = random_inputs(top, 13)
     net = Network(model, top, device="cuda:0")
