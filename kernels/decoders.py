@@ -27,7 +27,7 @@ from .tiles import helpers, matmul, row_steps, row_vector
 def node_decoder(spec: Spec):
     """The hybrid's delta_v on a tile of node latents, for the last node pass (message_passing)."""
     T, F = spec.tile_rows, spec.latent
-    _layer_norm, _fill, activate, _segment_sum, _project, _gather = helpers(spec)
+    _fill, activate, _second_layer, _segment_sum, _project, _gather = helpers(spec)
     mm_grad, (fill_grad, _activate_grad) = matmul(T, F, spec.kc, N_GRAD, spec.gemm), row_steps(T, N_GRAD)
 
     @wp.func
@@ -49,7 +49,7 @@ def node_decoder(spec: Spec):
 @functools.cache
 def kernels(spec: Spec):
     T, F = spec.tile_rows, spec.latent
-    _layer_norm, _fill, activate, _segment_sum, _project, gather_pair = helpers(spec)
+    _fill, activate, _second_layer, _segment_sum, _project, gather_pair = helpers(spec)
     mm_ff = matmul(T, F, spec.kc, F, spec.gemm)
     mm_lm = matmul(T, F, spec.kc, N_LM, spec.gemm)
     fill_lm, _activate_lm = row_steps(T, N_LM)
@@ -91,7 +91,7 @@ def kernels(spec: Spec):
 def vanilla_kernel(spec: Spec):
     """vanilla_tail on the node tiles (spec.nodes), in spec's module."""
     T, F = spec.node_tile, spec.latent
-    _layer_norm, _fill, activate, _segment_sum, _project, _gather = helpers(spec.nodes)
+    _fill, activate, _second_layer, _segment_sum, _project, _gather = helpers(spec.nodes)
     mm_state, (fill_state, _activate_state) = matmul(T, F, spec.kc, STATE, spec.gemm), row_steps(T, STATE)
 
     @wp.kernel(enable_backward=False, module=spec.module)

@@ -34,7 +34,7 @@ FW = FEATURE_WIDTH
 @functools.cache
 def kernels(spec: Spec):
     T, F = spec.tile_rows, spec.latent
-    layer_norm, fill, activate, _segment_sum, project, gather_pair = helpers(spec)
+    fill, _activate, second_layer, _segment_sum, project, gather_pair = helpers(spec)
     mm_ff = matmul(T, F, spec.kc, F, spec.gemm)
     mm_in = matmul(T, FW, FW, F, spec.gemm)
 
@@ -70,11 +70,8 @@ def kernels(spec: Spec):
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         fill(h, b1, cls)
         mm_in(x, w1, cls * FW, 0, h)
-        activate(h, b1, 0, 0)
         y = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        fill(y, b2, cls)
-        mm_ff(h, w2, cls * F, 0, y)
-        layer_norm(y, gain, shift, cls, eps, y, 0)
+        second_layer(h, w2, b2, gain, shift, cls, eps, h, 0, y)
         if tool_pass == 0:
             wp.tile_store(lat, y, offset=(row0, 0))
         if cls == 0:
@@ -104,11 +101,8 @@ def kernels(spec: Spec):
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         gather_pair(h, b1, wi, products, row_recv, recv_col, row_send, send_row, F, row0)
         mm_ff(e, w_e, wi * F, 0, h)
-        activate(h, b1, 0, 0)
         o = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        fill(o, b2, wi)
-        mm_ff(h, w2, wi * F, 0, o)
-        layer_norm(o, gain, shift, wi, eps, e, 1)
+        second_layer(h, w2, b2, gain, shift, wi, eps, e, 1, o)
         wp.tile_store(lat, o, offset=(row0, 0))
 
     return encode, edge_pass
@@ -118,11 +112,10 @@ def kernels(spec: Spec):
 def node_kernel(spec: Spec):
     """node_pass on the node tiles (spec.nodes: they may be smaller than the edges'), in spec's module."""
     T, F = spec.node_tile, spec.latent
-    layer_norm, fill, activate, segment_sum, _project, _gather = helpers(spec.nodes)
+    fill, _activate, second_layer, segment_sum, _project, _gather = helpers(spec.nodes)
     node_fields = node_decoder(spec.nodes)
     F3 = 3 * F
-    mm_ff, mm_in = matmul(T, F, spec.kc, F, spec.gemm), matmul(T, F3, spec.kc, F, spec.gemm)
-    mm_out = matmul(T, F, spec.kc, F3, spec.gemm)
+    mm_in, mm_out = matmul(T, F3, spec.kc, F, spec.gemm), matmul(T, F, spec.kc, F3, spec.gemm)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def node_pass(lat: wp.array2d(dtype=float), lat_rows: wp.array2d(dtype=row_vector(F)),
@@ -148,11 +141,8 @@ def node_kernel(spec: Spec):
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         fill(h, b1, p)
         mm_in(xin, w1, 3 * p * F, 0, h)
-        activate(h, b1, 0, 0)
         y = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        fill(y, b2, p)
-        mm_ff(h, w2, p * F, 0, y)
-        layer_norm(y, gain, shift, p, eps, x, 1)
+        second_layer(h, w2, b2, gain, shift, p, eps, x, 1, y)
         wp.tile_store(lat, y, offset=(row0, 0))
         # the next stage's node products, its three (F, F) blocks as one product (blocks a stage does not use are
         # zero weights, or read by no launch)

@@ -279,41 +279,40 @@ LAYER_NORM = r"""
     WP_TILE_SYNC();
 """
 
-# dst = src[row] in every row (a bias), or dst = silu(dst [+ src[row]]) in place: element loops without Warp's tile
-# temporaries (a register tile, its coordinates and a barrier for each of broadcast, map and assign).
-FILL_ROWS = r"""
+# dst = src[row] in every row (a bias: mode 0), or dst = silu(dst) (1) or silu(dst + src[row]) (2) in place: element
+# loops without Warp's tile temporaries (a register tile, its coordinates and a barrier for each of broadcast, map
+# and assign). ``{mode}`` is the C++ that sets ``mode``: a constant for fill, from ``with_bias`` for activate.
+ROW_STEP = r"""
     using L = typename tile_dst::Layout;
     constexpr int R = L::Shape::dim(0), C = L::Shape::dim(1), S = L::Stride::dim(0);
+    {mode}
     wp::float32* __restrict__ d = dst.data.ptr;
 #pragma unroll 4
-    for (int i = WP_TILE_THREAD_IDX; i < R * C; i += WP_TILE_BLOCK_DIM)
-        d[i / C * S + i % C] = wp::index(src, row, i % C);
-    WP_TILE_SYNC();
-"""
-
-ACTIVATE = r"""
-    using L = typename tile_dst::Layout;
-    constexpr int R = L::Shape::dim(0), C = L::Shape::dim(1), S = L::Stride::dim(0);
-    wp::float32* __restrict__ d = dst.data.ptr;
-#pragma unroll 4
-    for (int i = WP_TILE_THREAD_IDX; i < R * C; i += WP_TILE_BLOCK_DIM) {
-        wp::float32 v = d[i / C * S + i % C];
-        if (with_bias)
+    for (int i = WP_TILE_THREAD_IDX; i < R * C; i += WP_TILE_BLOCK_DIM) {{
+        wp::float32 v = mode == 0 ? wp::index(src, row, i % C) : d[i / C * S + i % C];
+        if (mode == 2)
             v += wp::index(src, row, i % C);
-        d[i / C * S + i % C] = v / (wp::float32(1) + wp::exp(-v));
-    }
+        d[i / C * S + i % C] = mode == 0 ? v : v / (wp::float32(1) + wp::exp(-v));
+    }}
     WP_TILE_SYNC();
 """
 
-GATHER_PAIR = r"""
-    using Shape = typename tile_h::Layout::Shape;
+
+def vector_items(tile: str, rows: str) -> str:
+    """C++ preamble of a block step over (row, vector) items of a (T, F) shared tile ``tile`` fed from ``rows``, an
+    array of row vectors (row_view): Vec, V floats a vector, FV vectors a row, N items, PER items a thread."""
+    return f"""
+    using Shape = typename tile_{tile}::Layout::Shape;
     constexpr int T = Shape::dim(0);
     constexpr int F = Shape::dim(1);
-    using Vec = typename wp::remove_reference<decltype(wp::index(products, 0, 0))>::type;
+    using Vec = typename wp::remove_reference<decltype(wp::index({rows}, 0, 0))>::type;
     constexpr int V = sizeof(Vec) / sizeof(wp::float32);
     constexpr int FV = F / V;
     constexpr int N = T * FV;
-    constexpr int PER = (N + WP_TILE_BLOCK_DIM - 1) / WP_TILE_BLOCK_DIM;
+    constexpr int PER = (N + WP_TILE_BLOCK_DIM - 1) / WP_TILE_BLOCK_DIM;"""
+
+
+GATHER_PAIR = vector_items("h", "products") + r"""
     Vec a[PER], b[PER];
 #pragma unroll
     for (int k = 0; k < PER; ++k) {  // every load of the thread issued before the first use
@@ -336,15 +335,7 @@ GATHER_PAIR = r"""
     WP_TILE_SYNC();
 """
 
-SEGMENT_SUM = r"""
-    using Shape = typename tile_agg::Layout::Shape;
-    constexpr int T = Shape::dim(0);
-    constexpr int F = Shape::dim(1);
-    using Vec = typename wp::remove_reference<decltype(wp::index(lat, 0, 0))>::type;
-    constexpr int V = sizeof(Vec) / sizeof(wp::float32);
-    constexpr int FV = F / V;
-    constexpr int N = T * FV;
-    constexpr int PER = (N + WP_TILE_BLOCK_DIM - 1) / WP_TILE_BLOCK_DIM;
+SEGMENT_SUM = vector_items("agg", "lat") + r"""
     Vec acc[PER];
 #pragma unroll
     for (int k = 0; k < PER; ++k) {
@@ -384,12 +375,13 @@ SEGMENT_SUM = r"""
 @functools.cache
 def row_steps(rows: int, n: int):
     """fill(dst, src, row): every row of the shared (rows, n) tile dst = src[row] (a bias); activate(dst, src, row,
-    with_bias): dst = silu(dst + src[row]) in place (or silu(dst) when with_bias is 0). C++ element loops: Warp's
-    tile_broadcast / tile_map / tile_assign each built a register tile, its coordinates and a barrier."""
-    @wp.func_native(FILL_ROWS)
+    with_bias): dst = silu(dst + src[row]) in place (or silu(dst) when with_bias is 0). C++ element loops
+    (ROW_STEP): Warp's tile_broadcast / tile_map / tile_assign each built a register tile, its coordinates and a
+    barrier."""
+    @wp.func_native(ROW_STEP.format(mode="constexpr int mode = 0;"))
     def fill(dst: wp.tile(dtype=float, shape=(rows, n)), src: wp.array2d(dtype=float), row: int): ...
 
-    @wp.func_native(ACTIVATE)
+    @wp.func_native(ROW_STEP.format(mode="const int mode = 1 + with_bias;"))
     def activate(dst: wp.tile(dtype=float, shape=(rows, n)), src: wp.array2d(dtype=float), row: int,
                  with_bias: int): ...
 
@@ -447,4 +439,17 @@ def helpers(spec: Spec):
         wp.tile_store(out, acc, offset=(out_row, out_col))
 
     fill, activate = row_steps(T, F)
-    return layer_norm, fill, activate, segment_sum, project, gather_pair
+
+    @wp.func
+    def second_layer(h: wp.tile(dtype=float, shape=(T, F)), w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float),
+                     gain: wp.array2d(dtype=float), shift: wp.array2d(dtype=float), row: int, eps: float,
+                     res: wp.tile(dtype=float, shape=(T, F)), residual: int, o: wp.tile(dtype=float, shape=(T, F))):
+        """An MLP's tail on its first layer's output h (bias included): o = [res +] LayerNorm(silu(h) W2 + b2), with
+        the weights, bias, gain and shift of block ``row``; h becomes silu(h) in place. o is the caller's: a shared
+        tile returned from a Warp function is copied into one more tile."""
+        activate(h, b2, 0, 0)
+        fill(o, b2, row)
+        mm_ff(h, w2, row * F, 0, o)
+        layer_norm(o, gain, shift, row, eps, res, residual)
+
+    return fill, activate, second_layer, segment_sum, project, gather_pair
