@@ -146,10 +146,69 @@ GEMM = r"""
 """  # noqa: E501 (C++ inside)
 
 
+# Spec.gemm = "fp16": the products' operands rounded to half precision, sums in fp32 (the issue's stretch target).
+# On CUDA (sm_80 and later) tensor cores: each warp takes (16, 8) output tiles and runs mma.sync m16n8k16 over K,
+# operands read from the fp32 shared tiles and converted to f16 pairs in registers, rows and columns past the tile
+# masked to zero; elsewhere GEMM's loop on operands rounded the same way (round to nearest even), so Warp's CPU
+# device checks the numerics in CI. Not yet measured on a GPU.
+GEMM_F16 = r"""
+    auto half_round = [](wp::float32 x) { return wp::half_to_float(wp::float_to_half(x)); };
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
+    if constexpr (WP_TILE_BLOCK_DIM % 32 == 0) {
+        using LA = typename tile_a::Layout;
+        using LB = typename tile_b::Layout;
+        using LC = typename tile_acc::Layout;
+        constexpr int M = LC::Shape::dim(0), N = LC::Shape::dim(1), K = LA::Shape::dim(1);
+        constexpr int SA = LA::Stride::dim(0), SB = LB::Stride::dim(0), SC = LC::Stride::dim(0);
+        constexpr int MT = (M + 15) / 16, NT = (N + 7) / 8, KT = (K + 15) / 16;
+        const wp::float32* __restrict__ pa = a.data.ptr;
+        const wp::float32* __restrict__ pb = b.data.ptr;
+        wp::float32* __restrict__ pc = acc.data.ptr;
+        const int warp = threadIdx.x / 32, lane = threadIdx.x % 32, g = lane / 4, q = lane % 4;
+        auto pack = [](wp::float32 lo, wp::float32 hi) {  // {lo, hi} as f16x2, lo in the low half
+            unsigned r;
+            asm("cvt.rn.f16x2.f32 %0, %1, %2;\n" : "=r"(r) : "f"(hi), "f"(lo));
+            return r;
+        };
+        for (int t = warp; t < MT * NT; t += WP_TILE_BLOCK_DIM / 32) {
+            const int r0 = t / NT * 16 + g, r1 = r0 + 8, n0 = t % NT * 8, c = n0 + g;
+            auto at = [&](int r, int k) { return r < M && k < K ? pa[r * SA + k] : wp::float32(0); };
+            auto bt = [&](int k) { return c < N && k < K ? pb[k * SB + c] : wp::float32(0); };
+            wp::float32 d0 = 0, d1 = 0, d2 = 0, d3 = 0;
+            for (int kt = 0; kt < KT; ++kt) {
+                const int k0 = kt * 16 + 2 * q;
+                const unsigned a0 = pack(at(r0, k0), at(r0, k0 + 1)), a1 = pack(at(r1, k0), at(r1, k0 + 1));
+                const unsigned a2 = pack(at(r0, k0 + 8), at(r0, k0 + 9)), a3 = pack(at(r1, k0 + 8), at(r1, k0 + 9));
+                const unsigned b0 = pack(bt(k0), bt(k0 + 1)), b1 = pack(bt(k0 + 8), bt(k0 + 9));
+                asm volatile("mma.sync.aligned.m16n8k16.row.col.f32.f16.f16.f32 {%0, %1, %2, %3}, {%4, %5, %6, %7}, "
+                             "{%8, %9}, {%0, %1, %2, %3};\n"
+                             : "+f"(d0), "+f"(d1), "+f"(d2), "+f"(d3)
+                             : "r"(a0), "r"(a1), "r"(a2), "r"(a3), "r"(b0), "r"(b1));
+            }
+            const int cc = n0 + 2 * q;
+            if (r0 < M && cc < N) pc[r0 * SC + cc] += d0;
+            if (r0 < M && cc + 1 < N) pc[r0 * SC + cc + 1] += d1;
+            if (r1 < M && cc < N) pc[r1 * SC + cc] += d2;
+            if (r1 < M && cc + 1 < N) pc[r1 * SC + cc + 1] += d3;
+        }
+        WP_TILE_SYNC();
+        return;
+    }
+#endif
+""" + GEMM.replace("wp::muladd(av[i][q], bv[j], s[i][j])", "wp::muladd(half_round(av[i][q]), half_round(bv[j]), s[i][j])")  # noqa: E501 (C++ inside)
+assert "half_round(av" in GEMM_F16
+
+
 @functools.cache
 def gemm(rows: int, k: int, n: int, kind: str):
-    """acc (rows, n) += a (rows, k) @ b (k, n), shared tiles: Warp's wp.tile_matmul ("scalar", "mathdx": Spec.gemm)
-    or GEMM above ("native")."""
+    """acc (rows, n) += a (rows, k) @ b (k, n), shared tiles: GEMM above ("native"), GEMM_F16 ("fp16") or Warp's
+    wp.tile_matmul ("scalar", "mathdx"): Spec.gemm."""
+    if kind == "fp16":
+        @wp.func_native(GEMM_F16)
+        def half(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(k, n)),
+                 acc: wp.tile(dtype=float, shape=(rows, n))): ...
+
+        return half
     if kind != "native":
         @wp.func
         def product(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(k, n)),

@@ -217,6 +217,51 @@ def test_unsupported_configuration_refused_in_one_line():
     assert "hidden_layers" in message and "\n" not in message
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
+    not HAS_CUDA, reason="needs a CUDA device"))])
+def test_half_precision_products_round_their_operands(device):
+    """Spec.gemm = "fp16" (tiles.GEMM_F16): acc += a @ b with a and b rounded to half precision and fp32 sums (tensor
+    cores on CUDA, shapes that are no whole number of their (16, 8, 16) tiles), against numpy on the same rounded
+    operands; and not the fp32 product, so the rounding is in effect."""
+    from warpgnn.kernels import tiles
+
+    rows, k, n = 8, 24, 12
+    product = tiles.gemm(rows, k, n, "fp16")
+
+    @wp.kernel(enable_backward=False, module="test_half_precision_products")
+    def apply(a: wp.array2d(dtype=float), b: wp.array2d(dtype=float), c: wp.array2d(dtype=float)):
+        ta = wp.tile_load(a, shape=(rows, k), storage="shared")
+        tb = wp.tile_load(b, shape=(k, n), storage="shared")
+        tc = wp.tile_load(c, shape=(rows, n), storage="shared")
+        product(ta, tb, tc)
+        wp.tile_store(c, tc)
+
+    rng = np.random.default_rng(0)
+    a, b, c = (rng.standard_normal(s).astype(np.float32) for s in ((rows, k), (k, n), (rows, n)))
+    out = wp.array(c, dtype=float, device=device)
+    wp.launch_tiled(apply, dim=[1], inputs=[wp.array(a, dtype=float, device=device),
+                                            wp.array(b, dtype=float, device=device), out],
+                    block_dim=32 if device != "cpu" else 1, device=device)
+    half = c + a.astype(np.float16).astype(np.float64) @ b.astype(np.float16).astype(np.float64)
+    single = c + a.astype(np.float64) @ b.astype(np.float64)
+    got = out.numpy()
+    assert np.abs(got - half).max() <= 1e-5 * np.abs(half).max()
+    assert np.abs(got - single).max() >= 1e-4 * np.abs(single).max()
+
+
+def test_half_precision_network_close_to_reference():
+    """The whole forward with half-precision products: within 1e-2 of the float32 reference's scale, and not equal
+    to the float32 kernels."""
+    model = random_model("hybrid", 2, 32, seed=21)
+    top = tool_topology(box((3, 3, 2)), 2, seed=21)
+    z, u_now, u_next = random_inputs(top, 21)
+    ref = reference(model, top, z, u_now, u_next)
+    half = run(Network(model, top, device="cpu", gemm="fp16"), z, u_now, u_next)
+    assert_matches(half, ref, tol=1e-2)
+    with pytest.raises(AssertionError):
+        assert_matches(half, ref, tol=TOL)
+
+
 def test_gemm_choice_is_its_own_module():
     """Spec.gemm picks the tile products: each choice its own Warp module with Warp's mathdx option set to match
     (part of the module's hash, so a cuBLASDx build is never loaded for the scalar one); others refused."""
