@@ -66,6 +66,15 @@ def test_table_notes_and_png(cpu_run):
     assert not list(out.glob("*.tmp*"))
 
 
+def test_half_precision_backend(tmp_path):
+    """--backends warp-fp16: the kernels with half-precision products (Spec.gemm = "fp16"), a record of its own."""
+    code = main(["bench", "--device", "cpu", "--passes", "1", "--models", "hybrid", "--backends", "warp-fp16",
+                 "--repeats", "1", "--json", str(tmp_path / "half.json")])
+    assert code == 0
+    (r,) = json.loads((tmp_path / "half.json").read_text())["records"]
+    assert (r["backend"], r["model"], r["passes"]) == ("warp-fp16", "hybrid", 1) and r["median_ms"] > 0
+
+
 def test_fit_recovers_coefficients():
     a, b, c = 0.0123, 0.456, 0.789
     passes = list(range(1, 13))

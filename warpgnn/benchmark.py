@@ -6,6 +6,8 @@ update, not its step(), which also copies z <- z_next). Backends:
 
     warp           the Warp kernels (warpgnn.kernels.Network): on CUDA the step captured once as
                    a CUDA graph and its replay timed, on the CPU plain launches
+    warp-fp16      the same with half-precision products (Spec.gemm = "fp16": tensor cores on CUDA),
+                   the issue's stretch target; not among the default backends
     torch-eager    the torch reference
     torch-graph    the reference captured under a torch CUDA graph (CUDA only)
     torch-compile  torch.compile, mode reduce-overhead (CUDA only)
@@ -38,7 +40,7 @@ import torch
 
 from .errors import InputError
 
-BACKENDS = ("warp", "torch-eager", "torch-graph", "torch-compile")
+BACKENDS = ("warp", "warp-fp16", "torch-eager", "torch-graph", "torch-compile")
 CUDA_ONLY = ("torch-graph", "torch-compile")
 MODELS = ("vanilla", "hybrid")
 DT = 0.05  # a snapshot step of the paper preset (1 s, 20 steps)
@@ -232,10 +234,10 @@ def torch_clock(device: str) -> Clock:
 # ----------------------------------------------------------------------------- backends
 # Each builds its step for (model, case) on the device and returns (step, clock); the step's
 # first call follows at once, so one-time work may be left to it.
-def warp_step(model, case: Case, device: str):
+def warp_step(model, case: Case, device: str, gemm: str | None = None):
     from .kernels import Network
 
-    net = Network(model, case.topology, device=device)
+    net = Network(model, case.topology, device=device, **({"gemm": gemm} if gemm else {}))
     net.set_inputs(case.z, case.u_now, case.u_next, DT)
     net.capture()  # CUDA only: forward() replays it from now on
     return net.forward, warp_clock(device)
@@ -283,7 +285,8 @@ def torch_compile_step(model, case: Case, device: str):
     return step, torch_clock(device)
 
 
-STEPS = {"warp": warp_step, "torch-eager": torch_eager_step, "torch-graph": torch_graph_step,
+STEPS = {"warp": warp_step, "warp-fp16": lambda model, case, device: warp_step(model, case, device, gemm="fp16"),
+         "torch-eager": torch_eager_step, "torch-graph": torch_graph_step,
          "torch-compile": torch_compile_step}
 
 
@@ -435,7 +438,8 @@ def write_json(doc: dict, path) -> None:
     write_text_atomically(Path(path), json.dumps(doc, indent=1))
 
 
-MARKERS = {"warp": ("o", "-"), "torch-eager": ("s", ":"), "torch-graph": ("^", "--"), "torch-compile": ("D", "-.")}
+MARKERS = {"warp": ("o", "-"), "warp-fp16": ("v", "-"), "torch-eager": ("s", ":"), "torch-graph": ("^", "--"),
+           "torch-compile": ("D", "-.")}
 
 
 def plot(doc: dict, out) -> None:

@@ -403,7 +403,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--batch", metavar="B[,B...]",
                    help="simulations stacked into one graph (default 1,64; 1 on the CPU)")
     b.add_argument("--backends", default="warp,torch-eager,torch-graph,torch-compile", metavar="NAME[,NAME...]",
-                   help="comma-separated: warp, torch-eager, torch-graph, torch-compile (the last two need CUDA)")
+                   help="comma-separated: warp, warp-fp16 (half-precision products), torch-eager, torch-graph, "
+                   "torch-compile (the last two need CUDA)")
     b.add_argument("--device", default=None, help="cpu or cuda:0 (default: cuda:0 when available)")
     b.add_argument("--repeats", type=int, metavar="N", help="timed steps per record (default 50; 5 on the CPU)")
     b.add_argument("--mesh", metavar="MESH.vtu", help="time on this mesh (e.g. `warpgnn anatomy --name L5`'s, "
