@@ -24,11 +24,12 @@ from .tiles import helpers, matmul, row_steps, row_vector
 
 
 @functools.cache
-def node_decoder(spec: Spec):
+def node_decoder(spec: Spec, owner: str):
     """The hybrid's delta_v on a tile of node latents, for the last node pass (message_passing)."""
     T, F = spec.tile_rows, spec.latent
-    _fill, activate, _second_layer, _segment_sum, _project, _gather = helpers(spec)
-    mm_grad, (fill_grad, _activate_grad) = matmul(T, F, spec.kc, N_GRAD, spec.gemm), row_steps(T, N_GRAD)
+    _fill, activate, _second_layer, _segment_sum, _project, _gather = helpers(spec, owner)
+    mm_grad = matmul(T, F, spec.kc, N_GRAD, spec.gemm, owner)
+    fill_grad, _activate_grad = row_steps(T, N_GRAD, owner)
 
     @wp.func
     def node_fields(pre: wp.tile(dtype=float, shape=(T, F)), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
@@ -49,10 +50,10 @@ def node_decoder(spec: Spec):
 @functools.cache
 def kernels(spec: Spec):
     T, F = spec.tile_rows, spec.latent
-    _fill, activate, _second_layer, _segment_sum, _project, gather_pair = helpers(spec)
-    mm_ff = matmul(T, F, spec.kc, F, spec.gemm)
-    mm_lm = matmul(T, F, spec.kc, N_LM, spec.gemm)
-    fill_lm, _activate_lm = row_steps(T, N_LM)
+    _fill, activate, _second_layer, _segment_sum, _project, gather_pair = helpers(spec, spec.module)
+    mm_ff = matmul(T, F, spec.kc, F, spec.gemm, spec.module)
+    mm_lm = matmul(T, F, spec.kc, N_LM, spec.gemm, spec.module)
+    fill_lm, _activate_lm = row_steps(T, N_LM, spec.module)
     port_terms = row_operators(spec)
 
     @wp.func
@@ -91,8 +92,9 @@ def kernels(spec: Spec):
 def vanilla_kernel(spec: Spec):
     """vanilla_tail on the node tiles (spec.nodes), in spec's module."""
     T, F = spec.node_tile, spec.latent
-    _fill, activate, _second_layer, _segment_sum, _project, _gather = helpers(spec.nodes)
-    mm_state, (fill_state, _activate_state) = matmul(T, F, spec.kc, STATE, spec.gemm), row_steps(T, STATE)
+    _fill, activate, _second_layer, _segment_sum, _project, _gather = helpers(spec.nodes, spec.module)
+    mm_state = matmul(T, F, spec.kc, STATE, spec.gemm, spec.module)
+    fill_state, _activate_state = row_steps(T, STATE, spec.module)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def vanilla_tail(products: wp.array2d(dtype=float), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),

@@ -34,9 +34,9 @@ FW = FEATURE_WIDTH
 @functools.cache
 def kernels(spec: Spec):
     T, F = spec.tile_rows, spec.latent
-    fill, _activate, second_layer, _segment_sum, project, gather_pair = helpers(spec)
-    mm_ff = matmul(T, F, spec.kc, F, spec.gemm)
-    mm_in = matmul(T, FW, FW, F, spec.gemm)
+    fill, _activate, second_layer, _segment_sum, project, gather_pair = helpers(spec, spec.module)
+    mm_ff = matmul(T, F, spec.kc, F, spec.gemm, spec.module)
+    mm_in = matmul(T, FW, FW, F, spec.gemm, spec.module)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def encode(feat: wp.array2d(dtype=float), w1: wp.array2d(dtype=float), b1: wp.array2d(dtype=float),
@@ -112,10 +112,10 @@ def kernels(spec: Spec):
 def node_kernel(spec: Spec):
     """node_pass on the node tiles (spec.nodes: they may be smaller than the edges'), in spec's module."""
     T, F = spec.node_tile, spec.latent
-    fill, _activate, second_layer, segment_sum, _project, _gather = helpers(spec.nodes)
-    node_fields = node_decoder(spec.nodes)
+    fill, _activate, second_layer, segment_sum, _project, _gather = helpers(spec.nodes, spec.module)
+    node_fields = node_decoder(spec.nodes, spec.module)
     F3 = 3 * F
-    mm_in, mm_out = matmul(T, F3, spec.kc, F, spec.gemm), matmul(T, F, spec.kc, F3, spec.gemm)
+    mm_in, mm_out = matmul(T, F3, spec.kc, F, spec.gemm, spec.module), matmul(T, F, spec.kc, F3, spec.gemm, spec.module)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def node_pass(lat: wp.array2d(dtype=float), lat_rows: wp.array2d(dtype=row_vector(F)),

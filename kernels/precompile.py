@@ -64,18 +64,18 @@ def load(folder, latents, device, block_dim: int = shipped.BLOCK_DIM, **shape) -
 
 
 def ship(log=print) -> None:
-    """Rebuild kernels/aot: shipped.LATENTS for shipped.ARCHS, xz-compressed; older builds removed."""
+    """Rebuild kernels/aot: shipped.specs() for shipped.ARCHS, xz-compressed; older builds removed."""
     shipped.FOLDER.mkdir(exist_ok=True)
     keep = set()
-    for F in shipped.LATENTS:
+    for spec in shipped.specs():
         for arch in shipped.ARCHS:
             with tempfile.TemporaryDirectory() as tmp:
-                seconds = compile_ahead([F], arch, tmp)
-                cubin, meta = shipped.files(Spec(F), arch)
+                seconds = compile_ahead([spec.latent], arch, tmp, node_rows=spec.node_rows)
+                cubin, meta = shipped.files(spec, arch)
                 cubin.write_bytes(lzma.compress((Path(tmp) / cubin.stem).read_bytes(), preset=6))
                 shutil.copy(Path(tmp) / meta.name, meta)
             keep.update((cubin, meta))
-            log(f"latent {F}, sm_{arch}: built in {seconds:.0f} s, {cubin.stat().st_size / 1e6:.2f} MB shipped")
+            log(f"{spec.module}, sm_{arch}: built in {seconds:.0f} s, {cubin.stat().st_size / 1e6:.2f} MB shipped")
     for stale in set(shipped.FOLDER.iterdir()) - keep:
         stale.unlink()
 

@@ -20,14 +20,19 @@ from pathlib import Path
 
 import warp as wp
 
-from .spec import Spec
+from .spec import NODE_ROWS, Spec
 
 FOLDER = Path(__file__).resolve().parent / "aot"
-LATENTS = (64,)  # the shipped network's width
+LATENTS = (64,)  # the shipped network's width, with each of spec.NODE_ROWS (a Network picks by graph size)
 ARCHS = (80, 90)
 BLOCK_DIM = 128  # network.default_block_dim on CUDA: the variant every launch uses
 
 _loaded: set = set()
+
+
+def specs() -> list[Spec]:
+    """The shipped specs: each latent width of LATENTS with each node tile size of NODE_ROWS."""
+    return [Spec(F, node_rows=n) for F in LATENTS for n in NODE_ROWS]
 
 
 def module_of(spec: Spec, block_dim: int = BLOCK_DIM):

@@ -29,7 +29,7 @@ class Spec:
     # rows per tile of the node launches (0: tile_rows), a divisor of tile_rows. L5's 670 nodes are 21 tiles of 32
     # for an H100's 132 SMs: on 84 tiles of 8 its node launch took 30 us instead of 62 (16 rows: 41 us), the 5-pass
     # step 335 us instead of 499 (bench/results/warp_tile_shapes_h100.json)
-    node_rows: int = 8
+    node_rows: int = 8  # NODE_ROWS[0]; Network picks by graph size (node_rows_for)
     # K extent of each partial product (0: the largest divisor of F up to 32): (K, F) weight slices keep
     # a block's shared memory bounded at F = 128, where one (F, F) fp32 weight is 64 KiB
     k_chunk: int = 0
@@ -70,6 +70,18 @@ class Spec:
         nodes = f"_N{self.node_tile}" if self.node_tile != self.tile_rows else ""
         gemm = "" if self.gemm == GEMMS[0] else f"_{self.gemm}"
         return f"warpgnn_kernels_F{self.latent}_T{self.tile_rows}{nodes}_K{self.kc}{gemm}"
+
+
+NODE_ROWS = (8, 16)  # node tile sizes a Network picks from by its graph's size (node_rows_for); both shipped
+
+
+def node_rows_for(n_nodes: int, sm_count: int) -> int:
+    """Rows per node tile for a graph of ``n_nodes`` on a GPU of ``sm_count`` SMs (0: not a GPU): 8 while tiles of
+    8 are few per SM, as at batch 1 (L5's 84 tiles for 132 SMs: the node pass 30 us against 41 at 16 rows on an
+    H100, warp_tile_shapes_h100.json), 16 from 8 such tiles an SM on (batch 64 of L5 is 40: the hybrid step 6.32
+    ms against 6.82, the vanilla 4.81 against 5.29 on an H200, warp_native_steps_h200.json). The crossover between
+    the two measured sizes is not measured; 8 tiles an SM is the middle of them, ~batch 13 of L5 on an H200."""
+    return NODE_ROWS[1] if sm_count and n_nodes >= 8 * NODE_ROWS[0] * sm_count else NODE_ROWS[0]
 
 
 def check_config(config) -> None:

@@ -48,8 +48,13 @@ STAGED = r"""
 """
 
 
+# The factories here are cached by shape and by ``owner``, the name of the Warp module whose kernels use them: with
+# one function object in two modules, the second module's hash depended on which was hashed first (a process that
+# built the node tiles of 16 alone looked for another shipped file than one that built the tiles of 8 first).
+
+
 @functools.cache
-def stage(rows: int, cols: int):
+def stage(rows: int, cols: int, owner: str):
     """stage(dst, W, row0, col0): start copying W[row0:row0 + rows, col0:col0 + cols] into the shared tile dst
     (asynchronously on CUDA); staged(dst) waits for every copy started and syncs the block. The 16-byte copies need
     cols, W's row length and col0 to be multiples of 4 floats: every packed weight here is (weights.py: widths F, 3F,
@@ -200,7 +205,7 @@ assert "half_round(av" in GEMM_F16
 
 
 @functools.cache
-def gemm(rows: int, k: int, n: int, kind: str):
+def gemm(rows: int, k: int, n: int, kind: str, owner: str):
     """acc (rows, n) += a (rows, k) @ b (k, n), shared tiles: GEMM above ("native"), GEMM_F16 ("fp16") or Warp's
     wp.tile_matmul ("scalar", "mathdx"): Spec.gemm."""
     if kind == "fp16":
@@ -225,15 +230,15 @@ def gemm(rows: int, k: int, n: int, kind: str):
 
 
 @functools.cache
-def matmul(rows: int, k: int, kc: int, n: int, kind: str):
+def matmul(rows: int, k: int, kc: int, n: int, kind: str, owner: str):
     """acc (rows, n) += a (rows, k, shared) @ W[row0:row0 + k, col0:col0 + n], K in chunks of kc, double-buffered:
     chunk c + 1 is copied into shared memory (cp.async on CUDA) while chunk c's product runs, so a product waits for
     one weight load rather than one a chunk. On an H200 (L5, F = 64) this took the batch-64 step from 8.89 to 7.99
     ms (edge pass 858 -> 708 us) and the 12-pass F = 128 step from 1.26 to 1.12 ms, same numbers bit for bit
     (bench/results/warp_staged_h200.json, warp_staged_f128_h200.json)."""
     chunks, kc2 = k // kc, 2 * kc
-    stage_copy, staged = stage(kc, n)
-    product = gemm(rows, kc, n, kind)
+    stage_copy, staged = stage(kc, n, owner)
+    product = gemm(rows, kc, n, kind, owner)
 
     @wp.func
     def matmul_acc(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
@@ -432,7 +437,7 @@ SEGMENT_SUM = vector_items("agg", "lat") + r"""
 
 
 @functools.cache
-def row_steps(rows: int, n: int):
+def row_steps(rows: int, n: int, owner: str):
     """fill(dst, src, row): every row of the shared (rows, n) tile dst = src[row] (a bias); activate(dst, src, row,
     with_bias): dst = silu(dst + src[row]) in place (or silu(dst) when with_bias is 0). C++ element loops
     (ROW_STEP): Warp's tile_broadcast / tile_map / tile_assign each built a register tile, its coordinates and a
@@ -448,7 +453,7 @@ def row_steps(rows: int, n: int):
 
 
 @functools.cache
-def helpers(spec: Spec):
+def helpers(spec: Spec, owner: str):
     T, F = spec.tile_rows, spec.latent
 
     @wp.func_native(LAYER_NORM)
@@ -487,7 +492,7 @@ def helpers(spec: Spec):
         notes); added in the order of the reference's sum; one barrier."""
         ...
 
-    mm_ff = matmul(T, F, spec.kc, F, spec.gemm)
+    mm_ff = matmul(T, F, spec.kc, F, spec.gemm, owner)
 
     @wp.func
     def project(y: wp.tile(dtype=float, shape=(T, F)), w: wp.array2d(dtype=float), row0: int, col0: int,
@@ -497,7 +502,7 @@ def helpers(spec: Spec):
         mm_ff(y, w, row0, col0, acc)
         wp.tile_store(out, acc, offset=(out_row, out_col))
 
-    fill, activate = row_steps(T, F)
+    fill, activate = row_steps(T, F, owner)
 
     @wp.func
     def second_layer(h: wp.tile(dtype=float, shape=(T, F)), w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float),

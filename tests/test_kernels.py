@@ -202,11 +202,22 @@ def test_weight_chunks_double_buffered(monkeypatch):
 
 
 @pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
-def test_node_tiles_smaller_than_edge_tiles(kind):
-    """The node launches on tiles of 8 rows in a layout padded to tiles of 16 (Spec.node_rows), several
-    threads a block: the same answer as the reference."""
+@pytest.mark.parametrize("tile_rows,node_rows", [(16, 8), (32, 16)])
+def test_node_tiles_smaller_than_edge_tiles(kind, tile_rows, node_rows):
+    """The node launches on tiles of 8 or 16 rows in a layout padded to tiles of 16 or 32 (Spec.node_rows): the
+    same answer as the reference."""
     top = tool_topology(box((4, 3, 2)), 2, seed=5)
-    check(random_model(kind, 2, 16, seed=5), top, seed=5, tile_rows=16, node_rows=8)
+    check(random_model(kind, 2, 16, seed=5), top, seed=5, tile_rows=tile_rows, node_rows=node_rows)
+
+
+def test_node_tiles_by_graph_size():
+    """Tiles of 8 node rows for few tiles an SM (batch 1 of L5 on an H200's 132 SMs), 16 for many (batch 64), 8
+    off a GPU; a Network takes them unless told."""
+    from warpgnn.kernels.spec import node_rows_for
+
+    assert node_rows_for(670, 132) == 8 and node_rows_for(64 * 670, 132) == 16 and node_rows_for(10**6, 0) == 8
+    top = tool_topology(box((3, 3, 2)), 2)
+    assert Network(random_model("vanilla", 1, 16), top, device="cpu").spec.node_rows == 8
 
 
 def test_unsupported_configuration_refused_in_one_line():
@@ -226,7 +237,7 @@ def test_half_precision_products_round_their_operands(device):
     from warpgnn.kernels import tiles
 
     rows, k, n = 8, 24, 12
-    product = tiles.gemm(rows, k, n, "fp16")
+    product = tiles.gemm(rows, k, n, "fp16", "test_half_precision_products")
 
     @wp.kernel(enable_backward=False, module="test_half_precision_products")
     def apply(a: wp.array2d(dtype=float), b: wp.array2d(dtype=float), c: wp.array2d(dtype=float)):

@@ -17,10 +17,10 @@ def fresh_process_files() -> dict:
     (its ModuleHasher notes that statics deferred on tile lengths change a kernel's hash), so a test run that built
     CPU modules first would look for another file than a user's process does."""
     probe = ("import json\nfrom warpgnn.kernels import shipped\nfrom warpgnn.kernels.network import build_kernels\n"
-             "from warpgnn.kernels.spec import Spec\nout = {}\nfor F in shipped.LATENTS:\n"
-             "    build_kernels(Spec(F))\n"
+             "out = {}\nfor spec in shipped.specs():\n"
+             "    build_kernels(spec)\n"
              "    for arch in shipped.ARCHS:\n"
-             "        out[f'{F}:{arch}'] = [str(p) for p in shipped.files(Spec(F), arch)]\n"
+             "        out[f'{spec.module}:{arch}'] = [str(p) for p in shipped.files(spec, arch)]\n"
              "print(json.dumps(out))\n")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
     return {k: tuple(Path(p) for p in v) for k, v in json.loads(out.splitlines()[-1]).items()}
@@ -29,9 +29,9 @@ def fresh_process_files() -> dict:
 def test_shipped_modules_are_the_current_kernels():
     expected = set()
     files = fresh_process_files()
-    for latent in shipped.LATENTS:
+    for spec in shipped.specs():
         for arch in shipped.ARCHS:
-            cubin, meta = files[f"{latent}:{arch}"]
+            cubin, meta = files[f"{spec.module}:{arch}"]
             assert cubin.exists() and meta.exists(), (
                 f"{cubin.name} missing: the kernels changed; rebuild with python -m warpgnn.kernels.precompile --ship")
             head = lzma.LZMADecompressor().decompress(cubin.read_bytes()[:4096], max_length=4)
@@ -52,8 +52,8 @@ def test_a_network_of_the_shipped_width_loads_the_prebuilt_module_on_a_gpu():
 
     if not wp.get_cuda_device_count() or shipped.shipped_arch(wp.get_device("cuda:0").arch) is None:
         pytest.skip("needs an sm_80..sm_90 CUDA device")
-    from test_kernels import random_model, tool_topology
     from synthetic import box
+    from test_kernels import random_model, tool_topology
 
     from warpgnn.kernels import Network
 
