@@ -23,7 +23,7 @@ STAGE = r"""
     constexpr int R = Shape::dim(0);
     constexpr int C = Shape::dim(1);
     bool done = false;
-#if defined(__CUDA_ARCH__)
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800  // cp.async: sm_80 on; older GPUs copy element-wise below
     if constexpr (C % 4 == 0) {  // 16-byte asynchronous copies (cp.async): no registers hold the data in flight
         constexpr int C4 = C / 4;
         for (int i = WP_TILE_THREAD_IDX; i < R * C4; i += WP_TILE_BLOCK_DIM) {
@@ -41,7 +41,7 @@ STAGE = r"""
 """  # noqa: E501 (C++ inside)
 
 STAGED = r"""
-#if defined(__CUDA_ARCH__)
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
     asm volatile("cp.async.wait_all;\n" ::);
 #endif
     WP_TILE_SYNC();
@@ -461,7 +461,7 @@ def helpers(spec: Spec, owner: str):
                    shift: wp.array2d(dtype=float), row: int, eps: float, res: wp.tile(dtype=float, shape=(T, F)),
                    residual: int):
         """o = res + LayerNorm(o) in place (o = LayerNorm(o) when residual is 0), torch.nn.LayerNorm over each row of
-        the shared tile (two-pass mean and biased variance, as torch) with gain and shift from row ``row``: on CUDA a
+        the shared tile (mean and biased variance, two-pass here) with gain and shift from row ``row``: on CUDA a
         row in the registers of a few lanes, summed by shuffles, several rows a warp at once (Warp's
         tile_sum(axis=1) reduced the rows one after another through shared memory: ~22 % of the edge pass's stall
         samples, warp_stalls_h200.json)."""
@@ -489,7 +489,8 @@ def helpers(spec: Spec, owner: str):
         columns each; ``products`` seen as vectors, row_view, the columns in floats): an edge MLP's first
         layer split per node. Plain per-thread vector loads, every load of a thread issued before the first
         add (Warp's tile_load_indexed gathers cost 36 us a pass more than their bytes at F = 128; calibration
-        notes); added in the order of the reference's sum; one barrier."""
+        notes); one barrier. The sum is (b + P_r) + P_s, to which the products then add e W_e chunk by chunk:
+        the reference's terms in another order (rounding only)."""
         ...
 
     mm_ff = matmul(T, F, spec.kc, F, spec.gemm, owner)

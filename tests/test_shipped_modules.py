@@ -60,3 +60,11 @@ def test_a_network_of_the_shipped_width_loads_the_prebuilt_module_on_a_gpu():
     net = Network(random_model("hybrid", 1, 64), tool_topology(box((3, 3, 2)), 1, seed=0), device="cuda:0")
     assert net.shipped_module
 
+
+def test_kernels_build_for_gpus_before_sm_80(tmp_path):
+    """The weight staging's cp.async needs sm_80: older GPUs (V100, T4) take its element-wise copy, and their module
+    builds (here ahead of time for sm_75, at width 16: a small module)."""
+    from warpgnn.kernels import precompile
+
+    precompile.compile_ahead([16], 75, tmp_path)
+    assert list(tmp_path.glob("*.sm75.cubin"))
