@@ -1,7 +1,7 @@
 """A TIGNN's weights packed once into Warp arrays, in the layouts the kernels read.
 
 Linear weights are stored transposed, (in, out), so a tile of rows times a weight slice is a
-plain ``tile_matmul``. Weights of the same role are stacked along rows (one block per pass and
+plain row-major product (tiles.matmul). Weights of the same role are stacked along rows (one block per pass and
 edge set), so a kernel picks its block with a runtime row offset: one compiled kernel serves every
 pass, both edge sets and both variants. Read through the state-dict keys, the checkpoint contract.
 """
