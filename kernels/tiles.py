@@ -89,7 +89,7 @@ GEMM = r"""
     constexpr int cost1 = (M * NC + BD - 1) / BD * (2 * CN);
     constexpr int RM = cost4 <= cost2 && cost4 <= cost1 ? 4 : cost2 <= cost1 ? 2 : 1;
     constexpr int ITEMS = M / RM * NC;
-    constexpr bool VA = KV == 4 && SA % 4 == 0, VB = CN == 4 && SB % 4 == 0, VC = CN == 4 && SC % 4 == 0;
+    constexpr bool VA = KV == 4 && SA % 4 == 0, VB = CN == 4 && SB % 4 == 0;  // 16-byte loads of a, of b
     const wp::float32* __restrict__ pa = a.data.ptr;
     const wp::float32* __restrict__ pb = b.data.ptr;
     wp::float32* __restrict__ pc = acc.data.ptr;
