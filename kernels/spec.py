@@ -19,7 +19,7 @@ N_LM = N_L + N_M  # delta_e's outputs per edge and self-loop
 N_GRAD = 2 * STATE  # delta_v's outputs per node: dE, dS
 FEATURE_WIDTH = 24  # widest encoder input (18: the single-graph node features) padded to a multiple of 8
 STAT_WIDTH = 9  # widest standardised raw feature set (the node's v, sigma)
-GEMMS = ("native", "scalar", "mathdx", "fp16")  # the first is the default
+GEMMS = ("native", "scalar", "mathdx", "fp16", "tf32x3", "tf32")  # the first is the default
 
 
 @dataclass(frozen=True)
