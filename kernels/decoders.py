@@ -20,7 +20,7 @@ import warp as wp
 from .generic_tail import row_operators
 from .integrate import advance
 from .spec import N_GRAD, N_LM, STATE, Spec
-from .tiles import helpers, matmul, row_steps, row_vector
+from .tiles import helpers, matmul, row_steps, row_vector, stage
 
 
 @functools.cache
@@ -55,24 +55,28 @@ def kernels(spec: Spec):
     mm_lm = matmul(T, F, spec.kc, N_LM, spec.gemm, spec.module)
     fill_lm, _activate_lm = row_steps(T, N_LM, spec.module)
     port_terms = row_operators(spec)
+    load_rows, loaded = stage(T, F, spec.module)
 
     @wp.func
     def edge_fields(lat: wp.array2d(dtype=float), row_recv: wp.array(dtype=wp.int32),
                     row_send: wp.array(dtype=wp.int32), products: wp.array2d(dtype=row_vector(F)),
                     w_e: wp.array2d(dtype=float), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
                     b2: wp.array2d(dtype=float), row0: int, grads: wp.array2d(dtype=float), out_row: int,
-                    self_loops: int, node0: int, ports: wp.array2d(dtype=float), node_terms: wp.array2d(dtype=float),
-                    lane: int):
+                    self_loops: int, node0: int, ports: wp.array2d(dtype=float), node_terms: wp.array2d(dtype=float)):
         """delta_e on a tile of mesh edges or self-loops (receiver = sender = the node) -> (l, m) -> port terms."""
-        e = wp.tile_load(lat, shape=(T, F), offset=(row0, 0), storage="shared")
+        e = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+        load_rows(e, lat, row0, 0)  # in flight while the gather's loads are
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         gather_pair(h, b1, 0, products, row_recv, 0, row_send, 0, F, row0)
+        loaded(e)
         mm_ff(e, w_e, 0, 0, h)
         activate(h, b1, 0, 0)
         o = wp.tile_empty(shape=(T, N_LM), dtype=float, storage="shared")
         fill_lm(o, b2, 0)
         mm_lm(h, w2, 0, 0, o)
-        port_terms(o, row_send, row0, grads, out_row, self_loops, node0, ports, node_terms, lane)
+        x = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
+        y = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
+        port_terms(o, x, y, row_send, row0, grads, out_row, self_loops, node0, ports, node_terms)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def hybrid_fields(lat: wp.array2d(dtype=float), row_recv: wp.array(dtype=wp.int32),
@@ -80,10 +84,10 @@ def kernels(spec: Spec):
                       de_e: wp.array2d(dtype=float), de_b1: wp.array2d(dtype=float), de_w2: wp.array2d(dtype=float),
                       de_b2: wp.array2d(dtype=float), grads: wp.array2d(dtype=float), mesh_row: int, mesh_tiles: int,
                       ports: wp.array2d(dtype=float), node_terms: wp.array2d(dtype=float)):
-        blk, lane = wp.tid()  # mesh edges, then self-loops: contiguous latent rows, ports rows from 0
+        blk, _lane = wp.tid()  # mesh edges, then self-loops: contiguous latent rows, ports rows from 0
         self_loops = wp.where(blk >= mesh_tiles, 1, 0)
         edge_fields(lat, row_recv, row_send, products, de_e, de_b1, de_w2, de_b2, mesh_row + blk * T, grads, blk * T,
-                    self_loops, (blk - mesh_tiles) * T, ports, node_terms, lane)
+                    self_loops, (blk - mesh_tiles) * T, ports, node_terms)
 
     return hybrid_fields
 
@@ -95,6 +99,7 @@ def vanilla_kernel(spec: Spec):
     _fill, activate, _second_layer, _segment_sum, _project, _gather = helpers(spec.nodes, spec.module)
     mm_state = matmul(T, F, spec.kc, STATE, spec.gemm, spec.module)
     fill_state, _activate_state = row_steps(T, STATE, spec.module)
+    load_products, loaded = stage(T, F, spec.module)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def vanilla_tail(products: wp.array2d(dtype=float), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
@@ -105,7 +110,9 @@ def vanilla_kernel(spec: Spec):
                      zdot_std: wp.array2d(dtype=float), z_next: wp.array2d(dtype=float)):
         blk, lane = wp.tid()
         row0 = blk * T
-        h = wp.tile_load(products, shape=(T, F), offset=(row0, 0), storage="shared")
+        h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+        load_products(h, products, row0, 0)
+        loaded(h)
         activate(h, b1, 0, 1)
         o = wp.tile_empty(shape=(T, STATE), dtype=float, storage="shared")
         fill_state(o, b2, 0)

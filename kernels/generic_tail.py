@@ -6,8 +6,8 @@
   L_ij dE_j + M_ij dS_j and every self-loop's L_ii dE_i + M_ii dS_i, 12 values a row, straight from the
   (rows, 144) output tile of delta_e while it is still in shared memory: L x = A x - A^T x and
   M x = B (B^T x) from the packed triangles l (66) and m (78) (row-major lower triangles, as
-  torch.tril_indices), no 12 x 12 matrix formed, l and m never stored. A thread per (row, component),
-  so the work is spread over all edges (a thread per (node, component) walking its edges ran the L5 step's
+  torch.tril_indices), no 12 x 12 matrix formed, l and m never stored; B^T x once a row, then a thread per
+  (row, component), so the work is spread over all edges (a thread per (node, component) walking its edges ran the L5 step's
   tail in 121 us on an H100; bench/results/warp_kernel_profile_h100.json). Self-loop rows also write each
   component's share of the degeneracy residual |L_ii dS_i|^2 + |M_ii dE_i|^2 and of the entropy production
   dS_i . M_ii dS_i.
@@ -24,69 +24,84 @@ import functools
 import warp as wp
 
 from .integrate import advance
-from .spec import N_L, N_LM, STATE, Spec
+from .spec import N_LM, STATE, Spec
 
-vec12 = wp.types.vector(length=STATE, dtype=float)
-
-
-@wp.func
-def load12(a: wp.array2d(dtype=float), row: int, col: int):
-    v = vec12()
-    for c in range(12):
-        v[c] = a[row, col + c]
-    return v
+# Three block steps over the tile, each one loop and one barrier: the rows' senders' (dE, dS) gathered into a shared
+# (T, 24) tile (read once a row, not once a component), then (B^T x)[b] a (row, b) item (x = dS; on self-loops dE too),
+# then each (row, a) item's (L x)[a] = sum_{b<a} A[a, b] x_b - sum_{b>a} A[b, a] x_b and (M x)[a] = sum_{b<=a} B[a, b]
+# (B^T x)_b, in the order of additions of the reference's loops. B^T x is formed once a row instead of once a
+# component: the decoder launch 37 -> 26 us at batch 1, 247 -> 130 registers (its loops as Warp code, 12 x 12
+# branches an item, held ~30 % of its stall samples; bench/results/warp_step_trims_h200.json).
+PORT_TERMS = r"""
+    constexpr int T = tile_lm::Layout::Shape::dim(0), S = 12, NL = S * (S - 1) / 2;
+    constexpr int SL = tile_lm::Layout::Stride::dim(0), SX = tile_x::Layout::Stride::dim(0);
+    const wp::float32* __restrict__ l = lm.data.ptr;
+    wp::float32* __restrict__ px = x.data.ptr;
+    wp::float32* __restrict__ py = y.data.ptr;
+    for (int i = WP_TILE_THREAD_IDX; i < T * 2 * S; i += WP_TILE_BLOCK_DIM) {  // (dE | dS) of each row's sender
+        const int r = i / (2 * S), c = i - r * (2 * S);
+        px[r * SX + c] = wp::index(grads, wp::index(row_send, row0 + r), c);
+    }
+    WP_TILE_SYNC();
+    for (int i = WP_TILE_THREAD_IDX; i < T * S; i += WP_TILE_BLOCK_DIM) {  // y = (B^T dE | B^T dS)
+        const int r = i / S, b = i - r * S;
+        const wp::float32* B = l + r * SL + NL;
+        wp::float32 ye = 0, ys = 0;
+        for (int c = b; c < S; ++c) {
+            const wp::float32 w = B[c * (c + 1) / 2 + b];
+            ys += w * px[r * SX + S + c];
+            if (self_loops)
+                ye += w * px[r * SX + c];
+        }
+        py[r * SX + b] = ye;
+        py[r * SX + S + b] = ys;
+    }
+    WP_TILE_SYNC();
+    for (int i = WP_TILE_THREAD_IDX; i < T * S; i += WP_TILE_BLOCK_DIM) {
+        const int r = i / S, a = i - r * S;
+        const wp::float32* A = l + r * SL;
+        const wp::float32* B = A + NL;
+        const wp::float32* xe = px + r * SX;
+        const wp::float32* xs = xe + S;
+        wp::float32 l_de = 0, l_ds = 0, m_ds = 0, m_de = 0;
+        for (int b = 0; b < S; ++b) {  // (A - A^T) x
+            if (b == a)
+                continue;
+            const wp::float32 w = b < a ? A[a * (a - 1) / 2 + b] : -A[b * (b - 1) / 2 + a];
+            l_de += w * xe[b];
+            if (self_loops)
+                l_ds += w * xs[b];
+        }
+        for (int b = 0; b <= a; ++b) {  // B (B^T x)
+            const wp::float32 w = B[a * (a + 1) / 2 + b];
+            m_ds += w * py[r * SX + S + b];
+            if (self_loops)
+                m_de += w * py[r * SX + b];
+        }
+        wp::index(ports, out_row + r, a) = l_de + m_ds;
+        if (self_loops) {
+            wp::index(node_terms, node0 + r, a) = l_ds * l_ds + m_de * m_de;
+            wp::index(node_terms, node0 + r, S + a) = xs[a] * m_ds;
+        }
+    }
+    WP_TILE_SYNC();
+"""
 
 
 @functools.cache
 def row_operators(spec: Spec):
-    """(L x)[a] and (M x)[a] of one row r of a (rows, 144) tile of delta_e's outputs."""
+    """port_terms(lm, x, y, row_send, row0, grads, out_row, self_loops, node0, ports, node_terms): ports[out_row + r,
+    a] = (L_r dE_j + M_r dS_j)[a] for each row r of a (rows, 144) tile of delta_e's outputs, j the row's sender (the
+    node itself on a self-loop), L x = A x - A^T x and M x = B (B^T x) from the packed triangles; on self-loop rows
+    (self_loops != 0, node node0 + r) also node_terms[node, a] = (L dS)[a]^2 + (M dE)[a]^2 and node_terms[node, 12 +
+    a] = dS[a] (M dS)[a]. ``x`` and ``y``: (rows, 24) shared scratch tiles."""
     T = spec.tile_rows
 
-    @wp.func
-    def L_row(lm: wp.tile(dtype=float, shape=(T, N_LM)), r: int, a: int, x: vec12):
-        """((A - A^T) x)[a]: row a of A (b < a) minus column a of A (b > a); A[a, b] at a (a - 1) / 2 + b."""
-        out = float(0.0)
-        for b in range(12):
-            if b < a:
-                out += lm[r, a * (a - 1) // 2 + b] * x[b]
-            elif b > a:
-                out -= lm[r, b * (b - 1) // 2 + a] * x[b]
-        return out
-
-    @wp.func
-    def M_row(lm: wp.tile(dtype=float, shape=(T, N_LM)), r: int, a: int, x: vec12):
-        """(B (B^T x))[a] = sum_{b <= a} B[a, b] (B^T x)[b], (B^T x)[b] = sum_{c >= b} B[c, b] x[c];
-        B[a, b] at 66 + a (a + 1) / 2 + b."""
-        out = float(0.0)
-        for b in range(12):
-            if b <= a:
-                btx = float(0.0)
-                for c in range(12):
-                    if c >= b:
-                        btx += lm[r, N_L + c * (c + 1) // 2 + b] * x[c]
-                out += lm[r, N_L + a * (a + 1) // 2 + b] * btx
-        return out
-
-    @wp.func
-    def port_terms(lm: wp.tile(dtype=float, shape=(T, N_LM)), row_send: wp.array(dtype=wp.int32), row0: int,
+    @wp.func_native(PORT_TERMS)
+    def port_terms(lm: wp.tile(dtype=float, shape=(T, N_LM)), x: wp.tile(dtype=float, shape=(T, 2 * STATE)),
+                   y: wp.tile(dtype=float, shape=(T, 2 * STATE)), row_send: wp.array(dtype=wp.int32), row0: int,
                    grads: wp.array2d(dtype=float), out_row: int, self_loops: int, node0: int,
-                   ports: wp.array2d(dtype=float), node_terms: wp.array2d(dtype=float), lane: int):
-        """ports[out_row + r, a] = (L_r dE_j + M_r dS_j)[a], j the row's sender (the node itself on a self-loop);
-        on self-loop rows (self_loops != 0, node node0 + r) also node_terms[node, a] = (L dS)[a]^2 + (M dE)[a]^2
-        and node_terms[node, 12 + a] = dS[a] (M dS)[a]."""
-        for idx in range(lane, T * STATE, wp.block_dim()):
-            r = idx // STATE
-            a = idx - r * STATE
-            j = row_send[row0 + r]
-            dE = load12(grads, j, 0)
-            dS = load12(grads, j, STATE)
-            m_dS = M_row(lm, r, a, dS)
-            ports[out_row + r, a] = L_row(lm, r, a, dE) + m_dS
-            if self_loops != 0:
-                l_dS = L_row(lm, r, a, dS)
-                m_dE = M_row(lm, r, a, dE)
-                node_terms[node0 + r, a] = l_dS * l_dS + m_dE * m_dE
-                node_terms[node0 + r, STATE + a] = dS[a] * m_dS
+                   ports: wp.array2d(dtype=float), node_terms: wp.array2d(dtype=float)): ...
 
     return port_terms
 

@@ -26,7 +26,7 @@ import warp as wp
 
 from .decoders import node_decoder
 from .spec import FEATURE_WIDTH, Spec
-from .tiles import helpers, matmul, row_vector
+from .tiles import helpers, matmul, row_vector, stage, store
 
 FW = FEATURE_WIDTH
 
@@ -37,17 +37,29 @@ def kernels(spec: Spec):
     fill, _activate, second_layer, _segment_sum, project, gather_pair = helpers(spec, spec.module)
     mm_ff = matmul(T, F, spec.kc, F, spec.gemm, spec.module)
     mm_in = matmul(T, FW, FW, F, spec.gemm, spec.module)
+    load_rows, loaded = stage(T, F, spec.module)
+    load_feat, loaded_feat = stage(T, FW, spec.module)
+    store_rows = store(T, F, spec.module)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def encode(feat: wp.array2d(dtype=float), w1: wp.array2d(dtype=float), b1: wp.array2d(dtype=float),
                w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float), gain: wp.array2d(dtype=float),
                shift: wp.array2d(dtype=float), self_loop: wp.array2d(dtype=float), proj: wp.array2d(dtype=float),
                tool_proj: wp.array2d(dtype=float), eps: float, mesh_row: int, self_row: int, act_row: int,
-               tool_row: int, nodes_pad: int, tools_pad: int, proj_chunks: int, row_tiles: int,
+               tool_row: int, nodes_pad: int, tools_pad: int, proj_chunks: int, row_tiles: int, later_tools: int,
                lat: wp.array2d(dtype=float), products: wp.array2d(dtype=float)):
         blk, _lane = wp.tid()
-        tool_pass = wp.int32(0)  # which pass's tool products this block writes
-        if blk >= row_tiles:  # the tool tiles again, once for each later pass (one product a block, not a chain)
+        tool_pass = wp.int32(0)  # which pass's tool products this block writes (-1: none, nor the latents)
+        chunk0 = wp.int32(0)  # on node rows, the pass-0 node products' (F, F) column blocks [chunk0, chunk1)
+        chunk1 = wp.int32(1)
+        if blk >= row_tiles + later_tools:  # the node tiles again, a block for each further column block: the
+            # longest chain of the launch was a node tile's two layers and its three products one after another
+            k = blk - row_tiles - later_tools
+            chunk0 = 1 + k % (proj_chunks - 1)
+            chunk1 = chunk0 + 1
+            tool_pass = -1
+            blk = k // (proj_chunks - 1)
+        elif blk >= row_tiles:  # the tool tiles again, once for each later pass (one product a block, not a chain)
             k = blk - row_tiles
             tool_tiles = tools_pad // T
             tool_pass = 1 + k // tool_tiles
@@ -57,7 +69,7 @@ def kernels(spec: Spec):
             # self-loop rows: the hybrid's learned edge latent x_ii, the same for every node
             loop = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
             fill(loop, self_loop, 0)
-            wp.tile_store(lat, loop, offset=(row0, 0))
+            store_rows(loop, lat, row0, 0)
             return
         cls = wp.int32(0)  # node, mesh edge, actuator edge, tool: the rows of weights.ENCODERS
         if row0 >= tool_row:
@@ -66,16 +78,18 @@ def kernels(spec: Spec):
             cls = 2
         elif row0 >= mesh_row:
             cls = 1
-        x = wp.tile_load(feat, shape=(T, FW), offset=(row0, 0), storage="shared")
+        x = wp.tile_empty(shape=(T, FW), dtype=float, storage="shared")
+        load_feat(x, feat, row0, 0)
+        loaded_feat(x)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         fill(h, b1, cls)
         mm_in(x, w1, cls * FW, 0, h)
         y = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         second_layer(h, w2, b2, gain, shift, cls, eps, h, 0, y)
         if tool_pass == 0:
-            wp.tile_store(lat, y, offset=(row0, 0))
+            store_rows(y, lat, row0, 0)
         if cls == 0:
-            for c in range(proj_chunks):  # pass 0's node products
+            for c in range(chunk0, chunk1):  # pass 0's node products
                 project(y, proj, 0, c * F, products, row0, c * F)
         if cls == 3:  # this pass's tool products, after the node rows
             project(y, tool_proj, tool_pass * F, 0, products, nodes_pad + tool_pass * tools_pad + row0 - tool_row, F)
@@ -97,13 +111,15 @@ def kernels(spec: Spec):
             recv_col = 2 * F
             send_row = p * tools_pad
         wi = 2 * p + s
-        e = wp.tile_load(lat, shape=(T, F), offset=(row0, 0), storage="shared")
+        e = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+        load_rows(e, lat, row0, 0)  # in flight while the gather's loads are
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         gather_pair(h, b1, wi, products, row_recv, recv_col, row_send, send_row, F, row0)
+        loaded(e)
         mm_ff(e, w_e, wi * F, 0, h)
         o = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         second_layer(h, w2, b2, gain, shift, wi, eps, e, 1, o)
-        wp.tile_store(lat, o, offset=(row0, 0))
+        store_rows(o, lat, row0, 0)
 
     return encode, edge_pass
 
@@ -116,6 +132,8 @@ def node_kernel(spec: Spec):
     node_fields = node_decoder(spec.nodes, spec.module)
     F3 = 3 * F
     mm_in, mm_out = matmul(T, F3, spec.kc, F, spec.gemm, spec.module), matmul(T, F, spec.kc, F3, spec.gemm, spec.module)
+    load_rows, loaded = stage(T, F, spec.module)
+    store_rows, store_products = store(T, F, spec.module), store(T, F3, spec.module)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def node_pass(lat: wp.array2d(dtype=float), lat_rows: wp.array2d(dtype=row_vector(F)),
@@ -132,23 +150,24 @@ def node_kernel(spec: Spec):
         # one product over 3F (its weight chunks double-buffered end to end; zeros without actuator graphs, whose
         # weight block is zero too): the same chunks in the same order as three products, one code path
         xin = wp.tile_zeros(shape=(T, F3), dtype=float, storage="shared")
-        wp.tile_assign(xin, wp.tile_load(lat, shape=(T, F), offset=(row0, 0)), offset=(0, 0))
         x = wp.tile_view(xin, offset=(0, 0), shape=(T, F))
+        load_rows(x, lat, row0, 0)  # in flight while the CSR sums' loads are
         segment_sum(wp.tile_view(xin, offset=(0, F), shape=(T, F)), lat_rows, mesh_off, mesh_row, row0, n_nodes)
         if actuators != 0:
             segment_sum(wp.tile_view(xin, offset=(0, 2 * F), shape=(T, F)), lat_rows, act_off, act_row, row0,
                         n_nodes)
+        loaded(x)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         fill(h, b1, p)
         mm_in(xin, w1, 3 * p * F, 0, h)
         y = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         second_layer(h, w2, b2, gain, shift, p, eps, x, 1, y)
-        wp.tile_store(lat, y, offset=(row0, 0))
+        store_rows(y, lat, row0, 0)
         # the next stage's node products, its three (F, F) blocks as one product (blocks a stage does not use are
         # zero weights, or read by no launch)
         nxt = wp.tile_zeros(shape=(T, F3), dtype=float, storage="shared")
         mm_out(y, proj, (p + 1) * F, 0, nxt)
-        wp.tile_store(products, nxt, offset=(row0, 0))
+        store_products(nxt, products, row0, 0)
         if decode != 0:  # the hybrid's last pass: delta_v here, so (dE, dS) exist before the decoder's edge launch
             node_fields(wp.tile_view(nxt, offset=(0, 2 * F), shape=(T, F)), dv_b1, dv_w2, dv_b2, row0, grads)
 
@@ -162,11 +181,13 @@ def launches(net, block_dim: int) -> list:
     A = 1 if w.actuator_graphs else 0
     pass_chunks = 3 if A else 2
     later_tools = (w.passes - 1) * lay.tiles(lay.tools_pad)  # blocks for the later passes' tool products
+    node_chunks = (pass_chunks - 1) * lay.tiles(lay.nodes_pad)  # and for the node products' further column blocks
     out = [wp.launch_tiled(
-        encode, dim=[lay.tiles(lay.rows) + later_tools], block_dim=block_dim, device=dev, record_cmd=True,
+        encode, dim=[lay.tiles(lay.rows) + later_tools + node_chunks], block_dim=block_dim, device=dev,
+        record_cmd=True,
         inputs=[net.feat, w.enc_w1, w.enc_b1, w.enc_w2, w.enc_b2, w.enc_g, w.enc_be, net.self_loop, w.proj,
                 w.tool_proj, w.eps, lay.mesh_row, lay.self_row, lay.act_row,
-                lay.tool_row, lay.nodes_pad, lay.tools_pad, pass_chunks, lay.tiles(lay.rows),
+                lay.tool_row, lay.nodes_pad, lay.tools_pad, pass_chunks, lay.tiles(lay.rows), later_tools,
                 net.lat, net.products])]
     mesh_tiles = lay.tiles(lay.edges_pad)
     edge_tiles = mesh_tiles + lay.tiles(lay.act_pad)

@@ -19,7 +19,7 @@ N_LM = N_L + N_M  # delta_e's outputs per edge and self-loop
 N_GRAD = 2 * STATE  # delta_v's outputs per node: dE, dS
 FEATURE_WIDTH = 24  # widest encoder input (18: the single-graph node features) padded to a multiple of 8
 STAT_WIDTH = 9  # widest standardised raw feature set (the node's v, sigma)
-GEMMS = ("native", "scalar", "mathdx", "fp16", "tf32x3", "tf32")  # the first is the default
+GEMMS = ("native", "scalar", "mathdx", "fp16")  # the first is the default
 
 
 @dataclass(frozen=True)
@@ -37,9 +37,11 @@ class Spec:
     # registers, rows read as 16-byte vectors, the K loop rolled); "scalar", Warp's cooperative scalar GEMM (on an
     # H200 it matched cuBLASDx bit for bit, steps 2-4 % faster and a module built in 28 s instead of 287 s:
     # bench/results/warp_gemm_h200.json); "mathdx", cuBLASDx. TF32 cuBLASDx products were slower still (359 us at
-    # 5 passes against 335) and 3e-3 to 6e-3 off, so they are not offered; "fp16", operands rounded to half
-    # precision and fp32 sums, on tensor cores from sm_80 (tiles.GEMM_F16; the half-precision stretch target, not yet
-    # measured on a GPU). The CPU runs "mathdx" as "scalar" and "fp16" with the same rounding
+    # 5 passes against 335) and 3e-3 to 6e-3 off, and this tree's own mma.sync TF32 products slower than "native" too
+    # (bench/results/warp_tensor_cores_h200.json), so they are not offered; "fp16", operands rounded to half
+    # precision and fp32 sums, on tensor cores from sm_80 (tiles.GEMM_F16; the half-precision stretch target: 1.5-1.9x
+    # slower than "native" on an H200, warp_fp16_h200.json). The CPU runs "mathdx" as "scalar" and "fp16" with the
+    # same rounding
     gemm: str = GEMMS[0]
 
     def __post_init__(self):

@@ -48,6 +48,31 @@ STAGED = r"""
 """
 
 
+# out[row0:row0 + R, col0:col0 + C] = the shared tile src: 16-byte stores where the widths allow
+STORE = r"""
+    using L = typename tile_src::Layout;
+    constexpr int R = L::Shape::dim(0), C = L::Shape::dim(1), S = L::Stride::dim(0);
+    const wp::float32* __restrict__ p = src.data.ptr;
+    bool done = false;
+#if defined(__CUDA_ARCH__)
+    if constexpr (C % 4 == 0 && S % 4 == 0) {
+        if (col0 % 4 == 0 && out.shape[1] % 4 == 0) {
+            constexpr int C4 = C / 4;
+            for (int i = WP_TILE_THREAD_IDX; i < R * C4; i += WP_TILE_BLOCK_DIM) {
+                const int r = i / C4, c = (i - (i / C4) * C4) * 4;
+                *reinterpret_cast<float4*>(&wp::index(out, row0 + r, col0 + c)) =
+                    *reinterpret_cast<const float4*>(p + r * S + c);
+            }
+            done = true;
+        }
+    }
+#endif
+    if (!done)
+        for (int i = WP_TILE_THREAD_IDX; i < R * C; i += WP_TILE_BLOCK_DIM)
+            wp::index(out, row0 + i / C, col0 + i % C) = p[i / C * S + i % C];
+"""
+
+
 # The factories here are cached by shape and by ``owner``, the name of the Warp module whose kernels use them: with
 # one function object in two modules, the second module's hash depended on which was hashed first (a process that
 # built the node tiles of 16 alone looked for another shipped file than one that built the tiles of 8 first).
@@ -67,6 +92,17 @@ def stage(rows: int, cols: int, owner: str):
     def staged(dst: wp.tile(dtype=float, shape=(rows, cols))): ...
 
     return stage_copy, staged
+
+
+@functools.cache
+def store(rows: int, cols: int, owner: str):
+    """store(src, out, row0, col0): out[row0:row0 + rows, col0:col0 + cols] = the shared tile src, one loop (Warp's
+    tile_store took 307 of the edge pass's 3,640 instructions). No barrier: src is only read."""
+    @wp.func_native(STORE)
+    def store_rows(src: wp.tile(dtype=float, shape=(rows, cols)), out: wp.array2d(dtype=float), row0: int,
+                   col0: int): ...
+
+    return store_rows
 
 
 # acc += a @ b for shared tiles, a thread an (RM, CN) block of acc held in registers over K: rows of a and b read as
@@ -155,7 +191,7 @@ GEMM = r"""
 # On CUDA (sm_80 and later) tensor cores: each warp takes (16, 8) output tiles and runs mma.sync m16n8k16 over K,
 # operands read from the fp32 shared tiles and converted to f16 pairs in registers, rows and columns past the tile
 # masked to zero; elsewhere GEMM's loop on operands rounded the same way (round to nearest even), so Warp's CPU
-# device checks the numerics in CI. Not yet measured on a GPU.
+# device checks the numerics in CI. On an H200 1.5-1.9x slower than the fp32 products (warp_fp16_h200.json).
 GEMM_F16 = r"""
     auto half_round = [](wp::float32 x) { return wp::half_to_float(wp::float_to_half(x)); };
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
@@ -204,125 +240,10 @@ GEMM_F16 = r"""
 assert "half_round(av" in GEMM_F16
 
 
-
-# Spec.gemm = "tf32x3" / "tf32": the products on tensor cores in fp32 data (sm_80 on), mma.sync m16n8k8 with TF32
-# operands and fp32 sums. "tf32x3" splits each operand x into hi = tf32(x) and lo = x - hi and sums lo_a hi_b +
-# hi_a lo_b + hi_a hi_b (the dropped lo_a lo_b is ~2^-22 relative: fp32's accuracy, as CUTLASS's 3xTF32); "tf32"
-# takes hi_a hi_b alone (10 mantissa bits, as the half-precision path). A warp takes pairs of (16, 8) output
-# tiles of every row block, its fragments read straight from the fp32 shared tiles: k is permuted within each
-# step of 8 (the fragment's k = q and q + 4 are columns 2q and 2q + 1), so a thread's two A values are one 8-byte
-# load, and the weight chunks are staged with rows of N + 4 floats (matmul), so the B loads hit 32 banks. Rows past
-# the tile read as zeros. Elsewhere (CPU, older GPUs, widths not a multiple of 8) the GEMM loop below, in fp32.
-TF32 = {"tf32x3": 3, "tf32": 1}  # Spec.gemm -> products summed a step
-GEMM_TC = r"""
-    auto tf32_round = [](wp::float32 x) {  // "tf32" off the tensor cores: cvt.rna (ties away), 10 mantissa bits
-        if (PASSES == 3) return x;
-        union { wp::float32 f; unsigned u; } v;
-        v.f = x;
-        v.u = (v.u + 0x1000u) & 0xffffe000u;
-        return v.f;
-    };
-#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
-    {
-        using LA = typename tile_a::Layout;
-        using LB = typename tile_b::Layout;
-        using LC = typename tile_acc::Layout;
-        constexpr int M = LC::Shape::dim(0), N = LC::Shape::dim(1), K = LA::Shape::dim(1);
-        constexpr int SA = LA::Stride::dim(0), SB = LB::Stride::dim(0), SC = LC::Stride::dim(0);
-        if constexpr (WP_TILE_BLOCK_DIM % 32 == 0 && N % 8 == 0 && K % 8 == 0 && SA % 2 == 0 && SC % 2 == 0) {
-            constexpr int MT = (M + 15) / 16, NT = N / 8, NW = WP_TILE_BLOCK_DIM / 32;
-            const wp::float32* __restrict__ pa = a.data.ptr;
-            const wp::float32* __restrict__ pb = b.data.ptr;
-            wp::float32* __restrict__ pc = acc.data.ptr;
-            const int warp = threadIdx.x / 32, lane = threadIdx.x % 32, g = lane / 4, q = lane % 4;
-            auto split = [](wp::float32 x, unsigned& hi, unsigned& lo) {
-                asm("cvt.rna.tf32.f32 %0, %1;\n" : "=r"(hi) : "f"(x));
-                lo = __float_as_uint(x - __uint_as_float(hi));
-            };
-            auto mma = [](wp::float32 (&d)[4], const unsigned (&x)[4], unsigned b0, unsigned b1) {
-                asm volatile("mma.sync.aligned.m16n8k8.row.col.f32.tf32.tf32.f32 {%0, %1, %2, %3}, {%4, %5, %6, %7}, "
-                             "{%8, %9}, {%0, %1, %2, %3};\n"
-                             : "+f"(d[0]), "+f"(d[1]), "+f"(d[2]), "+f"(d[3])
-                             : "r"(x[0]), "r"(x[1]), "r"(x[2]), "r"(x[3]), "r"(b0), "r"(b1));
-            };
-            for (int t0 = warp; t0 < NT; t0 += 2 * NW) {  // n tiles t0 and t0 + NW, every row block
-                const int t1 = t0 + NW;
-                const bool two = t1 < NT;
-                wp::float32 d[MT][2][4];
-#pragma unroll
-                for (int m = 0; m < MT; ++m)
-#pragma unroll
-                    for (int j = 0; j < 2; ++j)
-#pragma unroll
-                        for (int i = 0; i < 4; ++i)
-                            d[m][j][i] = wp::float32(0);
-#pragma unroll
-                for (int k0 = 0; k0 < K; k0 += 8) {
-                    const int k = k0 + 2 * q;
-                    unsigned bh[2][2], bl[2][2];
-#pragma unroll
-                    for (int j = 0; j < 2; ++j) {
-                        const int c = (j ? t1 : t0) * 8 + g;
-                        const bool live = j == 0 || two;
-                        split(live ? pb[k * SB + c] : wp::float32(0), bh[j][0], bl[j][0]);
-                        split(live ? pb[(k + 1) * SB + c] : wp::float32(0), bh[j][1], bl[j][1]);
-                    }
-#pragma unroll
-                    for (int m = 0; m < MT; ++m) {
-                        const int r0 = m * 16 + g, r1 = r0 + 8;
-                        const float2 x0 = r0 < M ? *reinterpret_cast<const float2*>(pa + r0 * SA + k) : make_float2(0.f, 0.f);
-                        const float2 x1 = r1 < M ? *reinterpret_cast<const float2*>(pa + r1 * SA + k) : make_float2(0.f, 0.f);
-                        unsigned ah[4], al[4];  // fragment order: (r0, q), (r1, q), (r0, q + 4), (r1, q + 4)
-                        split(x0.x, ah[0], al[0]); split(x1.x, ah[1], al[1]);
-                        split(x0.y, ah[2], al[2]); split(x1.y, ah[3], al[3]);
-#pragma unroll
-                        for (int j = 0; j < 2; ++j) {
-                            if (j == 1 && !two) break;
-                            if constexpr (PASSES == 3) {
-                                mma(d[m][j], al, bh[j][0], bh[j][1]);
-                                mma(d[m][j], ah, bl[j][0], bl[j][1]);
-                            }
-                            mma(d[m][j], ah, bh[j][0], bh[j][1]);
-                        }
-                    }
-                }
-#pragma unroll
-                for (int m = 0; m < MT; ++m)
-#pragma unroll
-                    for (int j = 0; j < 2; ++j) {
-                        if (j == 1 && !two) break;
-                        const int c = (j ? t1 : t0) * 8 + 2 * q;
-#pragma unroll
-                        for (int h = 0; h < 2; ++h) {
-                            const int r = m * 16 + g + 8 * h;
-                            if (r < M) {
-                                float2* dst = reinterpret_cast<float2*>(pc + r * SC + c);
-                                float2 v = *dst;
-                                v.x += d[m][j][2 * h];
-                                v.y += d[m][j][2 * h + 1];
-                                *dst = v;
-                            }
-                        }
-                    }
-            }
-            WP_TILE_SYNC();
-            return;
-        }
-    }
-#endif
-""" + GEMM.replace("wp::muladd(av[i][q], bv[j], s[i][j])", "wp::muladd(tf32_round(av[i][q]), tf32_round(bv[j]), s[i][j])")
-
-
 @functools.cache
 def gemm(rows: int, k: int, n: int, kind: str, owner: str):
     """acc (rows, n) += a (rows, k) @ b (k, n), shared tiles: GEMM above ("native"), GEMM_F16 ("fp16") or Warp's
     wp.tile_matmul ("scalar", "mathdx"): Spec.gemm."""
-    if kind in TF32:
-        @wp.func_native(GEMM_TC.replace("PASSES", str(TF32[kind])))
-        def tensor_cores(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(k, n)),
-                         acc: wp.tile(dtype=float, shape=(rows, n))): ...
-
-        return tensor_cores
     if kind == "fp16":
         @wp.func_native(GEMM_F16)
         def half(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(k, n)),
@@ -354,12 +275,11 @@ def matmul(rows: int, k: int, kc: int, n: int, kind: str, owner: str):
     chunks, kc2 = k // kc, 2 * kc
     stage_copy, staged = stage(kc, n, owner)
     product = gemm(rows, kc, n, kind, owner)
-    ns = n + 4 if kind in TF32 else n  # GEMM_TC's weight rows: N + 4 floats, so a warp's B loads hit 32 banks
 
     @wp.func
     def matmul_acc(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
                    acc: wp.tile(dtype=float, shape=(rows, n))):
-        buf = wp.tile_empty(shape=(kc2, ns), dtype=float, storage="shared")
+        buf = wp.tile_empty(shape=(kc2, n), dtype=float, storage="shared")
         stage_copy(wp.tile_view(buf, offset=(0, 0), shape=(kc, n)), w, row0, col0)
         c = int(0)
         while c < chunks:  # a while loop: Warp does not unroll it

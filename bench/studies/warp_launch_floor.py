@@ -68,10 +68,11 @@ def main():
         grid = int(launch.bounds.size)
         block = int(launch.block_dim)
         x = wp.zeros(1, dtype=float, device=dev)
-        floor = graph_us(lambda: wp.launch(empty_tiled if block > 1 else empty, dim=grid, inputs=[x],
-                                           block_dim=block, device=dev), dev, a.repeats)
-        kernels.append({"kernel": name, "threads": grid, "block_dim": block, "us_per_launch": graph_us(launch.launch, dev,
-                        a.repeats), "empty_kernel_us": floor})
+        kernel = empty_tiled if block > 1 else empty
+        floor = graph_us(lambda: wp.launch(kernel, dim=grid, inputs=[x], block_dim=block, device=dev), dev, a.repeats)
+        per_launch = graph_us(launch.launch, dev, a.repeats)
+        kernels.append({"kernel": name, "threads": grid, "block_dim": block, "us_per_launch": per_launch,
+                        "empty_kernel_us": floor})
         print(kernels[-1], flush=True)
     print(f"step {step:.1f} us, {net.n_launches} launches")
     doc = provenance.record(a) | {"case": a.case, "latent": a.latent, "step_us": step, "launches": net.n_launches,
