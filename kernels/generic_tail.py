@@ -7,8 +7,8 @@
   (rows, 144) output tile of delta_e while it is still in shared memory: L x = A x - A^T x and
   M x = B (B^T x) from the packed triangles l (66) and m (78) (row-major lower triangles, as
   torch.tril_indices), no 12 x 12 matrix formed, l and m never stored; B^T x once a row, then a thread per
-  (row, component), so the work is spread over all edges (a thread per (node, component) walking its edges ran the L5 step's
-  tail in 121 us on an H100; bench/results/warp_kernel_profile_h100.json). Self-loop rows also write each
+  (row, component), so the work is spread over all edges (a thread per (node, component) walking its edges ran
+  the L5 step's tail in 121 us on an H100; bench/results/warp_kernel_profile_h100.json). Self-loop rows also write each
   component's share of the degeneracy residual |L_ii dS_i|^2 + |M_ii dE_i|^2 and of the entropy production
   dS_i . M_ii dS_i.
 * ``generic_tail`` (one launch, a thread per (node, component)): the self term minus the node's incoming

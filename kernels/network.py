@@ -19,7 +19,7 @@ import warp as wp
 
 from . import decoders, features, generic_tail, integrate, message_passing, shipped
 from .graph import build
-from .spec import FEATURE_WIDTH, N_GRAD, NODE_ROWS, STATE, Spec, node_rows_for
+from .spec import FEATURE_WIDTH, N_GRAD, NODE_ROWS, STATE, Spec, k_chunk_for, node_rows_for
 from .tiles import row_view
 from .weights import pack
 
@@ -54,11 +54,11 @@ def _as_warp(x, device):
 
 class Network:
     def __init__(self, model, topology, device=None, tile_rows: int = Spec.tile_rows, block_dim: int | None = None,
-                 k_chunk: int = Spec.k_chunk, weights=None, node_rows: int | None = None, gemm: str = Spec.gemm):
+                 k_chunk: int | None = None, weights=None, node_rows: int | None = None, gemm: str = Spec.gemm):
         """``model``: a warpgnn TIGNN (its config and weights are read once); ``topology``: a
         warpgnn.graphs.Topology, one simulation or a stacked batch. ``tile_rows``, ``node_rows``, ``k_chunk``,
-        ``gemm``: the kernels' Spec (its defaults are the shipped modules'; node_rows None: by the graph's size,
-        spec.node_rows_for). ``block_dim``: threads a block
+        ``gemm``: the kernels' Spec (its defaults are the shipped modules'; node_rows and k_chunk None: by the graph's
+        size, spec.node_rows_for and spec.k_chunk_for). ``block_dim``: threads a block
         of the tile kernels (default_block_dim). ``weights``: the
         model already packed on ``device`` (weights.pack), so Networks of many topologies share one copy."""
         self.device = wp.get_device(device)
@@ -66,6 +66,8 @@ class Network:
         if not node_rows:  # by the graph's size, a divisor of tile_rows
             picked = node_rows_for(topology.n_nodes, self.device.sm_count if self.device.is_cuda else 0)
             node_rows = next(n for n in (picked, NODE_ROWS[0], tile_rows) if tile_rows % n == 0)
+        if k_chunk is None:
+            k_chunk = k_chunk_for(node_rows, w.latent)
         self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm)
         build_kernels(self.spec)
         self.block_dim = block_dim or default_block_dim(self.device)

@@ -24,12 +24,15 @@ import warp as wp
 
 from . import shipped
 from .network import build_kernels, default_block_dim
-from .spec import GEMMS, Spec
+from .spec import GEMMS, Spec, k_chunk_for
 
 
 def _modules(latents, block_dim: int, **shape) -> list:
-    """``shape``: Spec's tile_rows, node_rows, k_chunk (its defaults where absent)."""
-    specs = [Spec(F, **shape) for F in latents]
+    """``shape``: Spec's tile_rows, node_rows, k_chunk (its defaults where absent; k_chunk None: the one a Network
+    with those node tiles picks, spec.k_chunk_for)."""
+    k_chunk = shape.pop("k_chunk", None)
+    node_rows = shape.get("node_rows", Spec.node_rows)
+    specs = [Spec(F, k_chunk=k_chunk_for(node_rows, F) if k_chunk is None else k_chunk, **shape) for F in latents]
     for spec in specs:
         build_kernels(spec)
     return [shipped.module_of(s, block_dim) for s in specs]
@@ -70,7 +73,7 @@ def ship(log=print) -> None:
     for spec in shipped.specs():
         for arch in shipped.ARCHS:
             with tempfile.TemporaryDirectory() as tmp:
-                seconds = compile_ahead([spec.latent], arch, tmp, node_rows=spec.node_rows)
+                seconds = compile_ahead([spec.latent], arch, tmp, node_rows=spec.node_rows, k_chunk=spec.k_chunk)
                 cubin, meta = shipped.files(spec, arch)
                 cubin.write_bytes(lzma.compress((Path(tmp) / cubin.stem).read_bytes(), preset=6))
                 shutil.copy(Path(tmp) / meta.name, meta)
@@ -86,7 +89,8 @@ def main(argv=None) -> None:
     parser.add_argument("--device", default=None, help="Warp device (default: Warp's default device)")
     parser.add_argument("--arch", type=int, default=None, help="build ahead of time for this GPU architecture")
     parser.add_argument("--out", default="aot", help="the folder of --arch's cubins (default aot)")
-    parser.add_argument("--k-chunk", type=int, default=0, help="Spec.k_chunk (default: Spec's; not --ship)")
+    parser.add_argument("--k-chunk", type=int, default=None,
+                        help="Spec.k_chunk (default: a Network's pick for --node-rows; 0: Spec's; not --ship)")
     parser.add_argument("--tile-rows", type=int, default=Spec.tile_rows, help="Spec.tile_rows (not --ship)")
     parser.add_argument("--node-rows", type=int, default=Spec.node_rows, help="Spec.node_rows (not --ship)")
     parser.add_argument("--block-dim", type=int, default=shipped.BLOCK_DIM,

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import warp as wp
 
-from .spec import NODE_ROWS, Spec
+from .spec import NODE_ROWS, Spec, k_chunk_for
 
 FOLDER = Path(__file__).resolve().parent / "aot"
 LATENTS = (64,)  # the shipped network's width, with each of spec.NODE_ROWS (a Network picks by graph size)
@@ -31,8 +31,8 @@ _loaded: set = set()
 
 
 def specs() -> list[Spec]:
-    """The shipped specs: each latent width of LATENTS with each node tile size of NODE_ROWS."""
-    return [Spec(F, node_rows=n) for F in LATENTS for n in NODE_ROWS]
+    """The shipped specs: each latent width of LATENTS with each node tile size of NODE_ROWS and its K chunk."""
+    return [Spec(F, node_rows=n, k_chunk=k_chunk_for(n, F)) for F in LATENTS for n in NODE_ROWS]
 
 
 def module_of(spec: Spec, block_dim: int = BLOCK_DIM):

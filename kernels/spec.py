@@ -86,6 +86,15 @@ def node_rows_for(n_nodes: int, sm_count: int) -> int:
     return NODE_ROWS[1] if sm_count and n_nodes >= 8 * NODE_ROWS[0] * sm_count else NODE_ROWS[0]
 
 
+def k_chunk_for(node_rows: int, latent: int) -> int:
+    """K rows of a weight chunk for a Network whose node tiles are ``node_rows`` (node_rows_for): whole weights of
+    F <= 64 in one chunk while the graph is small (node tiles of 8), so a block waits for one weight copy a product
+    instead of two (the 5-pass hybrid step 212 -> 199 us, the 1-pass 89 -> 84 us on an H200); chunks of 32 on larger
+    graphs, where the bigger staging buffers cost occupancy (batch 64: 6.01 against 6.79 ms; both in
+    bench/results/warp_k_chunk_by_size_h200.json). 0: Spec's default."""
+    return latent if node_rows == NODE_ROWS[0] and latent <= 64 else 0
+
+
 def check_config(config) -> None:
     """The kernels cover the paper's configurations: hybrid or vanilla, any passes and latent,
     with or without actuator graphs, one hidden layer per MLP. Anything else is refused in one line."""

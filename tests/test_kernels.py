@@ -210,14 +210,18 @@ def test_node_tiles_smaller_than_edge_tiles(kind, tile_rows, node_rows):
     check(random_model(kind, 2, 16, seed=5), top, seed=5, tile_rows=tile_rows, node_rows=node_rows)
 
 
-def test_node_tiles_by_graph_size():
+def test_tiles_by_graph_size():
     """Tiles of 8 node rows for few tiles an SM (batch 1 of L5 on an H200's 132 SMs), 16 for many (batch 64), 8
-    off a GPU; a Network takes them unless told."""
-    from warpgnn.kernels.spec import node_rows_for
+    off a GPU; with tiles of 8, whole weights of F <= 64 a K chunk, else Spec's chunks of 32 (at most F); a Network
+    takes them unless told."""
+    from warpgnn.kernels.spec import k_chunk_for, node_rows_for
 
     assert node_rows_for(670, 132) == 8 and node_rows_for(64 * 670, 132) == 16 and node_rows_for(10**6, 0) == 8
+    assert (k_chunk_for(8, 64), k_chunk_for(16, 64), k_chunk_for(8, 128), k_chunk_for(8, 16)) == (64, 0, 0, 16)
     top = tool_topology(box((3, 3, 2)), 2)
-    assert Network(random_model("vanilla", 1, 16), top, device="cpu").spec.node_rows == 8
+    spec = Network(random_model("vanilla", 1, 16), top, device="cpu").spec
+    assert (spec.node_rows, spec.kc) == (8, 16)
+    assert Network(random_model("vanilla", 1, 16), top, device="cpu", k_chunk=8).spec.kc == 8
 
 
 def test_unsupported_configuration_refused_in_one_line():

@@ -45,9 +45,10 @@ def kernel_means(net: Network, calls: int) -> dict:
 
 
 def shape_args(shape: str) -> dict:
-    """"T:N:B[:K[:GEMM]]" -> Network's tile_rows, node_rows, block_dim, k_chunk (0: Spec's), gemm (Spec.gemm)."""
+    """"T:N:B[:K[:GEMM]]" -> Network's tile_rows, node_rows (0: by graph size), block_dim, k_chunk (absent: by graph
+    size; 0: Spec's), gemm (Spec.gemm)."""
     T, N, B, *rest = shape.split(":")
-    return {"tile_rows": int(T), "node_rows": int(N), "block_dim": int(B), "k_chunk": int(rest[0]) if rest else 0,
+    return {"tile_rows": int(T), "node_rows": int(N), "block_dim": int(B), "k_chunk": int(rest[0]) if rest else None,
             "gemm": rest[1] if len(rest) > 1 else Spec.gemm}
 
 
