@@ -57,8 +57,8 @@ class Network:
                  k_chunk: int | None = None, weights=None, node_rows: int | None = None, gemm: str = Spec.gemm):
         """``model``: a warpgnn TIGNN (its config and weights are read once); ``topology``: a
         warpgnn.graphs.Topology, one simulation or a stacked batch. ``tile_rows``, ``node_rows``, ``k_chunk``,
-        ``gemm``: the kernels' Spec (its defaults are the shipped modules'; node_rows and k_chunk None: by the graph's
-        size, spec.node_rows_for and spec.k_chunk_for). ``block_dim``: threads a block
+        ``gemm``: the kernels' Spec (node_rows and k_chunk None: by the graph's size, spec.node_rows_for and
+        spec.k_chunk_for, the two shapes kernels/aot ships). ``block_dim``: threads a block
         of the tile kernels (default_block_dim). ``weights``: the
         model already packed on ``device`` (weights.pack), so Networks of many topologies share one copy."""
         self.device = wp.get_device(device)

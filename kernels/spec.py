@@ -31,7 +31,8 @@ class Spec:
     # step 335 us instead of 499 (bench/results/warp_tile_shapes_h100.json)
     node_rows: int = 8  # NODE_ROWS[0]; Network picks by graph size (node_rows_for)
     # K extent of each partial product (0: the largest divisor of F up to 32): (K, F) weight slices keep
-    # a block's shared memory bounded at F = 128, where one (F, F) fp32 weight is 64 KiB
+    # a block's shared memory bounded at F = 128, where one (F, F) fp32 weight is 64 KiB. A Network picks it with
+    # its node tiles (k_chunk_for: whole F = 64 weights with tiles of 8)
     k_chunk: int = 0
     # the tile products: "native", C++ over shared tiles (tiles.GEMM: a thread a (4, 4) or (1, 4) block held in
     # registers, rows read as 16-byte vectors, the K loop rolled); "scalar", Warp's cooperative scalar GEMM (on an
@@ -91,7 +92,8 @@ def k_chunk_for(node_rows: int, latent: int) -> int:
     F <= 64 in one chunk while the graph is small (node tiles of 8), so a block waits for one weight copy a product
     instead of two (the 5-pass hybrid step 212 -> 199 us, the 1-pass 89 -> 84 us on an H200); chunks of 32 on larger
     graphs, where the bigger staging buffers cost occupancy (batch 64: 6.01 against 6.79 ms; both in
-    bench/results/warp_k_chunk_by_size_h200.json). 0: Spec's default."""
+    bench/results/warp_k_chunk_by_size_h200.json). 0: Spec's default. Keyed on the node tiles as node_rows_for chose
+    them: a Network given node_rows=8 on a large graph gets whole weights too."""
     return latent if node_rows == NODE_ROWS[0] and latent <= 64 else 0
 
 

@@ -82,8 +82,10 @@ STORE = r"""
 def stage(rows: int, cols: int, owner: str):
     """stage(dst, W, row0, col0): start copying W[row0:row0 + rows, col0:col0 + cols] into the shared tile dst
     (asynchronously on CUDA); staged(dst) waits for every copy started and syncs the block. The 16-byte copies need
-    cols, W's row length and col0 to be multiples of 4 floats: every packed weight here is (weights.py: widths F, 3F,
-    12, 24, 144; column blocks at multiples of F), and a width not a multiple of 4 takes the element-wise copy."""
+    cols, W's row length and col0 to be multiples of 4 floats, and W 16-byte aligned: every packed weight here is
+    (weights.py: widths F, 3F, 12, 24, 144; column blocks at multiples of F), as are the Network's own row buffers it
+    copies (latents F, node products 3F, features 24 wide, allocated by Warp), and a width not a multiple of 4 takes
+    the element-wise copy. Not for arrays viewed from elsewhere (torch tensors, slices)."""
     @wp.func_native(STAGE)
     def stage_copy(dst: wp.tile(dtype=float, shape=(rows, cols)), w: wp.array2d(dtype=float), row0: int,
                    col0: int): ...
@@ -97,7 +99,8 @@ def stage(rows: int, cols: int, owner: str):
 @functools.cache
 def store(rows: int, cols: int, owner: str):
     """store(src, out, row0, col0): out[row0:row0 + rows, col0:col0 + cols] = the shared tile src, one loop (Warp's
-    tile_store took 307 of the edge pass's 3,640 instructions). No barrier: src is only read."""
+    tile_store took 307 of the edge pass's 3,640 instructions). No barrier: src is only read, so a caller that writes
+    src afterwards must sync first. No bounds: the Network's row buffers are padded to whole tiles."""
     @wp.func_native(STORE)
     def store_rows(src: wp.tile(dtype=float, shape=(rows, cols)), out: wp.array2d(dtype=float), row0: int,
                    col0: int): ...

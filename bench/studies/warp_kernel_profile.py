@@ -114,6 +114,8 @@ def main():
         T, N, B, K, G = sh["tile_rows"], sh["node_rows"], sh["block_dim"], sh["k_chunk"], sh["gemm"]
         tiles = {"tile_rows": T, "node_rows": N, "k_chunk": K, "gemm": G}
         if a.aot:
+            if not N or K is None:
+                raise SystemExit("--aot needs each shape's node rows and K chunk (T:N:B:K), as its module was built")
             precompile.load(aot_folder(a.aot, a.latent, sh), [a.latent], "cuda:0", B, **tiles)
         for item in a.cases.split(","):
             kind, passes, batch = item.split(":")
@@ -123,11 +125,12 @@ def main():
             net.set_inputs(case.z, case.u_now, case.u_next, DT)
             kernels = kernel_means(net, a.calls)
             p10, median, p90 = captured_step_ms(net, a.repeats)
+            N_used, K_used = net.spec.node_tile, net.spec.kc  # what the Network took (by graph size where not given)
             cases.append({"model": kind, "passes": int(passes), "batch": int(batch), "latent": a.latent,
-                          "tile_rows": T, "node_rows": N or T, "block_dim": B, "k_chunk": K, "gemm": G,
+                          "tile_rows": T, "node_rows": N_used, "block_dim": B, "k_chunk": K_used, "gemm": G,
                           "step_ms": median, "step_p10_ms": p10, "step_p90_ms": p90, "launches": net.n_launches,
                           "kernels": kernels})
-            print(f"T{T} N{N or T} B{B} K{K} {G}", kind, passes, batch, f"step {median * 1e3:.1f} us",
+            print(f"T{T} N{N_used} B{B} K{K_used} {G}", kind, passes, batch, f"step {median * 1e3:.1f} us",
                   {k: round(v["mean_us"], 1) for k, v in kernels.items()}, flush=True)
     Path(a.json).write_text(json.dumps(provenance.record(a) | {"cases": cases}, indent=1) + "\n")
 
