@@ -20,14 +20,14 @@ import warp as wp
 from .generic_tail import row_operators
 from .integrate import advance
 from .spec import N_GRAD, N_LM, STATE, Spec
-from .tiles import helpers, matmul, row_steps, row_vector, stage
+from .tiles import helpers, matmul, matmul_ahead, row_steps, row_vector, stage
 
 
 @functools.cache
 def node_decoder(spec: Spec, owner: str):
     """The hybrid's delta_v on a tile of node latents, for the last node pass (message_passing)."""
     T, F = spec.tile_rows, spec.latent
-    _fill, activate, _second_layer, _segment_sum, _project, _gather = helpers(spec, owner)
+    _fill, activate, _second_layer, _segment_sum, _project, _gather, _ahead = helpers(spec, owner)
     mm_grad = matmul(T, F, spec.kc, N_GRAD, spec.gemm, owner)
     fill_grad, _activate_grad = row_steps(T, N_GRAD, owner)
 
@@ -50,9 +50,12 @@ def node_decoder(spec: Spec, owner: str):
 @functools.cache
 def kernels(spec: Spec):
     T, F = spec.tile_rows, spec.latent
-    _fill, activate, _second_layer, _segment_sum, _project, gather_pair = helpers(spec, spec.module)
+    _fill, activate, _second_layer, _segment_sum, _project, gather_pair, _ahead = helpers(spec, spec.module)
     mm_ff = matmul(T, F, spec.kc, F, spec.gemm, spec.module)
     mm_lm = matmul(T, F, spec.kc, N_LM, spec.gemm, spec.module)
+    ahead = spec.kc == F  # as the edge pass: weight copies first with whole weights
+    ff_rows, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, spec.module)
+    lm_rows, begin_lm, finish_lm = matmul_ahead(T, F, spec.kc, N_LM, spec.gemm, spec.module)
     fill_lm, _activate_lm = row_steps(T, N_LM, spec.module)
     port_terms = row_operators(spec)
     load_rows, loaded = stage(T, F, spec.module)
@@ -64,16 +67,27 @@ def kernels(spec: Spec):
                     b2: wp.array2d(dtype=float), row0: int, grads: wp.array2d(dtype=float), out_row: int,
                     self_loops: int, node0: int, ports: wp.array2d(dtype=float), node_terms: wp.array2d(dtype=float)):
         """delta_e on a tile of mesh edges or self-loops (receiver = sender = the node) -> (l, m) -> port terms."""
+        if wp.static(ahead):  # whole weights: both copies first, in flight while the rows' and gather's loads are
+            w1_buf = wp.tile_empty(shape=(ff_rows, F), dtype=float, storage="shared")
+            begin_ff(w1_buf, w_e, 0, 0)
+            w2_buf = wp.tile_empty(shape=(lm_rows, N_LM), dtype=float, storage="shared")
+            begin_lm(w2_buf, w2, 0, 0)
         e = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        load_rows(e, lat, row0, 0)  # in flight while the gather's loads are
+        load_rows(e, lat, row0, 0)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         gather_pair(h, b1, 0, products, row_recv, 0, row_send, 0, F, row0)
         loaded(e)
-        mm_ff(e, w_e, 0, 0, h)
+        if wp.static(ahead):
+            finish_ff(e, w_e, 0, 0, w1_buf, h)
+        else:
+            mm_ff(e, w_e, 0, 0, h)
         activate(h, b1, 0, 0)
         o = wp.tile_empty(shape=(T, N_LM), dtype=float, storage="shared")
         fill_lm(o, b2, 0)
-        mm_lm(h, w2, 0, 0, o)
+        if wp.static(ahead):
+            finish_lm(h, w2, 0, 0, w2_buf, o)
+        else:
+            mm_lm(h, w2, 0, 0, o)
         x = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
         y = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
         port_terms(o, x, y, row_send, row0, grads, out_row, self_loops, node0, ports, node_terms)
@@ -96,7 +110,7 @@ def kernels(spec: Spec):
 def vanilla_kernel(spec: Spec):
     """vanilla_tail on the node tiles (spec.nodes), in spec's module."""
     T, F = spec.node_tile, spec.latent
-    _fill, activate, _second_layer, _segment_sum, _project, _gather = helpers(spec.nodes, spec.module)
+    _fill, activate, _second_layer, _segment_sum, _project, _gather, _ahead = helpers(spec.nodes, spec.module)
     mm_state = matmul(T, F, spec.kc, STATE, spec.gemm, spec.module)
     fill_state, _activate_state = row_steps(T, STATE, spec.module)
     load_products, loaded = stage(T, F, spec.module)

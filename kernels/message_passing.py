@@ -26,7 +26,7 @@ import warp as wp
 
 from .decoders import node_decoder
 from .spec import FEATURE_WIDTH, Spec
-from .tiles import helpers, matmul, row_vector, stage, store
+from .tiles import helpers, matmul, matmul_ahead, row_vector, stage, store
 
 FW = FEATURE_WIDTH
 
@@ -34,8 +34,13 @@ FW = FEATURE_WIDTH
 @functools.cache
 def kernels(spec: Spec):
     T, F = spec.tile_rows, spec.latent
-    fill, _activate, second_layer, _segment_sum, project, gather_pair = helpers(spec, spec.module)
+    fill, _activate, second_layer, _segment_sum, project, gather_pair, second_layer_ahead = helpers(
+        spec, spec.module)
     mm_ff = matmul(T, F, spec.kc, F, spec.gemm, spec.module)
+    buf_rows, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, spec.module)
+    # whole weights in one K chunk (small graphs, spec.k_chunk_for): a launch starts its weight copies first, so they
+    # are in flight while its rows' loads are; with chunks the buffers held that long would cost occupancy
+    ahead = spec.kc == F
     mm_in = matmul(T, FW, FW, F, spec.gemm, spec.module)
     load_rows, loaded = stage(T, F, spec.module)
     load_feat, loaded_feat = stage(T, FW, spec.module)
@@ -111,14 +116,23 @@ def kernels(spec: Spec):
             recv_col = 2 * F
             send_row = p * tools_pad
         wi = 2 * p + s
+        if wp.static(ahead):  # whole weights: both layers' copies first, in flight while the gather's loads are
+            w1_buf = wp.tile_empty(shape=(buf_rows, F), dtype=float, storage="shared")
+            begin_ff(w1_buf, w_e, wi * F, 0)
+            w2_buf = wp.tile_empty(shape=(buf_rows, F), dtype=float, storage="shared")
+            begin_ff(w2_buf, w2, wi * F, 0)
         e = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        load_rows(e, lat, row0, 0)  # in flight while the gather's loads are
+        load_rows(e, lat, row0, 0)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         gather_pair(h, b1, wi, products, row_recv, recv_col, row_send, send_row, F, row0)
         loaded(e)
-        mm_ff(e, w_e, wi * F, 0, h)
         o = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        second_layer(h, w2, b2, gain, shift, wi, eps, e, 1, o)
+        if wp.static(ahead):
+            finish_ff(e, w_e, wi * F, 0, w1_buf, h)
+            second_layer_ahead(h, w2, w2_buf, b2, gain, shift, wi, eps, e, 1, o)
+        else:
+            mm_ff(e, w_e, wi * F, 0, h)
+            second_layer(h, w2, b2, gain, shift, wi, eps, e, 1, o)
         store_rows(o, lat, row0, 0)
 
     return encode, edge_pass
@@ -128,10 +142,15 @@ def kernels(spec: Spec):
 def node_kernel(spec: Spec):
     """node_pass on the node tiles (spec.nodes: they may be smaller than the edges'), in spec's module."""
     T, F = spec.node_tile, spec.latent
-    fill, _activate, second_layer, segment_sum, _project, _gather = helpers(spec.nodes, spec.module)
+    fill, _activate, second_layer, segment_sum, _project, _gather, second_layer_ahead = helpers(spec.nodes,
+                                                                                               spec.module)
     node_fields = node_decoder(spec.nodes, spec.module)
     F3 = 3 * F
     mm_in, mm_out = matmul(T, F3, spec.kc, F, spec.gemm, spec.module), matmul(T, F, spec.kc, F3, spec.gemm, spec.module)
+    ahead = spec.kc == F  # as the edge pass: weight copies first with whole weights
+    in_rows, begin_in, finish_in = matmul_ahead(T, F3, spec.kc, F, spec.gemm, spec.module)
+    out_rows, begin_out, finish_out = matmul_ahead(T, F, spec.kc, F3, spec.gemm, spec.module)
+    w2_rows, begin_w2, _finish_w2 = matmul_ahead(T, F, spec.kc, F, spec.gemm, spec.module)  # second_layer_ahead's
     load_rows, loaded = stage(T, F, spec.module)
     store_rows, store_products = store(T, F, spec.module), store(T, F3, spec.module)
 
@@ -149,9 +168,16 @@ def node_kernel(spec: Spec):
         # f_v's input [x | sum of mesh messages | sum of actuator messages] as one (T, 3F) tile, so its first layer is
         # one product over 3F (its weight chunks double-buffered end to end; zeros without actuator graphs, whose
         # weight block is zero too): the same chunks in the same order as three products, one code path
+        if wp.static(ahead):  # the three products' weight copies first, in flight while the CSR sums' loads are
+            w1_buf = wp.tile_empty(shape=(in_rows, F), dtype=float, storage="shared")
+            begin_in(w1_buf, w1, 3 * p * F, 0)
+            w2_buf = wp.tile_empty(shape=(w2_rows, F), dtype=float, storage="shared")
+            begin_w2(w2_buf, w2, p * F, 0)
+            proj_buf = wp.tile_empty(shape=(out_rows, F3), dtype=float, storage="shared")
+            begin_out(proj_buf, proj, (p + 1) * F, 0)
         xin = wp.tile_zeros(shape=(T, F3), dtype=float, storage="shared")
         x = wp.tile_view(xin, offset=(0, 0), shape=(T, F))
-        load_rows(x, lat, row0, 0)  # in flight while the CSR sums' loads are
+        load_rows(x, lat, row0, 0)
         segment_sum(wp.tile_view(xin, offset=(0, F), shape=(T, F)), lat_rows, mesh_off, mesh_row, row0, n_nodes)
         if actuators != 0:
             segment_sum(wp.tile_view(xin, offset=(0, 2 * F), shape=(T, F)), lat_rows, act_off, act_row, row0,
@@ -159,14 +185,21 @@ def node_kernel(spec: Spec):
         loaded(x)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         fill(h, b1, p)
-        mm_in(xin, w1, 3 * p * F, 0, h)
         y = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        second_layer(h, w2, b2, gain, shift, p, eps, x, 1, y)
+        if wp.static(ahead):
+            finish_in(xin, w1, 3 * p * F, 0, w1_buf, h)
+            second_layer_ahead(h, w2, w2_buf, b2, gain, shift, p, eps, x, 1, y)
+        else:
+            mm_in(xin, w1, 3 * p * F, 0, h)
+            second_layer(h, w2, b2, gain, shift, p, eps, x, 1, y)
         store_rows(y, lat, row0, 0)
         # the next stage's node products, its three (F, F) blocks as one product (blocks a stage does not use are
         # zero weights, or read by no launch)
         nxt = wp.tile_zeros(shape=(T, F3), dtype=float, storage="shared")
-        mm_out(y, proj, (p + 1) * F, 0, nxt)
+        if wp.static(ahead):
+            finish_out(y, proj, (p + 1) * F, 0, proj_buf, nxt)
+        else:
+            mm_out(y, proj, (p + 1) * F, 0, nxt)
         store_products(nxt, products, row0, 0)
         if decode != 0:  # the hybrid's last pass: delta_v here, so (dE, dS) exist before the decoder's edge launch
             node_fields(wp.tile_view(nxt, offset=(0, 2 * F), shape=(T, F)), dv_b1, dv_w2, dv_b2, row0, grads)

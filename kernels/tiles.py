@@ -269,21 +269,25 @@ def gemm(rows: int, k: int, n: int, kind: str, owner: str):
 
 
 @functools.cache
-def matmul(rows: int, k: int, kc: int, n: int, kind: str, owner: str):
-    """acc (rows, n) += a (rows, k, shared) @ W[row0:row0 + k, col0:col0 + n], K in chunks of kc, double-buffered:
-    chunk c + 1 is copied into shared memory (cp.async on CUDA) while chunk c's product runs, so a product waits for
-    one weight load rather than one a chunk. On an H200 (L5, F = 64) this took the batch-64 step from 8.89 to 7.99
-    ms (edge pass 858 -> 708 us) and the 12-pass F = 128 step from 1.26 to 1.12 ms, same numbers bit for bit
-    (bench/results/warp_staged_h200.json, warp_staged_f128_h200.json)."""
-    chunks, kc2 = k // kc, 2 * kc
+def matmul_ahead(rows: int, k: int, kc: int, n: int, kind: str, owner: str):
+    """A staged product in two parts, so a kernel can start its weight copy first and wait for it last:
+    (buf_rows, begin, finish). The caller allocates ``buf`` (buf_rows, n) in shared memory; begin(buf, W, row0,
+    col0) starts copying the first K chunk of W[row0:row0 + k, col0:col0 + n] into it (cp.async on CUDA), and
+    finish(a, W, row0, col0, buf, acc) runs acc (rows, n) += a (rows, k) @ W[...] over K chunks of kc,
+    double-buffered: chunk c + 1 is copied while chunk c's product runs. A product of one chunk (k == kc) needs
+    one buffer, not two."""
+    chunks = k // kc
+    buf_rows = kc * min(chunks, 2)
     stage_copy, staged = stage(kc, n, owner)
     product = gemm(rows, kc, n, kind, owner)
 
     @wp.func
-    def matmul_acc(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
-                   acc: wp.tile(dtype=float, shape=(rows, n))):
-        buf = wp.tile_empty(shape=(kc2, n), dtype=float, storage="shared")
+    def begin(buf: wp.tile(dtype=float, shape=(buf_rows, n)), w: wp.array2d(dtype=float), row0: int, col0: int):
         stage_copy(wp.tile_view(buf, offset=(0, 0), shape=(kc, n)), w, row0, col0)
+
+    @wp.func
+    def finish(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
+               buf: wp.tile(dtype=float, shape=(buf_rows, n)), acc: wp.tile(dtype=float, shape=(rows, n))):
         c = int(0)
         while c < chunks:  # a while loop: Warp does not unroll it
             b = wp.tile_view(buf, offset=((c % 2) * kc, 0), shape=(kc, n))
@@ -293,6 +297,26 @@ def matmul(rows: int, k: int, kc: int, n: int, kind: str, owner: str):
                            row0 + (c + 1) * kc, col0)
             product(wp.tile_view(a, offset=(0, c * kc), shape=(rows, kc)), b, acc)
             c += 1
+
+    return buf_rows, begin, finish
+
+
+@functools.cache
+def matmul(rows: int, k: int, kc: int, n: int, kind: str, owner: str):
+    """acc (rows, n) += a (rows, k, shared) @ W[row0:row0 + k, col0:col0 + n], K in chunks of kc, double-buffered
+    (matmul_ahead, its weight copy started where the product is): chunk c + 1 is copied into shared memory (cp.async
+    on CUDA) while chunk c's product runs, so a product waits for one weight load rather than one a chunk. On an
+    H200 (L5, F = 64) this took the batch-64 step from 8.89 to 7.99 ms (edge pass 858 -> 708 us) and the 12-pass
+    F = 128 step from 1.26 to 1.12 ms, same numbers bit for bit (bench/results/warp_staged_h200.json,
+    warp_staged_f128_h200.json)."""
+    buf_rows, begin, finish = matmul_ahead(rows, k, kc, n, kind, owner)
+
+    @wp.func
+    def matmul_acc(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
+                   acc: wp.tile(dtype=float, shape=(rows, n))):
+        buf = wp.tile_empty(shape=(buf_rows, n), dtype=float, storage="shared")
+        begin(buf, w, row0, col0)
+        finish(a, w, row0, col0, buf, acc)
 
     return matmul_acc
 
@@ -543,17 +567,30 @@ def helpers(spec: Spec, owner: str):
         wp.tile_store(out, acc, offset=(out_row, out_col))
 
     fill, activate = row_steps(T, F, owner)
+    buf_rows, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, owner)
+
+    @wp.func
+    def second_layer_ahead(h: wp.tile(dtype=float, shape=(T, F)), w2: wp.array2d(dtype=float),
+                           w2_buf: wp.tile(dtype=float, shape=(buf_rows, F)), b2: wp.array2d(dtype=float),
+                           gain: wp.array2d(dtype=float), shift: wp.array2d(dtype=float), row: int, eps: float,
+                           res: wp.tile(dtype=float, shape=(T, F)), residual: int,
+                           o: wp.tile(dtype=float, shape=(T, F))):
+        """An MLP's tail on its first layer's output h (bias included): o = [res +] LayerNorm(silu(h) W2 + b2), with
+        the weights, bias, gain and shift of block ``row``, W2's copy begun into w2_buf (matmul_ahead); h becomes
+        silu(h) in place. o is the caller's: a shared tile returned from a Warp function is copied into one more
+        tile."""
+        activate(h, b2, 0, 0)
+        fill(o, b2, row)
+        finish_ff(h, w2, row * F, 0, w2_buf, o)
+        layer_norm(o, gain, shift, row, eps, res, residual)
 
     @wp.func
     def second_layer(h: wp.tile(dtype=float, shape=(T, F)), w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float),
                      gain: wp.array2d(dtype=float), shift: wp.array2d(dtype=float), row: int, eps: float,
                      res: wp.tile(dtype=float, shape=(T, F)), residual: int, o: wp.tile(dtype=float, shape=(T, F))):
-        """An MLP's tail on its first layer's output h (bias included): o = [res +] LayerNorm(silu(h) W2 + b2), with
-        the weights, bias, gain and shift of block ``row``; h becomes silu(h) in place. o is the caller's: a shared
-        tile returned from a Warp function is copied into one more tile."""
-        activate(h, b2, 0, 0)
-        fill(o, b2, row)
-        mm_ff(h, w2, row * F, 0, o)
-        layer_norm(o, gain, shift, row, eps, res, residual)
+        """second_layer_ahead with W2's copy begun here."""
+        w2_buf = wp.tile_empty(shape=(buf_rows, F), dtype=float, storage="shared")
+        begin_ff(w2_buf, w2, row * F, 0)
+        second_layer_ahead(h, w2, w2_buf, b2, gain, shift, row, eps, res, residual, o)
 
-    return fill, activate, second_layer, segment_sum, project, gather_pair
+    return fill, activate, second_layer, segment_sum, project, gather_pair, second_layer_ahead
