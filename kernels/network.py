@@ -58,7 +58,7 @@ class Network:
         """``model``: a warpgnn TIGNN (its config and weights are read once); ``topology``: a
         warpgnn.graphs.Topology, one simulation or a stacked batch. ``tile_rows``, ``node_rows``, ``k_chunk``,
         ``gemm``: the kernels' Spec (node_rows and k_chunk None: by the graph's size, spec.node_rows_for and
-        spec.k_chunk_for, the two shapes kernels/aot ships). ``block_dim``: threads a block
+        spec.k_chunk_for, the shapes kernels/aot ships). ``block_dim``: threads a block
         of the tile kernels (default_block_dim). ``weights``: the
         model already packed on ``device`` (weights.pack), so Networks of many topologies share one copy."""
         self.device = wp.get_device(device)
@@ -67,7 +67,8 @@ class Network:
             picked = node_rows_for(topology.n_nodes, self.device.sm_count if self.device.is_cuda else 0)
             node_rows = next(n for n in (picked, NODE_ROWS[0], tile_rows) if tile_rows % n == 0)
         if k_chunk is None:
-            k_chunk = k_chunk_for(node_rows, w.latent)
+            k_chunk = k_chunk_for(node_rows, w.latent,
+                                  self.device.max_shared_memory_per_block if self.device.is_cuda else None)
         self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm)
         build_kernels(self.spec)
         self.block_dim = block_dim or default_block_dim(self.device)

@@ -3,7 +3,8 @@
 Warp compiles a module on its first launch: the F = 64 module builds in ~15-30 s on a 2-core CPU with the
 default products (Spec.gemm; with cuBLASDx products, one per product shape, it took 149 s on an H100 and 287 s
 here). The shipped network's width is shipped built for sm_80 (A100, and by binary
-compatibility sm_86/sm_89) and sm_90 (H100, H200), as xz-compressed cubins of ~0.13 MB; loading the sm_90 one
+compatibility sm_86/sm_89) and sm_90 (H100, H200), in each shape a Network picks on them (specs()), as
+xz-compressed cubins of ~0.08 MB; loading the sm_90 one
 took 3 ms on an H200 (bench/results/warp_gemm_h200.json's run; the cuBLASDx module took 0.6 s). A file is named
 by Warp's module identifier, which holds a hash of the kernels' code and options: a changed kernel finds no file
 and compiles as before, and tests/test_shipped_modules.py fails until ``python -m warpgnn.kernels.precompile
@@ -31,8 +32,12 @@ _loaded: set = set()
 
 
 def specs() -> list[Spec]:
-    """The shipped specs: each latent width of LATENTS with each node tile size of NODE_ROWS and its K chunk."""
-    return [Spec(F, node_rows=n, k_chunk=k_chunk_for(n, F)) for F in LATENTS for n in NODE_ROWS]
+    """The shipped specs: each latent width of LATENTS with each node tile size of NODE_ROWS and its K chunk, and
+    the small graphs' tiles with the K chunk of GPUs allowing a block less shared memory (sm_86/sm_89, which run
+    the sm_80 build: spec.k_chunk_for)."""
+    out = [Spec(F, node_rows=n, k_chunk=k_chunk_for(n, F)) for F in LATENTS for n in NODE_ROWS]
+    out += [Spec(F, node_rows=NODE_ROWS[0], k_chunk=k_chunk_for(NODE_ROWS[0], F, max_shared=0)) for F in LATENTS]
+    return list({s.module: s for s in out}.values())
 
 
 def module_of(spec: Spec, block_dim: int = BLOCK_DIM):

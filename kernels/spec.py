@@ -87,14 +87,23 @@ def node_rows_for(n_nodes: int, sm_count: int) -> int:
     return NODE_ROWS[1] if sm_count and n_nodes >= 8 * NODE_ROWS[0] * sm_count else NODE_ROWS[0]
 
 
-def k_chunk_for(node_rows: int, latent: int) -> int:
+# Shared memory a block must be allowed (the device's opt-in limit) for whole weights: the node pass then takes 121
+# KiB (kernels/aot's .meta). sm_80/sm_87 allow 163 KiB and sm_90 227 KiB; sm_86/sm_89/sm_120 (RTX 30x0, 40x0, 50x0,
+# the paper's RTX 3090 among them) 99 KiB, where those kernels cannot launch and chunks of 32 (80 KiB at most) can.
+WHOLE_WEIGHTS_SHARED = 160 * 1024
+
+
+def k_chunk_for(node_rows: int, latent: int, max_shared: int | None = None) -> int:
     """K rows of a weight chunk for a Network whose node tiles are ``node_rows`` (node_rows_for): whole weights of
     F <= 64 in one chunk while the graph is small (node tiles of 8), so a block waits for one weight copy a product
     instead of two (the 5-pass hybrid step 212 -> 199 us, the 1-pass 89 -> 84 us on an H200); chunks of 32 on larger
     graphs, where the bigger staging buffers cost occupancy (batch 64: 6.01 against 6.79 ms; both in
-    bench/results/warp_k_chunk_by_size_h200.json). 0: Spec's default. Keyed on the node tiles as node_rows_for chose
-    them: a Network given node_rows=8 on a large graph gets whole weights too."""
-    return latent if node_rows == NODE_ROWS[0] and latent <= 64 else 0
+    bench/results/warp_k_chunk_by_size_h200.json), and on GPUs that allow a block less than WHOLE_WEIGHTS_SHARED
+    bytes of shared memory (``max_shared``: the device's opt-in limit; None: no limit, as on the CPU). 0: Spec's
+    default. Keyed on the node tiles as node_rows_for chose them: a Network given node_rows=8 on a large graph gets
+    whole weights too."""
+    fits = max_shared is None or max_shared >= WHOLE_WEIGHTS_SHARED
+    return latent if node_rows == NODE_ROWS[0] and latent <= 64 and fits else 0
 
 
 def check_config(config) -> None:

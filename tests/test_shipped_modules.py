@@ -41,6 +41,25 @@ def test_shipped_modules_are_the_current_kernels():
     assert not stale, f"stale shipped modules: {sorted(stale)}"
 
 
+def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
+    """A Network's K chunk follows the device's opt-in shared memory a block (spec.k_chunk_for): the GPUs of 99 KiB
+    (sm_86, sm_89: RTX 30x0 and 40x0, running the sm_80 build) must get chunked kernels that fit it, those of 163 and
+    227 KiB (sm_80, sm_90) whole weights; each pick is shipped, and its largest kernel's shared memory (the .meta
+    Warp wrote at the build) fits with 1 KiB to spare for Warp's static allocations."""
+    from warpgnn.kernels.spec import NODE_ROWS, Spec, k_chunk_for
+
+    files = fresh_process_files()
+    shipped_specs = {s.module: s for s in shipped.specs()}
+    for max_shared, arch in ((99 * 1024, 80), (163 * 1024, 80), (227 * 1024, 90)):
+        for F in shipped.LATENTS:
+            for n in NODE_ROWS:
+                module = Spec(F, node_rows=n, k_chunk=k_chunk_for(n, F, max_shared)).module
+                assert module in shipped_specs, f"{module} (a GPU of {max_shared} B a block) is not shipped"
+                need = max(json.loads(files[f"{module}:{arch}"][1].read_text()).values())
+                assert need + 1024 <= max_shared, f"{module} needs {need} B a block, the GPU allows {max_shared}"
+    assert k_chunk_for(8, 64, 99 * 1024) == 0 and k_chunk_for(8, 64, 163 * 1024) == 64
+
+
 def test_a_device_takes_the_newest_build_of_its_major_version():
     assert [shipped.shipped_arch(a) for a in (75, 80, 86, 89, 90, 100, 120)] == [None, 80, 80, 80, 90, None, None]
 
