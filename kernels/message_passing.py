@@ -34,8 +34,8 @@ FW = FEATURE_WIDTH
 @functools.cache
 def kernels(spec: Spec):
     T, F = spec.tile_rows, spec.latent
-    fill, _activate, second_layer, _segment_sum, project, gather_pair, second_layer_ahead = helpers(
-        spec, spec.module)
+    fill, _activate, second_layer, _segment_sum, project, gather_pair, ahead_parts = helpers(spec, spec.module)
+    w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
     mm_ff = matmul(T, F, spec.kc, F, spec.gemm, spec.module)
     buf_rows, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, spec.module)
     # whole weights in one K chunk (small graphs, spec.k_chunk_for): a launch starts its weight copies first, so they
@@ -119,8 +119,8 @@ def kernels(spec: Spec):
         if wp.static(ahead):  # whole weights: both layers' copies first, in flight while the gather's loads are
             w1_buf = wp.tile_empty(shape=(buf_rows, F), dtype=float, storage="shared")
             begin_ff(w1_buf, w_e, wi * F, 0)
-            w2_buf = wp.tile_empty(shape=(buf_rows, F), dtype=float, storage="shared")
-            begin_ff(w2_buf, w2, wi * F, 0)
+            w2_buf = wp.tile_empty(shape=(w2_rows, F), dtype=float, storage="shared")
+            begin_second_layer(w2_buf, w2, wi)
         e = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         load_rows(e, lat, row0, 0)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
@@ -142,15 +142,14 @@ def kernels(spec: Spec):
 def node_kernel(spec: Spec):
     """node_pass on the node tiles (spec.nodes: they may be smaller than the edges'), in spec's module."""
     T, F = spec.node_tile, spec.latent
-    fill, _activate, second_layer, segment_sum, _project, _gather, second_layer_ahead = helpers(spec.nodes,
-                                                                                               spec.module)
+    fill, _activate, second_layer, segment_sum, _project, _gather, ahead_parts = helpers(spec.nodes, spec.module)
+    w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
     node_fields = node_decoder(spec.nodes, spec.module)
     F3 = 3 * F
     mm_in, mm_out = matmul(T, F3, spec.kc, F, spec.gemm, spec.module), matmul(T, F, spec.kc, F3, spec.gemm, spec.module)
     ahead = spec.kc == F  # as the edge pass: weight copies first with whole weights
     in_rows, begin_in, finish_in = matmul_ahead(T, F3, spec.kc, F, spec.gemm, spec.module)
     out_rows, begin_out, finish_out = matmul_ahead(T, F, spec.kc, F3, spec.gemm, spec.module)
-    w2_rows, begin_w2, _finish_w2 = matmul_ahead(T, F, spec.kc, F, spec.gemm, spec.module)  # second_layer_ahead's
     load_rows, loaded = stage(T, F, spec.module)
     store_rows, store_products = store(T, F, spec.module), store(T, F3, spec.module)
 
@@ -172,7 +171,7 @@ def node_kernel(spec: Spec):
             w1_buf = wp.tile_empty(shape=(in_rows, F), dtype=float, storage="shared")
             begin_in(w1_buf, w1, 3 * p * F, 0)
             w2_buf = wp.tile_empty(shape=(w2_rows, F), dtype=float, storage="shared")
-            begin_w2(w2_buf, w2, p * F, 0)
+            begin_second_layer(w2_buf, w2, p)
             proj_buf = wp.tile_empty(shape=(out_rows, F3), dtype=float, storage="shared")
             begin_out(proj_buf, proj, (p + 1) * F, 0)
         xin = wp.tile_zeros(shape=(T, F3), dtype=float, storage="shared")

@@ -19,7 +19,7 @@ import warp as wp
 
 from . import decoders, features, generic_tail, integrate, message_passing, shipped
 from .graph import build
-from .spec import FEATURE_WIDTH, N_GRAD, NODE_ROWS, STATE, Spec, k_chunk_for, node_rows_for
+from .spec import FEATURE_WIDTH, N_GRAD, NODE_ROWS, STATE, Spec, k_chunk_for, max_shared_of, node_rows_for
 from .tiles import row_view
 from .weights import pack
 
@@ -67,8 +67,7 @@ class Network:
             picked = node_rows_for(topology.n_nodes, self.device.sm_count if self.device.is_cuda else 0)
             node_rows = next(n for n in (picked, NODE_ROWS[0], tile_rows) if tile_rows % n == 0)
         if k_chunk is None:
-            k_chunk = k_chunk_for(node_rows, w.latent,
-                                  self.device.max_shared_memory_per_block if self.device.is_cuda else None)
+            k_chunk = k_chunk_for(node_rows, w.latent, max_shared_of(self.device))
         self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm)
         build_kernels(self.spec)
         self.block_dim = block_dim or default_block_dim(self.device)

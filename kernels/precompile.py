@@ -24,15 +24,16 @@ import warp as wp
 
 from . import shipped
 from .network import build_kernels, default_block_dim
-from .spec import GEMMS, Spec, k_chunk_for
+from .spec import GEMMS, SHARED_OF_ARCH, Spec, k_chunk_for, max_shared_of
 
 
-def _modules(latents, block_dim: int, **shape) -> list:
+def _modules(latents, block_dim: int, max_shared: int | None, **shape) -> list:
     """``shape``: Spec's tile_rows, node_rows, k_chunk (its defaults where absent; k_chunk None: the one a Network
-    with those node tiles picks, spec.k_chunk_for)."""
+    with those node tiles picks on a GPU allowing a block ``max_shared`` bytes, spec.k_chunk_for)."""
     k_chunk = shape.pop("k_chunk", None)
     node_rows = shape.get("node_rows", Spec.node_rows)
-    specs = [Spec(F, k_chunk=k_chunk_for(node_rows, F) if k_chunk is None else k_chunk, **shape) for F in latents]
+    specs = [Spec(F, k_chunk=k_chunk_for(node_rows, F, max_shared) if k_chunk is None else k_chunk, **shape)
+             for F in latents]
     for spec in specs:
         build_kernels(spec)
     return [shipped.module_of(s, block_dim) for s in specs]
@@ -43,7 +44,7 @@ def compile_modules(latents, device=None, **shape) -> float:
     device = wp.get_device(device)
     block_dim = default_block_dim(device)
     t0 = time.perf_counter()
-    for m in _modules(latents, block_dim, **shape):
+    for m in _modules(latents, block_dim, max_shared_of(device), **shape):
         wp.load_module(m, device=device, block_dim=block_dim)
     return time.perf_counter() - t0
 
@@ -51,7 +52,7 @@ def compile_modules(latents, device=None, **shape) -> float:
 def compile_ahead(latents, arch: int, out, block_dim: int = shipped.BLOCK_DIM, **shape) -> float:
     """Build the modules for GPU architecture ``arch`` into the folder ``out`` (cubins) without a GPU; seconds."""
     t0 = time.perf_counter()
-    for m in _modules(latents, block_dim, **shape):
+    for m in _modules(latents, block_dim, SHARED_OF_ARCH.get(arch, 0), **shape):
         wp.compile_aot_module(m, arch=arch, module_dir=str(out), use_ptx=False)
     return time.perf_counter() - t0
 
@@ -61,7 +62,7 @@ def load(folder, latents, device, block_dim: int = shipped.BLOCK_DIM, **shape) -
     Seconds."""
     device = wp.get_device(device)
     t0 = time.perf_counter()
-    for m in _modules(latents, block_dim, **shape):
+    for m in _modules(latents, block_dim, max_shared_of(device), **shape):
         wp.load_aot_module(m, device=device, arch=device.arch, module_dir=str(folder), use_ptx=False)
     return time.perf_counter() - t0
 

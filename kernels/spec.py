@@ -91,6 +91,14 @@ def node_rows_for(n_nodes: int, sm_count: int) -> int:
 # KiB (kernels/aot's .meta). sm_80/sm_87 allow 163 KiB and sm_90 227 KiB; sm_86/sm_89/sm_120 (RTX 30x0, 40x0, 50x0,
 # the paper's RTX 3090 among them) 99 KiB, where those kernels cannot launch and chunks of 32 (80 KiB at most) can.
 WHOLE_WEIGHTS_SHARED = 160 * 1024
+# that limit by architecture, for builds without the GPU (precompile --arch); others allow less than
+# WHOLE_WEIGHTS_SHARED (sm_75 64 KiB; sm_86, sm_89, sm_120 99 KiB)
+SHARED_OF_ARCH = {80: 163 * 1024, 87: 163 * 1024, 90: 227 * 1024, 100: 227 * 1024}
+
+
+def max_shared_of(device) -> int | None:
+    """The shared memory a block of the Warp ``device`` may take (its opt-in limit); None on the CPU (no limit)."""
+    return device.max_shared_memory_per_block if device.is_cuda else None
 
 
 def k_chunk_for(node_rows: int, latent: int, max_shared: int | None = None) -> int:

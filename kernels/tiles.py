@@ -270,7 +270,8 @@ def gemm(rows: int, k: int, n: int, kind: str, owner: str):
 
 @functools.cache
 def matmul_ahead(rows: int, k: int, kc: int, n: int, kind: str, owner: str):
-    """A staged product in two parts, so a kernel can start its weight copy first and wait for it last:
+    """A staged product in two parts, so a kernel can start its weight copy first, in flight while its gathers'
+    plain loads are (the first wait for a copy, ``staged``'s cp.async.wait_all, waits for all begun so far):
     (buf_rows, begin, finish). The caller allocates ``buf`` (buf_rows, n) in shared memory; begin(buf, W, row0,
     col0) starts copying the first K chunk of W[row0:row0 + k, col0:col0 + n] into it (cp.async on CUDA), and
     finish(a, W, row0, col0, buf, acc) runs acc (rows, n) += a (rows, k) @ W[...] over K chunks of kc,
@@ -585,12 +586,20 @@ def helpers(spec: Spec, owner: str):
         layer_norm(o, gain, shift, row, eps, res, residual)
 
     @wp.func
+    def begin_second_layer(w2_buf: wp.tile(dtype=float, shape=(buf_rows, F)), w2: wp.array2d(dtype=float), row: int):
+        """Start copying block ``row``'s W2 into w2_buf, for second_layer_ahead of the same ``row``."""
+        begin_ff(w2_buf, w2, row * F, 0)
+
+    @wp.func
     def second_layer(h: wp.tile(dtype=float, shape=(T, F)), w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float),
                      gain: wp.array2d(dtype=float), shift: wp.array2d(dtype=float), row: int, eps: float,
                      res: wp.tile(dtype=float, shape=(T, F)), residual: int, o: wp.tile(dtype=float, shape=(T, F))):
         """second_layer_ahead with W2's copy begun here."""
         w2_buf = wp.tile_empty(shape=(buf_rows, F), dtype=float, storage="shared")
-        begin_ff(w2_buf, w2, row * F, 0)
+        begin_second_layer(w2_buf, w2, row)
         second_layer_ahead(h, w2, w2_buf, b2, gain, shift, row, eps, res, residual, o)
 
-    return fill, activate, second_layer, segment_sum, project, gather_pair, second_layer_ahead
+    # the last: second_layer in two parts, W2's buffer rows, the copy's start and the rest (a kernel that starts
+    # its weight copies first)
+    ahead = (buf_rows, begin_second_layer, second_layer_ahead)
+    return fill, activate, second_layer, segment_sum, project, gather_pair, ahead

@@ -46,7 +46,7 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
     (sm_86, sm_89: RTX 30x0 and 40x0, running the sm_80 build) must get chunked kernels that fit it, those of 163 and
     227 KiB (sm_80, sm_90) whole weights; each pick is shipped, and its largest kernel's shared memory (the .meta
     Warp wrote at the build) fits with 1 KiB to spare for Warp's static allocations."""
-    from warpgnn.kernels.spec import NODE_ROWS, Spec, k_chunk_for
+    from warpgnn.kernels.spec import NODE_ROWS, SHARED_OF_ARCH, Spec, k_chunk_for
 
     files = fresh_process_files()
     shipped_specs = {s.module: s for s in shipped.specs()}
@@ -58,6 +58,8 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
                 need = max(json.loads(files[f"{module}:{arch}"][1].read_text()).values())
                 assert need + 1024 <= max_shared, f"{module} needs {need} B a block, the GPU allows {max_shared}"
     assert k_chunk_for(8, 64, 99 * 1024) == 0 and k_chunk_for(8, 64, 163 * 1024) == 64
+    # builds without the GPU (precompile --arch) pick by SHARED_OF_ARCH as a Network there would
+    assert [k_chunk_for(8, 64, SHARED_OF_ARCH.get(a, 0)) for a in (75, 80, 86, 89, 90)] == [0, 64, 0, 0, 64]
 
 
 def test_a_device_takes_the_newest_build_of_its_major_version():
