@@ -67,7 +67,8 @@ class Network:
             picked = node_rows_for(topology.n_nodes, self.device.sm_count if self.device.is_cuda else 0)
             node_rows = next(n for n in (picked, NODE_ROWS[0], tile_rows) if tile_rows % n == 0)
         if k_chunk is None:
-            k_chunk = k_chunk_for(node_rows, w.latent, max_shared_of(self.device))
+            tiles_per_sm = -(-topology.n_nodes // node_rows) / self.device.sm_count if self.device.is_cuda else 0
+            k_chunk = k_chunk_for(node_rows, w.latent, max_shared_of(self.device), tiles_per_sm)
         self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm)
         build_kernels(self.spec)
         self.block_dim = block_dim or default_block_dim(self.device)

@@ -101,17 +101,20 @@ def max_shared_of(device) -> int | None:
     return device.max_shared_memory_per_block if device.is_cuda else None
 
 
-def k_chunk_for(node_rows: int, latent: int, max_shared: int | None = None) -> int:
+def k_chunk_for(node_rows: int, latent: int, max_shared: int | None = None, node_tiles_per_sm: float = 1.0) -> int:
     """K rows of a weight chunk for a Network whose node tiles are ``node_rows`` (node_rows_for): whole weights of
-    F <= 64 in one chunk while the graph is small (node tiles of 8), so a block waits for one weight copy a product
-    instead of two (the 5-pass hybrid step 212 -> 199 us, the 1-pass 89 -> 84 us on an H200); chunks of 32 on larger
-    graphs, where the bigger staging buffers cost occupancy (batch 64: 6.01 against 6.79 ms; both in
-    bench/results/warp_k_chunk_by_size_h200.json), and on GPUs that allow a block less than WHOLE_WEIGHTS_SHARED
-    bytes of shared memory (``max_shared``: the device's opt-in limit; None: no limit, as on the CPU). 0: Spec's
-    default. Keyed on the node tiles as node_rows_for chose them: a Network given node_rows=8 on a large graph gets
-    whole weights too."""
+    F <= 64 in one chunk while the graph is small (node tiles of 8, at most one a SM: ``node_tiles_per_sm``, 0 off a
+    GPU), so a block waits for one weight copy a product instead of two (the 5-pass hybrid step 212 -> 199 us, the
+    1-pass 89 -> 84 us on an H200); chunks of 32 on larger graphs, where the whole weights' staging buffers (the
+    node pass 121 KiB) leave an SM room for one block: L5 at batch 2 (168 node tiles for 132 SMs) 357 against 297
+    us a 5-pass hybrid step, batch 12 1.40 against 1.27 ms (warp_k_chunk_batches_h200.json), batch 64 6.79 against
+    6.01 ms (warp_k_chunk_by_size_h200.json); and on GPUs that allow a block less than WHOLE_WEIGHTS_SHARED bytes
+    of shared memory (``max_shared``: the device's opt-in limit; None: no limit, as on the CPU). 0: Spec's
+    default. Keyed on the node tiles as node_rows_for chose them: a Network given node_rows=8 on a large graph
+    gets whole weights only while its tiles are at most one a SM."""
     fits = max_shared is None or max_shared >= WHOLE_WEIGHTS_SHARED
-    return latent if node_rows == NODE_ROWS[0] and latent <= 64 and fits else 0
+    small = node_rows == NODE_ROWS[0] and node_tiles_per_sm <= 1
+    return latent if small and latent <= 64 and fits else 0
 
 
 def check_config(config) -> None:

@@ -18,18 +18,33 @@ import warp as wp
 
 from .spec import Spec
 
-STAGE = r"""
+# a row of a 2-D Warp array as a pointer, its columns contiguous (every array these steps read or write is): one
+# address a row instead of wp::index's signed 64-bit arithmetic an element (~25 instructions a 16-byte weight copy,
+# a quarter of the edge and node passes' instructions, warp_index_math_h200.json)
+ROW_PTR = r"""
+    auto row_ptr = [](const auto& a, int r) {
+        using E = typename wp::remove_reference<decltype(*a.data)>::type;
+        return reinterpret_cast<E*>(reinterpret_cast<char*>(a.data) +
+                                    static_cast<unsigned long long>(static_cast<unsigned>(r)) * a.strides[0]);
+    };
+"""
+
+STAGE = ROW_PTR + r"""
     using Shape = typename tile_dst::Layout::Shape;
     constexpr int R = Shape::dim(0);
     constexpr int C = Shape::dim(1);
     bool done = false;
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800  // cp.async: sm_80 on; older GPUs copy element-wise below
     if constexpr (C % 4 == 0) {  // 16-byte asynchronous copies (cp.async): no registers hold the data in flight
-        constexpr int C4 = C / 4;
-        for (int i = WP_TILE_THREAD_IDX; i < R * C4; i += WP_TILE_BLOCK_DIM) {
-            const int r = i / C4, c = (i - (i / C4) * C4) * 4;
-            const unsigned d = static_cast<unsigned>(__cvta_generic_to_shared(&dst.data(wp::tile_coord(r, c))));
-            asm volatile("cp.async.cg.shared.global [%0], [%1], 16;\n" :: "r"(d), "l"(&wp::index(w, row0 + r, col0 + c)));
+        constexpr int C4 = C / 4, N = R * C4, S = tile_dst::Layout::Stride::dim(0);
+        const char* src = reinterpret_cast<const char*>(row_ptr(w, row0) + col0);
+        const unsigned ws = w.strides[0], d0 = static_cast<unsigned>(__cvta_generic_to_shared(dst.data.ptr));
+#pragma unroll
+        for (int k = 0; k < (N + WP_TILE_BLOCK_DIM - 1) / WP_TILE_BLOCK_DIM; ++k) {
+            const unsigned i = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM, r = i / C4, c = i % C4;
+            if (N % WP_TILE_BLOCK_DIM == 0 || i < N)
+                asm volatile("cp.async.cg.shared.global [%0], [%1], 16;\n" :: "r"(d0 + (r * S + 4 * c) * 4),
+                             "l"(src + r * ws + 16 * c));
         }
         asm volatile("cp.async.commit_group;\n" ::);
         done = true;
@@ -49,7 +64,7 @@ STAGED = r"""
 
 
 # out[row0:row0 + R, col0:col0 + C] = the shared tile src: 16-byte stores where the widths allow
-STORE = r"""
+STORE = ROW_PTR + r"""
     using L = typename tile_src::Layout;
     constexpr int R = L::Shape::dim(0), C = L::Shape::dim(1), S = L::Stride::dim(0);
     const wp::float32* __restrict__ p = src.data.ptr;
@@ -57,11 +72,15 @@ STORE = r"""
 #if defined(__CUDA_ARCH__)
     if constexpr (C % 4 == 0 && S % 4 == 0) {
         if (col0 % 4 == 0 && out.shape[1] % 4 == 0) {
-            constexpr int C4 = C / 4;
-            for (int i = WP_TILE_THREAD_IDX; i < R * C4; i += WP_TILE_BLOCK_DIM) {
-                const int r = i / C4, c = (i - (i / C4) * C4) * 4;
-                *reinterpret_cast<float4*>(&wp::index(out, row0 + r, col0 + c)) =
-                    *reinterpret_cast<const float4*>(p + r * S + c);
+            constexpr int C4 = C / 4, N = R * C4;
+            char* dst = reinterpret_cast<char*>(row_ptr(out, row0) + col0);
+            const unsigned os = out.strides[0];
+#pragma unroll
+            for (int k = 0; k < (N + WP_TILE_BLOCK_DIM - 1) / WP_TILE_BLOCK_DIM; ++k) {
+                const unsigned i = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM, r = i / C4, c = i % C4;
+                if (N % WP_TILE_BLOCK_DIM == 0 || i < N)
+                    *reinterpret_cast<float4*>(dst + r * os + 16 * c) =
+                        *reinterpret_cast<const float4*>(p + r * S + 4 * c);
             }
             done = true;
         }
@@ -180,11 +199,24 @@ GEMM = r"""
                         s[i][j] = wp::muladd(av[i][q], bv[j], s[i][j]);
             }
         }
+#if defined(__CUDA_ARCH__)
+        if constexpr (CN == 4 && SC % 4 == 0) {  // 16-byte read-modify-writes (scalar ones: 4-way bank conflicts)
 #pragma unroll
-        for (int i = 0; i < RM; ++i)
+            for (int i = 0; i < RM; ++i) {
+                float4* q = reinterpret_cast<float4*>(pc + (r0 + i) * SC + c0);
+                float4 v = *q;
+                v.x += s[i][0]; v.y += s[i][CN > 1 ? 1 : 0]; v.z += s[i][CN > 2 ? 2 : 0]; v.w += s[i][CN - 1];
+                *q = v;
+            }
+        } else
+#endif
+        {
 #pragma unroll
-            for (int j = 0; j < CN; ++j)
-                pc[(r0 + i) * SC + c0 + j] += s[i][j];
+            for (int i = 0; i < RM; ++i)
+#pragma unroll
+                for (int j = 0; j < CN; ++j)
+                    pc[(r0 + i) * SC + c0 + j] += s[i][j];
+        }
     }
     WP_TILE_SYNC();
 """  # noqa: E501 (C++ inside)
@@ -339,7 +371,7 @@ def row_view(a: wp.array, latent: int):
 # Block-cooperative steps written in C++ (wp.func_native) where Warp's tile built-ins close every element write or
 # reduction step with a barrier: one barrier a step here. The same code runs on Warp's CPU device (one thread a
 # block, or CPU fibers) except where __CUDA_ARCH__ picks warp shuffles. (``float`` is a macro in Warp's generated code.)
-LAYER_NORM = r"""
+LAYER_NORM = ROW_PTR + r"""
     using L = typename tile_o::Layout;
     using LR = typename tile_res::Layout;
     constexpr int T = L::Shape::dim(0), F = L::Shape::dim(1), S = L::Stride::dim(0), SR = LR::Stride::dim(0);
@@ -352,17 +384,31 @@ LAYER_NORM = r"""
     constexpr int G = F >= 256 ? 32 : F >= 128 ? 16 : F >= 64 ? 8 : F >= 32 ? 4 : F >= 16 ? 2 : 1;
     if constexpr (WP_TILE_BLOCK_DIM % 32 == 0 && F % G == 0) {
         constexpr int W = WP_TILE_BLOCK_DIM / 32 * (32 / G), PER = F / G;
+        // a lane's columns: 16-byte vectors 4 G floats apart (a row's lanes read contiguous bytes: no bank conflict
+        // from F = 64 on, where a quarter warp is one row), or PER consecutive floats where widths do not allow it
+        constexpr bool VEC = PER % 4 == 0 && S % 4 == 0 && SR % 4 == 0;
         const int group = threadIdx.x / G, lane = threadIdx.x % G;
+        auto col = [&](int j) { return VEC ? 4 * (lane + G * (j / 4)) + j % 4 : lane * PER + j; };
 #pragma unroll
         for (int r0 = 0; r0 < T; r0 += W) {
             const int r = r0 + group;
             const bool live = r < T;
             wp::float32 x[PER], s = wp::float32(0);
+            if constexpr (VEC) {
 #pragma unroll
-            for (int j = 0; j < PER; ++j) {
-                x[j] = live ? po[r * S + lane * PER + j] : wp::float32(0);
-                s += x[j];
+                for (int j = 0; j < PER; j += 4) {
+                    const float4 v = live ? *reinterpret_cast<const float4*>(po + r * S + col(j))
+                                          : make_float4(0.f, 0.f, 0.f, 0.f);
+                    x[j] = v.x; x[j + 1] = v.y; x[j + 2] = v.z; x[j + 3] = v.w;
+                }
+            } else {
+#pragma unroll
+                for (int j = 0; j < PER; ++j)
+                    x[j] = live ? po[r * S + col(j)] : wp::float32(0);
             }
+#pragma unroll
+            for (int j = 0; j < PER; ++j)
+                s += x[j];
 #pragma unroll
             for (int m = G / 2; m > 0; m >>= 1)
                 s += __shfl_xor_sync(0xffffffffu, s, m);
@@ -376,11 +422,27 @@ LAYER_NORM = r"""
                 v += __shfl_xor_sync(0xffffffffu, v, m);
             const wp::float32 rstd = wp::float32(1) / sqrtf(v / wp::float32(F) + eps);
             if (live) {
+                const wp::float32* __restrict__ pg = row_ptr(gain, row);
+                const wp::float32* __restrict__ ps = row_ptr(shift, row);
 #pragma unroll
                 for (int j = 0; j < PER; ++j) {
-                    const int c = lane * PER + j;
-                    const wp::float32 y = (x[j] - mean) * rstd * wp::index(gain, row, c) + wp::index(shift, row, c);
-                    po[r * S + c] = residual ? pr[r * SR + c] + y : y;
+                    const int c = col(j);
+                    x[j] = (x[j] - mean) * rstd * pg[c] + ps[c];
+                }
+                if constexpr (VEC) {
+#pragma unroll
+                    for (int j = 0; j < PER; j += 4) {
+                        float4 y = make_float4(x[j], x[j + 1], x[j + 2], x[j + 3]);
+                        if (residual) {
+                            const float4 q = *reinterpret_cast<const float4*>(pr + r * SR + col(j));
+                            y.x = q.x + y.x; y.y = q.y + y.y; y.z = q.z + y.z; y.w = q.w + y.w;
+                        }
+                        *reinterpret_cast<float4*>(po + r * S + col(j)) = y;
+                    }
+                } else {
+#pragma unroll
+                    for (int j = 0; j < PER; ++j)
+                        po[r * S + col(j)] = residual ? pr[r * SR + col(j)] + x[j] : x[j];
                 }
             }
         }
@@ -409,27 +471,54 @@ LAYER_NORM = r"""
 
 # dst = src[row] in every row (a bias: mode 0), or dst = silu(dst) (1) or silu(dst + src[row]) (2) in place: element
 # loops without Warp's tile temporaries (a register tile, its coordinates and a barrier for each of broadcast, map
-# and assign). ``{mode}`` is the C++ that sets ``mode``: a constant for fill, from ``with_bias`` for activate.
-ROW_STEP = r"""
+# and assign). ``{mode}`` is the C++ that sets ``mode``: a constant for fill, from ``with_bias`` for activate (the
+# string is str.format-ed: ROW_PTR's braces doubled).
+ROW_STEP = ROW_PTR.replace("{", "{{").replace("}", "}}") + r"""
     using L = typename tile_dst::Layout;
     constexpr int R = L::Shape::dim(0), C = L::Shape::dim(1), S = L::Stride::dim(0);
     {mode}
     wp::float32* __restrict__ d = dst.data.ptr;
-#pragma unroll 4
-    for (int i = WP_TILE_THREAD_IDX; i < R * C; i += WP_TILE_BLOCK_DIM) {{
-        wp::float32 v = mode == 0 ? wp::index(src, row, i % C) : d[i / C * S + i % C];
-        if (mode == 2)
-            v += wp::index(src, row, i % C);
-        d[i / C * S + i % C] = mode == 0 ? v : v / (wp::float32(1) + wp::exp(-v));
+    const wp::float32* __restrict__ b = row_ptr(src, row);
+    auto step = [&](wp::float32 bias, wp::float32 v) {{
+        v = mode == 0 ? bias : mode == 2 ? v + bias : v;
+#if defined(__CUDA_ARCH__)  // SiLU with the fast exponential and division (__expf: 2 + 1.2 |v| ulp, far inside
+        // the tests' 1e-5; expf and an IEEE division are ~20 instructions an element); the CPU keeps the exact one
+        return mode == 0 ? v : __fdividef(v, wp::float32(1) + __expf(-v));
+#else
+        return mode == 0 ? v : v / (wp::float32(1) + wp::exp(-v));
+#endif
+    }};
+    bool done = false;
+#if defined(__CUDA_ARCH__)
+    if constexpr (C % 4 == 0 && S % 4 == 0) {{  // a (row, 4 columns) item a thread
+        constexpr int C4 = C / 4, N = R * C4;
+#pragma unroll
+        for (int k = 0; k < (N + WP_TILE_BLOCK_DIM - 1) / WP_TILE_BLOCK_DIM; ++k) {{
+            const unsigned i = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM, c = i % C4 * 4;
+            if (N % WP_TILE_BLOCK_DIM == 0 || i < N) {{
+                float4* q = reinterpret_cast<float4*>(d + i / C4 * S + c);
+                const float4 x = mode == 0 ? make_float4(0.f, 0.f, 0.f, 0.f) : *q;
+                const float4 y = mode == 1 ? make_float4(0.f, 0.f, 0.f, 0.f) : *reinterpret_cast<const float4*>(b + c);
+                *q = make_float4(step(y.x, x.x), step(y.y, x.y), step(y.z, x.z), step(y.w, x.w));
+            }}
+        }}
+        done = true;
     }}
+#endif
+    if (!done)
+        for (int i = WP_TILE_THREAD_IDX; i < R * C; i += WP_TILE_BLOCK_DIM) {{
+            wp::float32* q = d + i / C * S + i % C;
+            *q = step(mode == 1 ? wp::float32(0) : b[i % C], mode == 0 ? wp::float32(0) : *q);
+        }}
     WP_TILE_SYNC();
 """
 
 
 def vector_items(tile: str, rows: str) -> str:
     """C++ preamble of a block step over (row, vector) items of a (T, F) shared tile ``tile`` fed from ``rows``, an
-    array of row vectors (row_view): Vec, V floats a vector, FV vectors a row, N items, PER items a thread."""
-    return f"""
+    array of row vectors (row_view): Vec, V floats a vector, FV vectors a row, N items, PER items a thread, and
+    put_row_vector(r, c, y), the store of one item."""
+    return ROW_PTR + f"""
     using Shape = typename tile_{tile}::Layout::Shape;
     constexpr int T = Shape::dim(0);
     constexpr int F = Shape::dim(1);
@@ -437,27 +526,43 @@ def vector_items(tile: str, rows: str) -> str:
     constexpr int V = sizeof(Vec) / sizeof(wp::float32);
     constexpr int FV = F / V;
     constexpr int N = T * FV;
-    constexpr int PER = (N + WP_TILE_BLOCK_DIM - 1) / WP_TILE_BLOCK_DIM;"""
+    constexpr int PER = (N + WP_TILE_BLOCK_DIM - 1) / WP_TILE_BLOCK_DIM;
+    // {tile}[r, c:c + V] = y: one 16-byte store on CUDA where the widths allow (V scalar stores, a warp's lanes 4
+    // floats apart, put 4 lanes on each bank)
+    auto put_row_vector = [&](int r, int c, const Vec& y) {{
+#if defined(__CUDA_ARCH__)
+        using LT = typename tile_{tile}::Layout;
+        if constexpr (V == 4 && LT::Stride::dim(0) % 4 == 0 && LT::Stride::dim(1) == 1) {{
+            *reinterpret_cast<float4*>(&{tile}.data(wp::tile_coord(r, c))) = make_float4(y[0], y[1], y[2], y[3]);
+            return;
+        }}
+#endif
+        for (int j = 0; j < V; ++j)
+            {tile}.data(wp::tile_coord(r, c + j)) = y[j];
+    }};"""
 
 
 GATHER_PAIR = vector_items("h", "products") + r"""
     Vec a[PER], b[PER];
+    const int* __restrict__ rv = &wp::index(recv, row0);
+    const int* __restrict__ sv = &wp::index(send, row0);
 #pragma unroll
     for (int k = 0; k < PER; ++k) {  // every load of the thread issued before the first use
-        const int idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM;
+        const unsigned idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM, r = idx / FV, c = idx % FV;
         if (idx < N) {
-            const int r = idx / FV, c = idx - (idx / FV) * FV;
-            a[k] = wp::index(products, wp::index(recv, row0 + r), recv_col / V + c);
-            b[k] = wp::index(products, send_row + wp::index(send, row0 + r), send_col / V + c);
+            a[k] = row_ptr(products, rv[r])[recv_col / V + c];
+            b[k] = row_ptr(products, send_row + sv[r])[send_col / V + c];
         }
     }
+    const wp::float32* __restrict__ pb = row_ptr(bias, bias_row);
 #pragma unroll
     for (int k = 0; k < PER; ++k) {
-        const int idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM;
+        const unsigned idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM, r = idx / FV, c = idx % FV;
         if (idx < N) {
-            const int r = idx / FV, c = idx - (idx / FV) * FV;
+            Vec y;
             for (int j = 0; j < V; ++j)
-                h.data(wp::tile_coord(r, c * V + j)) = (wp::index(bias, bias_row, c * V + j) + a[k][j]) + b[k][j];
+                y[j] = (pb[c * V + j] + a[k][j]) + b[k][j];
+            put_row_vector(r, c * V, y);
         }
     }
     WP_TILE_SYNC();
@@ -465,20 +570,21 @@ GATHER_PAIR = vector_items("h", "products") + r"""
 
 SEGMENT_SUM = vector_items("agg", "lat") + r"""
     Vec acc[PER];
+    const int* __restrict__ off = &wp::index(offsets, 0);
 #pragma unroll
     for (int k = 0; k < PER; ++k) {
         acc[k] = Vec(wp::float32(0));
-        const int idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM;
-        const int r = idx / FV, c = idx - (idx / FV) * FV, i = node0 + r;
+        const unsigned idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM, r = idx / FV, c = idx % FV;
+        const int i = node0 + r;
         if (idx < N && i < n_nodes) {
-            int e = wp::index(offsets, i);
-            const int end = wp::index(offsets, i + 1);
+            int e = off[i];
+            const int end = off[i + 1];
             while (e < end) {  // eight rows in flight, clamped at the segment's end and not added past it
                 const int last = end - 1;
                 Vec x[8];
 #pragma unroll
                 for (int m = 0; m < 8; ++m)
-                    x[m] = wp::index(lat, base_row + (e + m < last ? e + m : last), c);
+                    x[m] = row_ptr(lat, base_row + (e + m < last ? e + m : last))[c];
 #pragma unroll
                 for (int m = 0; m < 8; ++m)
                     if (e + m < end)
@@ -489,12 +595,9 @@ SEGMENT_SUM = vector_items("agg", "lat") + r"""
     }
 #pragma unroll
     for (int k = 0; k < PER; ++k) {
-        const int idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM;
-        if (idx < N) {
-            const int r = idx / FV, c = idx - (idx / FV) * FV;
-            for (int j = 0; j < V; ++j)
-                agg.data(wp::tile_coord(r, c * V + j)) = acc[k][j];
-        }
+        const unsigned idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM, r = idx / FV, c = idx % FV;
+        if (idx < N)
+            put_row_vector(r, c * V, acc[k]);
     }
     WP_TILE_SYNC();
 """
