@@ -20,7 +20,7 @@ import warp as wp
 from .generic_tail import row_operators
 from .integrate import advance
 from .spec import N_GRAD, N_LM, STATE, Spec
-from .tiles import helpers, matmul, matmul_ahead, row_steps, row_vector, stage
+from .tiles import grid_step, helpers, matmul, matmul_ahead, row_steps, row_vector, stage
 
 
 @functools.cache
@@ -72,6 +72,7 @@ def kernels(spec: Spec):
             begin_ff(w1_buf, w_e, 0, 0)
             w2_buf = wp.tile_empty(shape=(lm_rows, N_LM), dtype=float, storage="shared")
             begin_lm(w2_buf, w2, 0, 0)
+        grid_step(1)
         e = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         load_rows(e, lat, row0, 0)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
@@ -99,6 +100,7 @@ def kernels(spec: Spec):
                       de_b2: wp.array2d(dtype=float), grads: wp.array2d(dtype=float), mesh_row: int, mesh_tiles: int,
                       ports: wp.array2d(dtype=float), node_terms: wp.array2d(dtype=float)):
         blk, _lane = wp.tid()  # mesh edges, then self-loops: contiguous latent rows, ports rows from 0
+        grid_step(0)
         self_loops = wp.where(blk >= mesh_tiles, 1, 0)
         edge_fields(lat, row_recv, row_send, products, de_e, de_b1, de_w2, de_b2, mesh_row + blk * T, grads, blk * T,
                     self_loops, (blk - mesh_tiles) * T, ports, node_terms)
@@ -123,6 +125,8 @@ def vanilla_kernel(spec: Spec):
                      u_next: wp.array2d(dtype=float), n_nodes: int, zdot: wp.array2d(dtype=float),
                      zdot_std: wp.array2d(dtype=float), z_next: wp.array2d(dtype=float)):
         blk, lane = wp.tid()
+        grid_step(0)
+        grid_step(1)
         row0 = blk * T
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         load_products(h, products, row0, 0)

@@ -20,6 +20,7 @@ import functools
 import warp as wp
 
 from .spec import FEATURE_WIDTH, STAT_WIDTH, Spec
+from .tiles import grid_step
 
 FW = FEATURE_WIDTH
 
@@ -60,6 +61,8 @@ def kernels(spec: Spec):
                  n_nodes: int, n_edges: int, n_act: int, single_graph: int,
                  mesh_row: int, act_row: int, tool_row: int, feat: wp.array2d(dtype=float)):
         tid = wp.tid()
+        grid_step(0)
+        grid_step(1)
         i = tid // FW
         c = tid - i * FW
         row = wp.int32(0)

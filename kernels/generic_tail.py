@@ -25,6 +25,7 @@ import warp as wp
 
 from .integrate import advance
 from .spec import N_LM, STATE, Spec
+from .tiles import grid_step
 
 # Three block steps over the tile, each one loop and one barrier: the rows' senders' (dE, dS) gathered into a shared
 # (T, 24) tile (read once a row, not once a component), then (B^T x)[b] a (row, b) item (x = dS; on self-loops dE too),
@@ -118,6 +119,8 @@ def kernels(spec: Spec):
                      degeneracy: wp.array(dtype=float), entropy: wp.array(dtype=float),
                      z_next: wp.array2d(dtype=float)):
         i, a = wp.tid()
+        grid_step(0)
+        grid_step(1)
         incoming = float(0.0)
         for e in range(mesh_off[i], mesh_off[i + 1]):  # the ports row of sorted mesh edge e is e
             incoming += ports[e, a]

@@ -10,6 +10,7 @@ import functools
 import warp as wp
 
 from .spec import STATE, Spec
+from .tiles import grid_step
 
 NODE_FIXED = 1  # graphs.NODE_FIXED
 
@@ -40,6 +41,8 @@ def kernels(spec: Spec):
                   presc_tool: wp.array(dtype=wp.int32), presc_weight: wp.array(dtype=float),
                   u_next: wp.array2d(dtype=float), z_next: wp.array2d(dtype=float)):
         i, c = wp.tid()
+        grid_step(0)
+        grid_step(1)
         z_next[i, c] = advance(i, c, z, zdot[i, c], dt, rest, node_type, presc_tool, presc_weight, u_next)
 
     return integrate

@@ -26,7 +26,7 @@ import warp as wp
 
 from .decoders import node_decoder
 from .spec import FEATURE_WIDTH, Spec
-from .tiles import helpers, matmul, matmul_ahead, row_vector, stage, store
+from .tiles import grid_step, helpers, matmul, matmul_ahead, row_vector, stage, store
 
 FW = FEATURE_WIDTH
 
@@ -54,6 +54,8 @@ def kernels(spec: Spec):
                tool_row: int, nodes_pad: int, tools_pad: int, proj_chunks: int, row_tiles: int, later_tools: int,
                lat: wp.array2d(dtype=float), products: wp.array2d(dtype=float)):
         blk, _lane = wp.tid()
+        grid_step(0)
+        grid_step(1)
         tool_pass = wp.int32(0)  # which pass's tool products this block writes (-1: none, nor the latents)
         chunk0 = wp.int32(0)  # on node rows, the pass-0 node products' (F, F) column blocks [chunk0, chunk1)
         chunk1 = wp.int32(1)
@@ -116,11 +118,13 @@ def kernels(spec: Spec):
             recv_col = 2 * F
             send_row = p * tools_pad
         wi = 2 * p + s
+        grid_step(0)
         if wp.static(ahead):  # whole weights: both layers' copies first, in flight while the gather's loads are
             w1_buf = wp.tile_empty(shape=(buf_rows, F), dtype=float, storage="shared")
             begin_ff(w1_buf, w_e, wi * F, 0)
             w2_buf = wp.tile_empty(shape=(w2_rows, F), dtype=float, storage="shared")
             begin_second_layer(w2_buf, w2, wi)
+        grid_step(1)
         e = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         load_rows(e, lat, row0, 0)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
@@ -164,6 +168,7 @@ def node_kernel(spec: Spec):
                   dv_w2: wp.array2d(dtype=float), dv_b2: wp.array2d(dtype=float), grads: wp.array2d(dtype=float)):
         blk, _lane = wp.tid()
         row0 = blk * T
+        grid_step(0)
         # f_v's input [x | sum of mesh messages | sum of actuator messages] as one (T, 3F) tile, so its first layer is
         # one product over 3F (its weight chunks double-buffered end to end; zeros without actuator graphs, whose
         # weight block is zero too): the same chunks in the same order as three products, one code path
@@ -174,6 +179,7 @@ def node_kernel(spec: Spec):
             begin_second_layer(w2_buf, w2, p)
             proj_buf = wp.tile_empty(shape=(out_rows, F3), dtype=float, storage="shared")
             begin_out(proj_buf, proj, (p + 1) * F, 0)
+        grid_step(1)
         xin = wp.tile_zeros(shape=(T, F3), dtype=float, storage="shared")
         x = wp.tile_view(xin, offset=(0, 0), shape=(T, F))
         load_rows(x, lat, row0, 0)

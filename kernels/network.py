@@ -19,6 +19,7 @@ import warp as wp
 
 from . import decoders, features, generic_tail, integrate, message_passing, shipped
 from .graph import build
+from .pdl import overlap_launches
 from .spec import FEATURE_WIDTH, N_GRAD, NODE_ROWS, STATE, Spec, k_chunk_for, max_shared_of, node_rows_for
 from .tiles import row_view
 from .weights import pack
@@ -164,10 +165,11 @@ class Network:
         """Euler and the boundary conditions with a given zdot (N, 12) into ``out`` (TIGNN.step's zdot=)."""
         integrate.launch(self, _as_warp(zdot, self.device), out)
 
-    def capture(self) -> None:
+    def capture(self, overlap: bool = True) -> None:
         """On CUDA: record forward() and step() once each as a CUDA graph, replayed from then on
         (a launch costs ~25 us from Python and ~1.3 us inside a graph on the H100: calibration notes).
-        The modules were loaded when the launches were recorded, so nothing compiles while capturing."""
+        The modules were loaded when the launches were recorded, so nothing compiles while capturing.
+        ``overlap``: consecutive launches overlap where the GPU allows it (kernels/pdl.py)."""
         if not self.device.is_cuda:
             return
         self._graphs = []
@@ -177,5 +179,7 @@ class Network:
                 self._launch_all()
                 if advance:
                     wp.copy(self.z, self.z_next)
+            if overlap:
+                overlap_launches(cap.graph, self.device)
             graphs.append(cap.graph)
         self._graphs = graphs

@@ -92,6 +92,24 @@ STORE = ROW_PTR + r"""
 """
 
 
+# Programmatic dependent launch (sm_90 on): a launch lets the next one start (launch_dependents) and waits for the one
+# before to finish and its writes to be visible (wait) before its first read of them, so its prologue (weight copies,
+# which depend on no launch) overlaps the launch before. No-ops unless the graph's edges are programmatic (elsewhere
+# and on older GPUs: nothing).
+GRID_STEP = r"""
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
+    if (step == 0)
+        asm volatile("griddepcontrol.launch_dependents;\n" ::: "memory");
+    else
+        asm volatile("griddepcontrol.wait;\n" ::: "memory");
+#endif
+"""
+
+
+@wp.func_native(GRID_STEP)
+def grid_step(step: int): ...
+
+
 # The factories here are cached by shape and by ``owner``, the name of the Warp module whose kernels use them: with
 # one function object in two modules, the second module's hash depended on which was hashed first (a process that
 # built the node tiles of 16 alone looked for another shipped file than one that built the tiles of 8 first).

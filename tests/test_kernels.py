@@ -353,6 +353,33 @@ def test_cuda_graph_step_equals_eager(kind):
         assert np.array_equal(replay[k], v), k
 
 
+@pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device")
+def test_overlapped_launches_equal_plain_graph():
+    """kernels/pdl.py: on sm_90+ a captured step's kernel-to-kernel edges made programmatic (every launch but the
+    first), the replays bit for bit those of the plain graph, step after step; elsewhere nothing changed."""
+    from warpgnn.kernels.pdl import _driver, overlap_launches
+
+    model = random_model("hybrid", 3, 64, seed=17)
+    top = tool_topology(box((5, 4, 3)), 2, seed=17)
+    z, u_now, u_next = random_inputs(top, 17)
+    results = []
+    for overlap in (False, True):
+        net = Network(model, top, device="cuda:0")
+        net.set_inputs(z, u_now, u_next, DT)
+        net.capture(overlap=overlap)
+        states = []
+        for _ in range(3):
+            net.step()
+            states.append(net.outputs()["z_next"].cpu().numpy().copy())
+        results.append(states)
+    for a, b in zip(*results):
+        assert np.array_equal(a, b)
+    with wp.ScopedCapture(device="cuda:0") as cap:
+        net._launch_all()
+    changed = overlap_launches(cap.graph, net.device)
+    assert changed == (net.n_launches - 1 if net.device.arch >= 90 and _driver() else 0)
+
+
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
     not HAS_CUDA, reason="needs a CUDA device"))])
 def test_staged_products_against_numpy(device):
