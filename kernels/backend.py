@@ -26,7 +26,6 @@ from warpgnn.errors import InputError
 from warpgnn.model import Prediction
 
 from .network import Network
-from .pdl import overlap_launches
 from .spec import check_config
 from .weights import pack
 
@@ -53,7 +52,7 @@ class _Topology:
         if name not in self.graphs:
             with wp.ScopedCapture(device=self.net.device) as capture:
                 record()
-            overlap_launches(capture.graph, self.net.device)
+            self.net.overlap(capture.graph)
             self.graphs[name] = capture.graph
         wp.capture_launch(self.graphs[name])
 

@@ -57,7 +57,7 @@ def kernels(spec: Spec):
     ff_rows, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, spec.module)
     lm_rows, begin_lm, finish_lm = matmul_ahead(T, F, spec.kc, N_LM, spec.gemm, spec.module)
     fill_lm, _activate_lm = row_steps(T, N_LM, spec.module)
-    port_terms = row_operators(spec)
+    sender_grads, port_terms = row_operators(spec)
     load_rows, loaded = stage(T, F, spec.module)
 
     @wp.func
@@ -73,6 +73,8 @@ def kernels(spec: Spec):
             w2_buf = wp.tile_empty(shape=(lm_rows, N_LM), dtype=float, storage="shared")
             begin_lm(w2_buf, w2, 0, 0)
         grid_step(1)
+        x = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
+        sender_grads(x, grads, row_send, row0)  # for the port terms, in flight with the loads below
         e = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         load_rows(e, lat, row0, 0)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
@@ -89,9 +91,8 @@ def kernels(spec: Spec):
             finish_lm(h, w2, 0, 0, w2_buf, o)
         else:
             mm_lm(h, w2, 0, 0, o)
-        x = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
         y = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
-        port_terms(o, x, y, row_send, row0, grads, out_row, self_loops, node0, ports, node_terms)
+        port_terms(o, x, y, out_row, self_loops, node0, ports, node_terms)
 
     @wp.kernel(enable_backward=False, module=spec.module)
     def hybrid_fields(lat: wp.array2d(dtype=float), row_recv: wp.array(dtype=wp.int32),

@@ -25,25 +25,46 @@ import warp as wp
 
 from .integrate import advance
 from .spec import N_LM, STATE, Spec
-from .tiles import grid_step
+from .tiles import ROW_PTR, grid_step
 
-# Three block steps over the tile, each one loop and one barrier: the rows' senders' (dE, dS) gathered into a shared
-# (T, 24) tile (read once a row, not once a component), then (B^T x)[b] a (row, b) item (x = dS; on self-loops dE too),
-# then each (row, a) item's (L x)[a] = sum_{b<a} A[a, b] x_b - sum_{b>a} A[b, a] x_b and (M x)[a] = sum_{b<=a} B[a, b]
+# The rows' senders' (dE, dS) are gathered into a shared (T, 24) tile (read once a row, not once a component) by
+# SENDER_GRADS at the launch's start, asynchronous copies in flight with its row copies and gathers (gathered between
+# the products, a chain of dependent loads a thread, the port terms took 6.5 us a block at batch 1, now 5.6; batch 64
+# decoder launch 1072 -> 1013 us: bench/results/warp_timeline_h200.json, warp_sums_grads_h200.json). Then two block
+# steps over the tile, each one loop and one barrier: (B^T x)[b] a (row, b) item (x = dS; on self-loops dE too), then
+# each (row, a) item's (L x)[a] = sum_{b<a} A[a, b] x_b - sum_{b>a} A[b, a] x_b and (M x)[a] = sum_{b<=a} B[a, b]
 # (B^T x)_b, in the order of additions of the reference's loops. B^T x is formed once a row instead of once a
 # component: the decoder launch 37 -> 26 us at batch 1, 247 -> 130 registers (its loops as Warp code, 12 x 12
 # branches an item, held ~30 % of its stall samples; bench/results/warp_step_trims_h200.json).
+SENDER_GRADS = ROW_PTR + r"""
+    using L = typename tile_x::Layout;
+    constexpr int R = L::Shape::dim(0), C = L::Shape::dim(1), S = L::Stride::dim(0);
+    bool done = false;
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800  // 16-byte asynchronous copies, waited for with the row copies
+    if constexpr (C % 4 == 0 && S % 4 == 0) {
+        constexpr int C4 = C / 4;
+        const unsigned d0 = static_cast<unsigned>(__cvta_generic_to_shared(x.data.ptr));
+        const int* send = row_send.data + row0;
+        for (int i = WP_TILE_THREAD_IDX; i < R * C4; i += WP_TILE_BLOCK_DIM) {
+            const int r = i / C4, c = i - r * C4;
+            const char* src = reinterpret_cast<const char*>(row_ptr(grads, send[r])) + 16 * c;
+            asm volatile("cp.async.cg.shared.global [%0], [%1], 16;\n" :: "r"(d0 + (r * S + 4 * c) * 4), "l"(src));
+        }
+        asm volatile("cp.async.commit_group;\n" ::);
+        done = true;
+    }
+#endif
+    if (!done)
+        for (int i = WP_TILE_THREAD_IDX; i < R * C; i += WP_TILE_BLOCK_DIM)
+            x.data(wp::tile_coord(i / C, i % C)) = wp::index(grads, wp::index(row_send, row0 + i / C), i % C);
+"""
+
 PORT_TERMS = r"""
     constexpr int T = tile_lm::Layout::Shape::dim(0), S = 12, NL = S * (S - 1) / 2;
     constexpr int SL = tile_lm::Layout::Stride::dim(0), SX = tile_x::Layout::Stride::dim(0);
     const wp::float32* __restrict__ l = lm.data.ptr;
     wp::float32* __restrict__ px = x.data.ptr;
     wp::float32* __restrict__ py = y.data.ptr;
-    for (int i = WP_TILE_THREAD_IDX; i < T * 2 * S; i += WP_TILE_BLOCK_DIM) {  // (dE | dS) of each row's sender
-        const int r = i / (2 * S), c = i - r * (2 * S);
-        px[r * SX + c] = wp::index(grads, wp::index(row_send, row0 + r), c);
-    }
-    WP_TILE_SYNC();
     for (int i = WP_TILE_THREAD_IDX; i < T * S; i += WP_TILE_BLOCK_DIM) {  // y = (B^T dE | B^T dS)
         const int r = i / S, b = i - r * S;
         const wp::float32* B = l + r * SL + NL;
@@ -91,20 +112,25 @@ PORT_TERMS = r"""
 
 @functools.cache
 def row_operators(spec: Spec):
-    """port_terms(lm, x, y, row_send, row0, grads, out_row, self_loops, node0, ports, node_terms): ports[out_row + r,
+    """(sender_grads, port_terms). sender_grads(x, grads, row_send, row0): starts gathering x[r] = grads[row_send[row0
+    + r]] (on CUDA asynchronous copies: the next wait for the launch's row copies, tiles.stage's, waits for them too).
+    port_terms(lm, x, y, out_row, self_loops, node0, ports, node_terms): ports[out_row + r,
     a] = (L_r dE_j + M_r dS_j)[a] for each row r of a (rows, 144) tile of delta_e's outputs, j the row's sender (the
     node itself on a self-loop), L x = A x - A^T x and M x = B (B^T x) from the packed triangles; on self-loop rows
     (self_loops != 0, node node0 + r) also node_terms[node, a] = (L dS)[a]^2 + (M dE)[a]^2 and node_terms[node, 12 +
-    a] = dS[a] (M dS)[a]. ``x`` and ``y``: (rows, 24) shared scratch tiles."""
+    a] = dS[a] (M dS)[a]. ``x``: the senders' (dE, dS), gathered; ``y``: a (rows, 24) shared scratch tile."""
     T = spec.tile_rows
+
+    @wp.func_native(SENDER_GRADS)
+    def sender_grads(x: wp.tile(dtype=float, shape=(T, 2 * STATE)), grads: wp.array2d(dtype=float),
+                     row_send: wp.array(dtype=wp.int32), row0: int): ...
 
     @wp.func_native(PORT_TERMS)
     def port_terms(lm: wp.tile(dtype=float, shape=(T, N_LM)), x: wp.tile(dtype=float, shape=(T, 2 * STATE)),
-                   y: wp.tile(dtype=float, shape=(T, 2 * STATE)), row_send: wp.array(dtype=wp.int32), row0: int,
-                   grads: wp.array2d(dtype=float), out_row: int, self_loops: int, node0: int,
+                   y: wp.tile(dtype=float, shape=(T, 2 * STATE)), out_row: int, self_loops: int, node0: int,
                    ports: wp.array2d(dtype=float), node_terms: wp.array2d(dtype=float)): ...
 
-    return port_terms
+    return sender_grads, port_terms
 
 
 @functools.cache

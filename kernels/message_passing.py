@@ -146,7 +146,7 @@ def kernels(spec: Spec):
 def node_kernel(spec: Spec):
     """node_pass on the node tiles (spec.nodes: they may be smaller than the edges'), in spec's module."""
     T, F = spec.node_tile, spec.latent
-    fill, _activate, second_layer, segment_sum, _project, _gather, ahead_parts = helpers(spec.nodes, spec.module)
+    fill, _activate, second_layer, segment_sums, _project, _gather, ahead_parts = helpers(spec.nodes, spec.module)
     w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
     node_fields = node_decoder(spec.nodes, spec.module)
     F3 = 3 * F
@@ -183,10 +183,7 @@ def node_kernel(spec: Spec):
         xin = wp.tile_zeros(shape=(T, F3), dtype=float, storage="shared")
         x = wp.tile_view(xin, offset=(0, 0), shape=(T, F))
         load_rows(x, lat, row0, 0)
-        segment_sum(wp.tile_view(xin, offset=(0, F), shape=(T, F)), lat_rows, mesh_off, mesh_row, row0, n_nodes)
-        if actuators != 0:
-            segment_sum(wp.tile_view(xin, offset=(0, 2 * F), shape=(T, F)), lat_rows, act_off, act_row, row0,
-                        n_nodes)
+        segment_sums(xin, lat_rows, mesh_off, mesh_row, act_off, act_row, actuators, row0, n_nodes)
         loaded(x)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         fill(h, b1, p)

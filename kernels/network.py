@@ -24,6 +24,14 @@ from .spec import FEATURE_WIDTH, N_GRAD, NODE_ROWS, STATE, Spec, k_chunk_for, ma
 from .tiles import row_view
 from .weights import pack
 
+# Kernels whose launches wait for the one before to end (Network.overlap), with whole weights (small graphs,
+# spec.k_chunk_for): the edge passes. Started early, their 254 blocks (L5) were placed beside the node pass's where
+# shared memory allowed, up to four an SM instead of two, and their loads and products ran slower by more than the
+# early start gained: hybrid 152.6 -> 150.7 us at 5 passes, 305.8 -> 301.2 at 12 with them left plain. With K chunks
+# (F = 128, large graphs) every launch overlaps: F = 128, 12 passes 706.9 us against 723.4 with the edge passes
+# plain; batch 64 4.91 ms either way (bench/results/warp_timeline_h200.json, warp_pdl_modes_h200.json).
+PLAIN_INTO_WHOLE_WEIGHTS = ("edge_pass",)
+
 
 def build_kernels(spec: Spec) -> None:
     """Create every kernel of ``spec`` before any launch: they share one Warp module, compiled once."""
@@ -165,11 +173,24 @@ class Network:
         """Euler and the boundary conditions with a given zdot (N, 12) into ``out`` (TIGNN.step's zdot=)."""
         integrate.launch(self, _as_warp(zdot, self.device), out)
 
-    def capture(self, overlap: bool = True) -> None:
+    def overlap(self, graph, plain_into: tuple[str, ...] | None = None) -> int:
+        """Make the captured ``graph``'s launches overlap (kernels/pdl.py), except those into the kernels named in
+        ``plain_into`` (None: PLAIN_INTO_WHOLE_WEIGHTS with whole weights, else none), which start once the launch
+        before has ended. Returns the edges changed."""
+        if not self.device.is_cuda:
+            return 0
+        if plain_into is None:
+            plain_into = PLAIN_INTO_WHOLE_WEIGHTS if self.spec.kc == self.spec.latent else ()
+        functions = frozenset(int(launch.hooks.forward) for launch in self._launches
+                              if any(name in launch.kernel.key for name in plain_into))
+        return overlap_launches(graph, self.device, functions)
+
+    def capture(self, overlap: bool = True, plain_into: tuple[str, ...] | None = None) -> None:
         """On CUDA: record forward() and step() once each as a CUDA graph, replayed from then on
         (a launch costs ~25 us from Python and ~1.3 us inside a graph on the H100: calibration notes).
         The modules were loaded when the launches were recorded, so nothing compiles while capturing.
-        ``overlap``: consecutive launches overlap where the GPU allows it (kernels/pdl.py)."""
+        ``overlap``: consecutive launches overlap where the GPU allows it (kernels/pdl.py), except those into
+        the kernels named in ``plain_into`` (None: Network.overlap's choice)."""
         if not self.device.is_cuda:
             return
         self._graphs = []
@@ -180,6 +201,6 @@ class Network:
                 if advance:
                     wp.copy(self.z, self.z_next)
             if overlap:
-                overlap_launches(cap.graph, self.device)
+                self.overlap(cap.graph, plain_into)
             graphs.append(cap.graph)
         self._graphs = graphs

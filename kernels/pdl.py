@@ -26,16 +26,23 @@ def _driver():
         version = ctypes.c_int(0)
         if cu.cuDriverGetVersion(ctypes.byref(version)) != 0 or version.value < 12030:
             return None
-        for name in ("cuGraphGetEdges_v2", "cuGraphRemoveDependencies_v2", "cuGraphAddDependencies_v2"):
+        for name in ("cuGraphGetEdges_v2", "cuGraphRemoveDependencies_v2", "cuGraphAddDependencies_v2",
+                     "cuGraphKernelNodeGetParams_v2"):
             getattr(cu, name)
         return cu
     except (OSError, AttributeError):
         return None
 
 
-def overlap_launches(graph, device) -> int:
+class _KernelNodeParams(ctypes.Structure):  # CUDA_KERNEL_NODE_PARAMS_v2, its first field (the rest left unread)
+    _fields_ = [("func", ctypes.c_void_p), ("rest", ctypes.c_ubyte * 120)]
+
+
+def overlap_launches(graph, device, plain_into=frozenset()) -> int:
     """Make every kernel -> kernel edge of the captured wp.Graph ``graph`` programmatic (before its first launch:
-    Warp instantiates it then). Returns the number of edges changed (0 off sm_90+ or without the driver calls)."""
+    Warp instantiates it then), except the edges into kernels whose CUfunction is in ``plain_into`` (Warp's
+    KernelHooks.forward): those start only once the launch before has ended. Returns the number of edges changed
+    (0 off sm_90+ or without the driver calls)."""
     cu = _driver() if device.is_cuda and device.arch >= 90 else None
     if cu is None or not graph.graph:
         return 0
@@ -50,9 +57,16 @@ def overlap_launches(graph, device) -> int:
         kind = ctypes.c_int(-1)
         return cu.cuGraphNodeGetType(ctypes.c_void_p(node), ctypes.byref(kind)) == 0 and kind.value == KERNEL_NODE
 
+    def function(node) -> int | None:
+        params = _KernelNodeParams()
+        ok = cu.cuGraphKernelNodeGetParams_v2(ctypes.c_void_p(node), ctypes.byref(params)) == 0
+        return params.func if ok else None
+
     changed = 0
     for i in range(n.value):
         if not (is_kernel(src[i]) and is_kernel(dst[i])):
+            continue
+        if plain_into and function(dst[i]) in plain_into:
             continue
         a, b, old = (ctypes.c_void_p * 1)(src[i]), (ctypes.c_void_p * 1)(dst[i]), (_EdgeData * 1)(data[i])
         new = (_EdgeData * 1)()

@@ -586,36 +586,67 @@ GATHER_PAIR = vector_items("h", "products") + r"""
     WP_TILE_SYNC();
 """
 
-SEGMENT_SUM = vector_items("agg", "lat") + r"""
-    Vec acc[PER];
-    const int* __restrict__ off = &wp::index(offsets, 0);
+# agg[:, F:2F] and agg[:, 2F:3F] of a (T, 3F) tile: a node's mesh messages and actuator messages summed, each in
+# segment order, their loads in flight together: eight mesh rows and four actuator rows a round (two sums one after
+# the other waited for an L2 latency a round of each: the node pass's sums 2.2 -> 1.85 us a block at batch 1, the
+# launch 240 -> 227 us at batch 64; bench/results/warp_timeline_h200.json, warp_sums_grads_h200.json).
+SEGMENT_SUMS = ROW_PTR + r"""
+    using LT = typename tile_agg::Layout;
+    constexpr int T = LT::Shape::dim(0), F = LT::Shape::dim(1) / 3, S = LT::Stride::dim(0);
+    using Vec = typename wp::remove_reference<decltype(wp::index(lat, 0, 0))>::type;
+    constexpr int V = sizeof(Vec) / sizeof(wp::float32);
+    constexpr int FV = F / V;
+    constexpr int N = T * FV;
+    wp::float32* __restrict__ pagg = agg.data.ptr;
+    auto put = [&](int r, int col, const Vec& y) {  // one 16-byte store on CUDA where the widths allow
+#if defined(__CUDA_ARCH__)
+        if constexpr (V == 4 && S % 4 == 0 && F % 4 == 0) {
+            *reinterpret_cast<float4*>(pagg + r * S + col) = make_float4(y[0], y[1], y[2], y[3]);
+            return;
+        }
+#endif
+        for (int j = 0; j < V; ++j)
+            pagg[r * S + col + j] = y[j];
+    };
+    constexpr int MR = 8, AR = 4;  // mesh and actuator rows in flight a round
+    for (int idx = WP_TILE_THREAD_IDX; idx < N; idx += WP_TILE_BLOCK_DIM) {
+        const int r = idx / FV, c = idx - r * FV, i = node0 + r;
+        Vec sm = Vec(wp::float32(0)), sa = Vec(wp::float32(0));
+        if (i < n_nodes) {
+            int e = wp::index(mesh_off, i), f = 0;
+            const int e_end = wp::index(mesh_off, i + 1);
+            int f_end = 0;
+            if (actuators) {
+                f = wp::index(act_off, i);
+                f_end = wp::index(act_off, i + 1);
+            }
+            while (e < e_end || f < f_end) {  // rows clamped at their segment's end, not added past it
+                Vec x[MR], y[AR];
+                if (e < e_end) {
 #pragma unroll
-    for (int k = 0; k < PER; ++k) {
-        acc[k] = Vec(wp::float32(0));
-        const unsigned idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM, r = idx / FV, c = idx % FV;
-        const int i = node0 + r;
-        if (idx < N && i < n_nodes) {
-            int e = off[i];
-            const int end = off[i + 1];
-            while (e < end) {  // eight rows in flight, clamped at the segment's end and not added past it
-                const int last = end - 1;
-                Vec x[8];
+                    for (int m = 0; m < MR; ++m)
+                        x[m] = row_ptr(lat, mesh_row + (e + m < e_end ? e + m : e_end - 1))[c];
+                }
+                if (f < f_end) {
 #pragma unroll
-                for (int m = 0; m < 8; ++m)
-                    x[m] = row_ptr(lat, base_row + (e + m < last ? e + m : last))[c];
+                    for (int m = 0; m < AR; ++m)
+                        y[m] = row_ptr(lat, act_row + (f + m < f_end ? f + m : f_end - 1))[c];
+                }
 #pragma unroll
-                for (int m = 0; m < 8; ++m)
-                    if (e + m < end)
-                        acc[k] = acc[k] + x[m];
-                e += 8;
+                for (int m = 0; m < MR; ++m)
+                    if (e + m < e_end)
+                        sm = sm + x[m];
+#pragma unroll
+                for (int m = 0; m < AR; ++m)
+                    if (f + m < f_end)
+                        sa = sa + y[m];
+                e += MR;
+                f += AR;
             }
         }
-    }
-#pragma unroll
-    for (int k = 0; k < PER; ++k) {
-        const unsigned idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM, r = idx / FV, c = idx % FV;
-        if (idx < N)
-            put_row_vector(r, c * V, acc[k]);
+        put(r, F + c * V, sm);
+        if (actuators)
+            put(r, 2 * F + c * V, sa);
     }
     WP_TILE_SYNC();
 """
@@ -654,16 +685,18 @@ def helpers(spec: Spec, owner: str):
 
     vec = row_vector(F)
 
-    @wp.func_native(SEGMENT_SUM)
-    def segment_sum(agg: wp.tile(dtype=float, shape=(T, F)), lat: wp.array2d(dtype=vec),
-                    offsets: wp.array(dtype=wp.int32), base_row: int, node0: int, n_nodes: int):
-        """agg[r, :] = sum of lat[base_row + e, :] over node (node0 + r)'s CSR segment e, in segment order.
-        ``lat`` is the latent buffer seen as rows of F / V vectors (row_view). Threads take (row, vector)
-        items, consecutive threads consecutive vectors (coalesced); eight rows are loaded before the first
-        add, so a thread keeps 8 V floats in flight and a round costs one L2 latency per eight edges (one
-        float and four rows in flight made the node launch latency-bound: 56-62 us at L5 on an H100, where
-        the bytes need ~3 us). Rows past the segment's end are loaded (clamped) but not added, so the sum
-        is the plain sequential one; the tile is written with one barrier."""
+    @wp.func_native(SEGMENT_SUMS)
+    def segment_sums(agg: wp.tile(dtype=float, shape=(T, 3 * F)), lat: wp.array2d(dtype=vec),
+                     mesh_off: wp.array(dtype=wp.int32), mesh_row: int, act_off: wp.array(dtype=wp.int32),
+                     act_row: int, actuators: int, node0: int, n_nodes: int):
+        """agg[r, F:2F] = sum of lat[mesh_row + e, :] over node (node0 + r)'s mesh CSR segment e, and agg[r, 2F:3F]
+        likewise over its actuator segment (when ``actuators``; else left as it is), each in segment order.
+        ``lat`` is the latent buffer seen as rows of F / V vectors (row_view). Threads take (row, vector) items,
+        consecutive threads consecutive vectors (coalesced); a round loads eight mesh rows and four actuator rows
+        before its first add, so one L2 latency serves up to twelve edges (one float and four rows in flight made
+        the node launch latency-bound: 56-62 us at L5 on an H100, where the bytes need ~3 us). Rows past a
+        segment's end are loaded (clamped) but not added, so each sum is the plain sequential one; the tile is
+        written with one barrier."""
         ...
 
     @wp.func_native(GATHER_PAIR)
@@ -723,4 +756,4 @@ def helpers(spec: Spec, owner: str):
     # the last: second_layer in two parts, W2's buffer rows, the copy's start and the rest (a kernel that starts
     # its weight copies first)
     ahead = (buf_rows, begin_second_layer, second_layer_ahead)
-    return fill, activate, second_layer, segment_sum, project, gather_pair, ahead
+    return fill, activate, second_layer, segment_sums, project, gather_pair, ahead

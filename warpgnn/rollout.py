@@ -51,7 +51,7 @@ def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None, first
     ground truth's state there or from ``z0`` (one (N, 12) state per simulation). ``model``: any network
     behind the interface of model.py (its call and its step), or with a whole-rollout ``model.rollout``."""
     z0 = z0 if z0 is not None else [s.z[first] for s in sims]
-    out = []
+    out, pending = [], None
     for c in range(0, len(sims), chunk):
         part = sims[c:c + chunk]
         device = part[0].z.device
@@ -64,16 +64,43 @@ def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None, first
                 progress(len(part) * (len(u) - 1))
         else:
             states, diagnostics = stepwise(model, top, z, u, part[0].dt, progress and partial(progress, len(part)))
-        zs = states.cpu().numpy()
-        offsets = np.concatenate([[0], np.cumsum(top.graph_sizes.numpy())])
         per_graph = _per_graph(top, diagnostics) if diagnostics is not None else []
-        for g, s in enumerate(part):
-            out.append(Rollout(s.name, zs[:, offsets[g]:offsets[g + 1]], *(a[g] for a in per_graph)))
+        fetched = _to_host([states, *per_graph])
+        # the chunk before is read back now, while this one runs: on CUDA the next chunk's graph is built and
+        # captured, and its results reduced, while the GPU still works on this one
+        if pending:
+            out += _collect(*pending)
+        pending = (part, top, fetched)
+    if pending:
+        out += _collect(*pending)
     return out
 
 
-def _per_graph(top, diagnostics) -> list[np.ndarray]:
-    """The hybrid's (S, N) diagnostics as (graphs, steps) arrays in Rollout's field order: the mean
+def _to_host(tensors: list[torch.Tensor]):
+    """Start copying ``tensors`` to pinned host memory (on CUDA, without waiting): (host tensors, an event that
+    completes with the copies, or None off CUDA)."""
+    if not tensors[0].is_cuda:
+        return tensors, None
+    host = [torch.empty(t.shape, dtype=t.dtype, pin_memory=True) for t in tensors]
+    for h, t in zip(host, tensors):
+        h.copy_(t, non_blocking=True)
+    done = torch.cuda.Event()
+    done.record()
+    return host, done
+
+
+def _collect(part, top, fetched) -> list[Rollout]:
+    """The Rollouts of a chunk whose results ``_to_host`` fetched: states (S+1, N, 12) and per-graph diagnostics."""
+    (states, *per_graph), done = fetched
+    if done is not None:
+        done.synchronize()
+    zs, per_graph = states.numpy(), [x.numpy() for x in per_graph]
+    offsets = np.concatenate([[0], np.cumsum(top.graph_sizes.numpy())])
+    return [Rollout(s.name, zs[:, offsets[g]:offsets[g + 1]], *(a[g] for a in per_graph)) for g, s in enumerate(part)]
+
+
+def _per_graph(top, diagnostics) -> list[torch.Tensor]:
+    """The hybrid's (S, N) diagnostics as (graphs, steps) tensors in Rollout's field order: the mean
     degeneracy, the least and the mean entropy production over each graph's nodes."""
     deg, ent = diagnostics
     steps, device = deg.shape[0], deg.device
@@ -82,4 +109,4 @@ def _per_graph(top, diagnostics) -> list[np.ndarray]:
     zeros = torch.zeros(steps, len(counts), device=device, dtype=deg.dtype)
     least = torch.full_like(zeros, float("inf")).scatter_reduce(1, graph_of.expand(steps, -1), ent, "amin")
     out = (zeros.index_add(1, graph_of, deg) / counts, least, zeros.index_add(1, graph_of, ent) / counts)
-    return [x.T.cpu().numpy() for x in out]
+    return [x.T.contiguous() for x in out]  # on the diagnostics' device

@@ -1,6 +1,6 @@
 """Programmatic dependent launch between a captured step's kernels (Hopper, kernels/pdl.py): the step captured plainly
-(Network.capture(overlap=False)), with its kernel-to-kernel edges programmatic (the default), and plainly again, timed
-in one process, the outputs compared bit for bit.
+(Network.capture(overlap=False)), with its kernel-to-kernel edges programmatic, with those into the edge passes or
+into the node passes left plain, and plainly again, timed in one process, the outputs compared bit for bit.
 
     python bench/studies/warp_pdl.py --latent 64 --cases hybrid:1:1,hybrid:5:1,hybrid:12:1 --mesh L5.vtu \
         --repeats 300 --json OUT.json --device "..." --command "..."
@@ -18,6 +18,10 @@ import warp as wp
 
 from warpgnn.benchmark import DT, l5_case, random_model, warp_clock
 from warpgnn.kernels import Network
+
+# capture modes: None plain, else the kernels whose incoming edges stay plain
+MODES = {"plain": None, "programmatic": (), "plain_into_edge": ("edge_pass",), "plain_into_node": ("node_pass",),
+         "plain_again": None}
 
 
 def main():
@@ -38,8 +42,8 @@ def main():
         clock = warp_clock("cuda:0")
         record = {"model": kind, "passes": int(passes), "batch": int(batch), "latent": a.latent}
         outputs = {}
-        for mode in ("plain", "programmatic", "plain_again"):
-            net.capture(overlap=mode == "programmatic")
+        for mode, plain_into in MODES.items():
+            net.capture(overlap=plain_into is not None, plain_into=plain_into or ())
             for _ in range(20):
                 net.forward()
             times = sorted(clock.times(net.forward, a.repeats))
@@ -49,7 +53,7 @@ def main():
             record[f"{mode}_p10_us"] = times[len(times) // 10] * 1e3
             record[f"{mode}_p90_us"] = times[9 * len(times) // 10] * 1e3
         record["outputs_equal"] = all(np.array_equal(outputs["plain"][k], outputs[m][k])
-                                      for m in ("programmatic", "plain_again") for k in outputs["plain"])
+                                      for m in list(MODES)[1:] for k in outputs["plain"])
         out.append(record)
         print(item, {k: (round(v, 1) if isinstance(v, float) else v) for k, v in record.items()}, flush=True)
     Path(a.json).write_text(json.dumps(provenance.record(a) | {"cases": out}, indent=1) + "\n")
