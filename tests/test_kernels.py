@@ -356,7 +356,8 @@ def test_cuda_graph_step_equals_eager(kind):
 @pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device")
 def test_overlapped_launches_equal_plain_graph():
     """kernels/pdl.py: on sm_90+ a captured step's kernel-to-kernel edges made programmatic (every launch but the
-    first), the replays bit for bit those of the plain graph, step after step; elsewhere nothing changed."""
+    first, or all but those into the kernels named: Network.overlap), the replays bit for bit those of the plain
+    graph, step after step; elsewhere nothing changed."""
     from warpgnn.kernels.pdl import _driver, overlap_launches
 
     model = random_model("hybrid", 3, 64, seed=17)
@@ -374,10 +375,14 @@ def test_overlapped_launches_equal_plain_graph():
         results.append(states)
     for a, b in zip(*results):
         assert np.array_equal(a, b)
+    pdl = net.device.arch >= 90 and _driver() is not None
+    for plain_into, kept in (((), 0), (("edge_pass",), 3)):  # every edge programmatic, or all but those into the
+        with wp.ScopedCapture(device="cuda:0") as cap:        # three edge passes
+            net._launch_all()
+        assert net.overlap(cap.graph, plain_into) == (net.n_launches - 1 - kept if pdl else 0)
     with wp.ScopedCapture(device="cuda:0") as cap:
         net._launch_all()
-    changed = overlap_launches(cap.graph, net.device)
-    assert changed == (net.n_launches - 1 if net.device.arch >= 90 and _driver() else 0)
+    assert overlap_launches(cap.graph, net.device) == (net.n_launches - 1 if pdl else 0)
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
