@@ -28,14 +28,16 @@ from .spec import N_LM, STATE, Spec
 from .tiles import ROW_PTR, grid_step
 
 # The rows' senders' (dE, dS) are gathered into a shared (T, 24) tile (read once a row, not once a component) by
-# SENDER_GRADS at the launch's start, asynchronous copies in flight with its row copies and gathers (gathered between
-# the products, a chain of dependent loads a thread, the port terms took 6.5 us a block at batch 1, now 5.6; batch 64
-# decoder launch 1072 -> 1013 us: bench/results/warp_timeline_h200.json, warp_sums_grads_h200.json). Then two block
-# steps over the tile, each one loop and one barrier: (B^T x)[b] a (row, b) item (x = dS; on self-loops dE too), then
-# each (row, a) item's (L x)[a] = sum_{b<a} A[a, b] x_b - sum_{b>a} A[b, a] x_b and (M x)[a] = sum_{b<=a} B[a, b]
-# (B^T x)_b, in the order of additions of the reference's loops. B^T x is formed once a row instead of once a
-# component: the decoder launch 37 -> 26 us at batch 1, 247 -> 130 registers (its loops as Warp code, 12 x 12
-# branches an item, held ~30 % of its stall samples; bench/results/warp_step_trims_h200.json).
+# SENDER_GRADS at the launch's start: asynchronous copies in flight with the launch's row copies and gathers, complete
+# once the next tiles.stage wait (cp.async.wait_all and a barrier) has passed, which must come before x is read;
+# 16-byte copies, so grads' rows (24 floats) and base must be 16-byte aligned, as the Network allocates them.
+# (Gathered between the products before, a chain of dependent loads a thread, the port terms took 6.5 us a block at
+# batch 1, now 5.6; the batch-64 decoder launch 1072 -> 1013 us: bench/results/warp_timeline_h200.json,
+# warp_sums_grads_h200.json.) Then two block steps over the tile, each one loop and one barrier: (B^T x)[b] a (row, b)
+# item (x = dS; on self-loops dE too), then each (row, a) item's (L x)[a] = sum_{b<a} A[a, b] x_b - sum_{b>a} A[b, a]
+# x_b and (M x)[a] = sum_{b<=a} B[a, b] (B^T x)_b, in the order of additions of the reference's loops. B^T x is formed
+# once a row instead of once a component: the decoder launch 37 -> 26 us at batch 1, 247 -> 130 registers (its loops
+# as Warp code, 12 x 12 branches an item, held ~30 % of its stall samples; bench/results/warp_step_trims_h200.json).
 SENDER_GRADS = ROW_PTR + r"""
     using L = typename tile_x::Layout;
     constexpr int R = L::Shape::dim(0), C = L::Shape::dim(1), S = L::Stride::dim(0);

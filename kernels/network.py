@@ -24,12 +24,13 @@ from .spec import FEATURE_WIDTH, N_GRAD, NODE_ROWS, STATE, Spec, k_chunk_for, ma
 from .tiles import row_view
 from .weights import pack
 
-# Kernels whose launches wait for the one before to end (Network.overlap), with whole weights (small graphs,
-# spec.k_chunk_for): the edge passes. Started early, their 254 blocks (L5) were placed beside the node pass's where
-# shared memory allowed, up to four an SM instead of two, and their loads and products ran slower by more than the
-# early start gained: hybrid 152.6 -> 150.7 us at 5 passes, 305.8 -> 301.2 at 12 with them left plain. With K chunks
-# (F = 128, large graphs) every launch overlaps: F = 128, 12 passes 706.9 us against 723.4 with the edge passes
-# plain; batch 64 4.91 ms either way (bench/results/warp_timeline_h200.json, warp_pdl_modes_h200.json).
+# Kernels whose launches wait for the one before to end (Network.overlap) when the Network took whole weights
+# (spec.k_chunk_for: F <= 64 on a small graph): the edge passes. Started early, their 254 blocks (L5) were placed
+# beside the node pass's where shared memory allowed, up to four an SM instead of two, and their loads and products
+# ran slower by more than the early start gained: hybrid 152.6 -> 150.7 us at 5 passes, 305.8 -> 301.2 at 12 with
+# them left plain. With K chunks (F = 128, large graphs) every launch overlaps: F = 128, 12 passes 706.9 us against
+# 723.4 with the edge passes plain; batch 64 4.91 ms either way (bench/results/warp_timeline_h200.json,
+# warp_pdl_modes_h200.json).
 PLAIN_INTO_WHOLE_WEIGHTS = ("edge_pass",)
 
 
@@ -175,14 +176,14 @@ class Network:
 
     def overlap(self, graph, plain_into: tuple[str, ...] | None = None) -> int:
         """Make the captured ``graph``'s launches overlap (kernels/pdl.py), except those into the kernels named in
-        ``plain_into`` (None: PLAIN_INTO_WHOLE_WEIGHTS with whole weights, else none), which start once the launch
-        before has ended. Returns the edges changed."""
+        ``plain_into`` (kernel names, as edge_pass; None: PLAIN_INTO_WHOLE_WEIGHTS with whole weights, else none),
+        which start once the launch before has ended. Returns the edges changed."""
         if not self.device.is_cuda:
             return 0
         if plain_into is None:
-            plain_into = PLAIN_INTO_WHOLE_WEIGHTS if self.spec.kc == self.spec.latent else ()
-        functions = frozenset(int(launch.hooks.forward) for launch in self._launches
-                              if any(name in launch.kernel.key for name in plain_into))
+            plain_into = PLAIN_INTO_WHOLE_WEIGHTS if self.spec.k_chunk == self.spec.latent else ()
+        functions = frozenset(int(launch.hooks.forward) for launch in self._launches  # keys: factory__locals__name
+                              if launch.kernel.key.rsplit("__", 1)[-1] in plain_into)
         return overlap_launches(graph, self.device, functions)
 
     def capture(self, overlap: bool = True, plain_into: tuple[str, ...] | None = None) -> None:

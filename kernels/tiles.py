@@ -587,12 +587,14 @@ GATHER_PAIR = vector_items("h", "products") + r"""
 """
 
 # agg[:, F:2F] and agg[:, 2F:3F] of a (T, 3F) tile: a node's mesh messages and actuator messages summed, each in
-# segment order, their loads in flight together: eight mesh rows and four actuator rows a round (two sums one after
-# the other waited for an L2 latency a round of each: the node pass's sums 2.2 -> 1.85 us a block at batch 1, the
-# launch 240 -> 227 us at batch 64; bench/results/warp_timeline_h200.json, warp_sums_grads_h200.json).
+# segment order, their loads in flight together, eight mesh rows and four actuator rows a round. Summed one set after
+# the other, each round of each set waited for its own L2 latency: the node pass's sums took 2.2 us a block at batch 1
+# against 1.85 now, the launch 240 against 227 us at batch 64 (bench/results/warp_timeline_h200.json,
+# warp_sums_grads_h200.json).
 SEGMENT_SUMS = ROW_PTR + r"""
     using LT = typename tile_agg::Layout;
     constexpr int T = LT::Shape::dim(0), F = LT::Shape::dim(1) / 3, S = LT::Stride::dim(0);
+    static_assert(LT::Stride::dim(1) == 1, "row-major tile");
     using Vec = typename wp::remove_reference<decltype(wp::index(lat, 0, 0))>::type;
     constexpr int V = sizeof(Vec) / sizeof(wp::float32);
     constexpr int FV = F / V;

@@ -81,22 +81,25 @@ def _to_host(tensors: list[torch.Tensor]):
     completes with the copies, or None off CUDA)."""
     if not tensors[0].is_cuda:
         return tensors, None
-    host = [torch.empty(t.shape, dtype=t.dtype, pin_memory=True) for t in tensors]
-    for h, t in zip(host, tensors):
-        h.copy_(t, non_blocking=True)
-    done = torch.cuda.Event()
-    done.record()
+    with torch.cuda.device(tensors[0].device):  # the copies and the event on that device's current stream
+        host = [torch.empty(t.shape, dtype=t.dtype, pin_memory=True) for t in tensors]
+        for h, t in zip(host, tensors):
+            h.copy_(t, non_blocking=True)
+        done = torch.cuda.Event()
+        done.record()
     return host, done
 
 
 def _collect(part, top, fetched) -> list[Rollout]:
-    """The Rollouts of a chunk whose results ``_to_host`` fetched: states (S+1, N, 12) and per-graph diagnostics."""
+    """The Rollouts of a chunk whose results ``_to_host`` fetched: states (S+1, N, 12) and per-graph diagnostics,
+    copied out of the (pinned) buffers, which go back to torch's cache for the next chunk."""
     (states, *per_graph), done = fetched
     if done is not None:
         done.synchronize()
     zs, per_graph = states.numpy(), [x.numpy() for x in per_graph]
     offsets = np.concatenate([[0], np.cumsum(top.graph_sizes.numpy())])
-    return [Rollout(s.name, zs[:, offsets[g]:offsets[g + 1]], *(a[g] for a in per_graph)) for g, s in enumerate(part)]
+    return [Rollout(s.name, zs[:, offsets[g]:offsets[g + 1]].copy(), *(a[g].copy() for a in per_graph))
+            for g, s in enumerate(part)]
 
 
 def _per_graph(top, diagnostics) -> list[torch.Tensor]:

@@ -47,9 +47,13 @@ def one_step(net: Network) -> np.ndarray:
     return s.reshape(s.shape[0], -1, 8, 3)
 
 
-def summarise(stamps: np.ndarray, names: list[str]) -> list[dict]:
+def summarise(stamps: np.ndarray, names: list[str]) -> tuple[list[dict], float]:
     """Per launch: its blocks' first / median / last time [us] at each point, from the step's first block entry,
-    and each phase's median and largest per-block length [us] (cycles at the median cycles-per-ns of the step)."""
+    and each phase's median and largest per-block length [us] (cycles at the median cycles-per-ns of the step), and
+    that clock [GHz]. Every launch must have stamped blocks (the patch stamps the encoders, edge and node passes and
+    the hybrid's decoder fields: not the vanilla's tail)."""
+    if any(not (stamps[i, :, 0, 0] > 0).any() for i in range(len(names))):
+        raise SystemExit("a launch stamped no block: the kernels lack the timeline patch, or the model is not hybrid")
     t0 = min(stamps[i, :, 0, 0][stamps[i, :, 0, 0] > 0].min() for i in range(len(names)))
     g, c = [], []
     for i in range(len(names)):
@@ -59,7 +63,8 @@ def summarise(stamps: np.ndarray, names: list[str]) -> list[dict]:
         g.append(last[:, 0] - stamps[i, ok, 0, 0])
         c.append(last[:, 1] - stamps[i, ok, 0, 1])
     g, c = np.concatenate(g), np.concatenate(c)
-    ghz = float(np.median(c[g > 2000] / g[g > 2000]))  # cycles a ns over blocks of more than 2 us
+    long = g > 2000  # cycles a ns over blocks of more than 2 us (all blocks if none is that long)
+    ghz = float(np.median(c[long] / g[long])) if long.any() else float(np.median(c / np.maximum(g, 1)))
     out = []
     for i, name in enumerate(names):
         ok = stamps[i, :, 0, 0] > 0
@@ -129,6 +134,9 @@ def main():
     ap.add_argument("--png", default=None)
     provenance.add_arguments(ap)
     a = ap.parse_args()
+    if "stamps" not in Network.__init__.__code__.co_names:
+        raise SystemExit("kernels/ lacks the timeline patch: apply the 'change' of bench/results/"
+                         "warp_timeline_h200.json (patch -p1) to a copy of the tree and run this from there")
     if a.aot:
         precompile.load(a.aot, [a.latent], "cuda:0", 128, tile_rows=32, node_rows=8, k_chunk=a.latent)
     base = l5_case(a.mesh)
