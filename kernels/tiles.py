@@ -532,14 +532,15 @@ ROW_STEP = ROW_PTR.replace("{", "{{").replace("}", "}}") + r"""
 """
 
 
-def vector_items(tile: str, rows: str) -> str:
-    """C++ preamble of a block step over (row, vector) items of a (T, F) shared tile ``tile`` fed from ``rows``, an
-    array of row vectors (row_view): Vec, V floats a vector, FV vectors a row, N items, PER items a thread, and
-    put_row_vector(r, c, y), the store of one item."""
+def vector_items(tile: str, rows: str, blocks: int = 1) -> str:
+    """C++ preamble of a block step over (row, vector) items of a (T, F) shared tile ``tile`` (or of each of its
+    ``blocks`` column blocks of F) fed from ``rows``, an array of row vectors (row_view): Vec, V floats a vector, FV
+    vectors a row, N items, PER items a thread, and put_row_vector(r, c, y), the store of one item at column c."""
+    width = "Shape::dim(1)" if blocks == 1 else f"Shape::dim(1) / {blocks}"
     return ROW_PTR + f"""
     using Shape = typename tile_{tile}::Layout::Shape;
     constexpr int T = Shape::dim(0);
-    constexpr int F = Shape::dim(1);
+    constexpr int F = {width};
     using Vec = typename wp::remove_reference<decltype(wp::index({rows}, 0, 0))>::type;
     constexpr int V = sizeof(Vec) / sizeof(wp::float32);
     constexpr int FV = F / V;
@@ -591,25 +592,7 @@ GATHER_PAIR = vector_items("h", "products") + r"""
 # the other, each round of each set waited for its own L2 latency: the node pass's sums took 2.2 us a block at batch 1
 # against 1.85 now, the launch 240 against 227 us at batch 64 (bench/results/warp_timeline_h200.json,
 # warp_sums_grads_h200.json).
-SEGMENT_SUMS = ROW_PTR + r"""
-    using LT = typename tile_agg::Layout;
-    constexpr int T = LT::Shape::dim(0), F = LT::Shape::dim(1) / 3, S = LT::Stride::dim(0);
-    static_assert(LT::Stride::dim(1) == 1, "row-major tile");
-    using Vec = typename wp::remove_reference<decltype(wp::index(lat, 0, 0))>::type;
-    constexpr int V = sizeof(Vec) / sizeof(wp::float32);
-    constexpr int FV = F / V;
-    constexpr int N = T * FV;
-    wp::float32* __restrict__ pagg = agg.data.ptr;
-    auto put = [&](int r, int col, const Vec& y) {  // one 16-byte store on CUDA where the widths allow
-#if defined(__CUDA_ARCH__)
-        if constexpr (V == 4 && S % 4 == 0 && F % 4 == 0) {
-            *reinterpret_cast<float4*>(pagg + r * S + col) = make_float4(y[0], y[1], y[2], y[3]);
-            return;
-        }
-#endif
-        for (int j = 0; j < V; ++j)
-            pagg[r * S + col + j] = y[j];
-    };
+SEGMENT_SUMS = vector_items("agg", "lat", blocks=3) + r"""
     constexpr int MR = 8, AR = 4;  // mesh and actuator rows in flight a round
     for (int idx = WP_TILE_THREAD_IDX; idx < N; idx += WP_TILE_BLOCK_DIM) {
         const int r = idx / FV, c = idx - r * FV, i = node0 + r;
@@ -646,9 +629,9 @@ SEGMENT_SUMS = ROW_PTR + r"""
                 f += AR;
             }
         }
-        put(r, F + c * V, sm);
+        put_row_vector(r, F + c * V, sm);
         if (actuators)
-            put(r, 2 * F + c * V, sa);
+            put_row_vector(r, 2 * F + c * V, sa);
     }
     WP_TILE_SYNC();
 """
