@@ -29,6 +29,10 @@ from .spec import FEATURE_WIDTH, Spec
 from .tiles import grid_step, helpers, matmul, matmul_ahead, row_vector, stage, store
 
 FW = FEATURE_WIDTH
+# the edge pass's shared memory with whole weights (kernels below): at most two blocks an SM on sm_80 and sm_90. On an
+# H200 (L5, F = 64, every launch overlapped), 57 -> 80 KiB took the hybrid from 139.0 to 132.3 us at 5 passes and from
+# 291.3 to 271.9 us at 12 (block-stamped steps, bench/results/warp_edge_occupancy_h200.json)
+EDGE_PASS_SHARED = 80 * 1024
 
 
 @functools.cache
@@ -41,6 +45,12 @@ def kernels(spec: Spec):
     # whole weights in one K chunk (small graphs, spec.k_chunk_for): a launch starts its weight copies first, so they
     # are in flight while its rows' loads are; with chunks the buffers held that long would cost occupancy
     ahead = spec.kc == F
+    # with whole weights the edge pass holds at least EDGE_PASS_SHARED bytes of shared memory (its tiles, then a spare
+    # tile), so that at most two of its blocks share an SM (sm_80: 164 KiB an SM, sm_90: 228): overlapped with the
+    # node pass, its blocks (57 KiB each) were otherwise packed three to an SM beside the node pass's and ran their
+    # loads and products slower than the early start gained (kernels/network.py)
+    spare = max(0, EDGE_PASS_SHARED // 4 - 3 * T * F - buf_rows * F - w2_rows * F) if ahead else 0
+    spare_cols = max(1, -(-spare // T))
     mm_in = matmul(T, FW, FW, F, spec.gemm, spec.module)
     load_rows, loaded = stage(T, F, spec.module)
     load_feat, loaded_feat = stage(T, FW, spec.module)
@@ -125,6 +135,8 @@ def kernels(spec: Spec):
             w2_buf = wp.tile_empty(shape=(w2_rows, F), dtype=float, storage="shared")
             begin_second_layer(w2_buf, w2, wi)
         grid_step(1)
+        if wp.static(spare > 0):  # never read or written: occupancy (above)
+            _spare = wp.tile_empty(shape=(T, spare_cols), dtype=float, storage="shared")
         e = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         load_rows(e, lat, row0, 0)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
@@ -152,7 +164,9 @@ def node_kernel(spec: Spec):
     F3 = 3 * F
     mm_in, mm_out = matmul(T, F3, spec.kc, F, spec.gemm, spec.module), matmul(T, F, spec.kc, F3, spec.gemm, spec.module)
     ahead = spec.kc == F  # as the edge pass: weight copies first with whole weights
-    in_rows, begin_in, finish_in = matmul_ahead(T, F3, spec.kc, F, spec.gemm, spec.module)
+    # and then the first layer's (3F, F) weight as one chunk too, copied whole at the launch's start (in three chunks
+    # the product waited for two copies: 2.81 -> 2.40 us a block, bench/results/warp_edge_occupancy_h200.json)
+    in_rows, begin_in, finish_in = matmul_ahead(T, F3, F3 if ahead else spec.kc, F, spec.gemm, spec.module)
     out_rows, begin_out, finish_out = matmul_ahead(T, F, spec.kc, F3, spec.gemm, spec.module)
     load_rows, loaded = stage(T, F, spec.module)
     store_rows, store_products = store(T, F, spec.module), store(T, F3, spec.module)

@@ -24,15 +24,6 @@ from .spec import FEATURE_WIDTH, N_GRAD, NODE_ROWS, STATE, Spec, k_chunk_for, ma
 from .tiles import row_view
 from .weights import pack
 
-# Kernels whose launches wait for the one before to end (Network.overlap) when the Network took whole weights
-# (spec.k_chunk_for: F <= 64 on a small graph): the edge passes. Started early, their 254 blocks (L5) were placed
-# beside the node pass's where shared memory allowed, up to four an SM instead of two, and their loads and products
-# ran slower by more than the early start gained: hybrid 152.6 -> 150.7 us at 5 passes, 305.8 -> 301.2 at 12 with
-# them left plain. With K chunks (F = 128, large graphs) every launch overlaps: F = 128, 12 passes 706.9 us against
-# 723.4 with the edge passes plain; batch 64 4.91 ms either way (bench/results/warp_timeline_h200.json,
-# warp_pdl_modes_h200.json).
-PLAIN_INTO_WHOLE_WEIGHTS = ("edge_pass",)
-
 
 def build_kernels(spec: Spec) -> None:
     """Create every kernel of ``spec`` before any launch: they share one Warp module, compiled once."""
@@ -174,24 +165,25 @@ class Network:
         """Euler and the boundary conditions with a given zdot (N, 12) into ``out`` (TIGNN.step's zdot=)."""
         integrate.launch(self, _as_warp(zdot, self.device), out)
 
-    def overlap(self, graph, plain_into: tuple[str, ...] | None = None) -> int:
+    def overlap(self, graph, plain_into: tuple[str, ...] = ()) -> int:
         """Make the captured ``graph``'s launches overlap (kernels/pdl.py), except those into the kernels named in
-        ``plain_into`` (kernel names, as edge_pass; None: PLAIN_INTO_WHOLE_WEIGHTS with whole weights, else none),
-        which start once the launch before has ended. Returns the edges changed."""
+        ``plain_into`` (kernel names, as edge_pass: studies), which start once the launch before has ended. Every
+        launch overlapping is the fastest measured: H200, L5, F = 64, 5 / 12 passes 132.3 / 271.9 us against 139.0 /
+        291.3 with the edge passes plain (whole weights, the edge pass at two blocks an SM: message_passing), F = 128
+        12 passes 706.9 against 723.4 us (K chunks) (bench/results/warp_edge_occupancy_h200.json,
+        warp_pdl_modes_h200.json). Returns the edges changed."""
         if not self.device.is_cuda:
             return 0
-        if plain_into is None:
-            plain_into = PLAIN_INTO_WHOLE_WEIGHTS if self.spec.k_chunk == self.spec.latent else ()
         functions = frozenset(int(launch.hooks.forward) for launch in self._launches  # keys: factory__locals__name
                               if launch.kernel.key.rsplit("__", 1)[-1] in plain_into)
         return overlap_launches(graph, self.device, functions)
 
-    def capture(self, overlap: bool = True, plain_into: tuple[str, ...] | None = None) -> None:
+    def capture(self, overlap: bool = True, plain_into: tuple[str, ...] = ()) -> None:
         """On CUDA: record forward() and step() once each as a CUDA graph, replayed from then on
         (a launch costs ~25 us from Python and ~1.3 us inside a graph on the H100: calibration notes).
         The modules were loaded when the launches were recorded, so nothing compiles while capturing.
         ``overlap``: consecutive launches overlap where the GPU allows it (kernels/pdl.py), except those into
-        the kernels named in ``plain_into`` (None: Network.overlap's choice)."""
+        the kernels named in ``plain_into`` (Network.overlap)."""
         if not self.device.is_cuda:
             return
         self._graphs = []

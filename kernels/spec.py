@@ -87,7 +87,7 @@ def node_rows_for(n_nodes: int, sm_count: int) -> int:
     return NODE_ROWS[1] if sm_count and n_nodes >= 8 * NODE_ROWS[0] * sm_count else NODE_ROWS[0]
 
 
-# Shared memory a block must be allowed (the device's opt-in limit) for whole weights: the node pass then takes 121
+# Shared memory a block must be allowed (the device's opt-in limit) for whole weights: the node pass then takes 137
 # KiB (kernels/aot's .meta). sm_80/sm_87 allow 163 KiB and sm_90 227 KiB; sm_86/sm_89/sm_120 (RTX 30x0, 40x0, 50x0,
 # the paper's RTX 3090 among them) 99 KiB, where those kernels cannot launch and chunks of 32 (80 KiB at most) can.
 WHOLE_WEIGHTS_SHARED = 160 * 1024
@@ -106,7 +106,7 @@ def k_chunk_for(node_rows: int, latent: int, max_shared: int | None = None, node
     F <= 64 in one chunk while the graph is small (node tiles of 8, at most one a SM: ``node_tiles_per_sm``, 0 off a
     GPU), so a block waits for one weight copy a product instead of two (the 5-pass hybrid step 212 -> 199 us, the
     1-pass 89 -> 84 us on an H200); chunks of 32 on larger graphs, where the whole weights' staging buffers (the
-    node pass 121 KiB) leave an SM room for one block: L5 at batch 2 (168 node tiles for 132 SMs) 357 against 297
+    node pass 137 KiB) leave an SM room for one block: L5 at batch 2 (168 node tiles for 132 SMs) 357 against 297
     us a 5-pass hybrid step, batch 12 1.40 against 1.27 ms (warp_k_chunk_batches_h200.json), batch 64 6.79 against
     6.01 ms (warp_k_chunk_by_size_h200.json); and on GPUs that allow a block less than WHOLE_WEIGHTS_SHARED bytes
     of shared memory (``max_shared``: the device's opt-in limit; None: no limit, as on the CPU). 0: Spec's

@@ -45,8 +45,12 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
     """A Network's K chunk follows the device's opt-in shared memory a block (spec.k_chunk_for): the GPUs of 99 KiB
     (sm_86, sm_89: RTX 30x0 and 40x0, running the sm_80 build) must get chunked kernels that fit it, those of 163 and
     227 KiB (sm_80, sm_90) whole weights; each pick is shipped, and its largest kernel's shared memory (the .meta
-    Warp wrote at the build) fits with 1 KiB to spare for Warp's static allocations."""
+    Warp wrote at the build) fits with 1 KiB to spare for Warp's static allocations; with whole weights the edge pass
+    holds enough that at most two of its blocks share an SM."""
+    from warpgnn.kernels.message_passing import EDGE_PASS_SHARED
     from warpgnn.kernels.spec import NODE_ROWS, SHARED_OF_ARCH, Spec, k_chunk_for
+
+    SM_SHARED = {80: 164 * 1024, 90: 228 * 1024}  # shared memory an SM (CUDA programming guide)
 
     files = fresh_process_files()
     shipped_specs = {s.module: s for s in shipped.specs()}
@@ -55,8 +59,12 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
             for n in NODE_ROWS:
                 module = Spec(F, node_rows=n, k_chunk=k_chunk_for(n, F, max_shared)).module
                 assert module in shipped_specs, f"{module} (a GPU of {max_shared} B a block) is not shipped"
-                need = max(json.loads(files[f"{module}:{arch}"][1].read_text()).values())
+                meta = json.loads(files[f"{module}:{arch}"][1].read_text())
+                need = max(meta.values())
                 assert need + 1024 <= max_shared, f"{module} needs {need} B a block, the GPU allows {max_shared}"
+                if k_chunk_for(n, F, max_shared):  # whole weights: at most two edge blocks an SM (message_passing)
+                    edge = next(v for k, v in meta.items() if "edge_pass" in k)
+                    assert edge >= EDGE_PASS_SHARED and 3 * (edge + 1024) > SM_SHARED[arch], (module, edge)
     assert k_chunk_for(8, 64, 99 * 1024) == 0 and k_chunk_for(8, 64, 163 * 1024) == 64
     # builds without the GPU (precompile --arch) pick by SHARED_OF_ARCH as a Network there would
     assert [k_chunk_for(8, 64, SHARED_OF_ARCH.get(a, 0)) for a in (75, 80, 86, 89, 90)] == [0, 64, 0, 0, 64]

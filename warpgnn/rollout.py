@@ -104,12 +104,10 @@ def _collect(part, top, fetched) -> list[Rollout]:
 
 def _per_graph(top, diagnostics) -> list[torch.Tensor]:
     """The hybrid's (S, N) diagnostics as (graphs, steps) tensors in Rollout's field order: the mean
-    degeneracy, the least and the mean entropy production over each graph's nodes."""
+    degeneracy, the least and the mean entropy production over each graph's nodes (its contiguous node range). Each
+    graph's sums are reductions of their own, not index_add, whose atomic adds on CUDA summed in another order each
+    run (two evals of the same checkpoint reported per-rollout means a rounding apart)."""
     deg, ent = diagnostics
-    steps, device = deg.shape[0], deg.device
-    graph_of = torch.repeat_interleave(torch.arange(len(top.graph_sizes)), top.graph_sizes).to(device)
-    counts = top.graph_sizes.to(device).to(deg.dtype)
-    zeros = torch.zeros(steps, len(counts), device=device, dtype=deg.dtype)
-    least = torch.full_like(zeros, float("inf")).scatter_reduce(1, graph_of.expand(steps, -1), ent, "amin")
-    out = (zeros.index_add(1, graph_of, deg) / counts, least, zeros.index_add(1, graph_of, ent) / counts)
-    return [x.T.contiguous() for x in out]  # on the diagnostics' device
+    sizes = top.graph_sizes.tolist()
+    parts = [(d.mean(1), e.amin(1), e.mean(1)) for d, e in zip(deg.split(sizes, 1), ent.split(sizes, 1))]
+    return [torch.stack(x) for x in zip(*parts)]  # on the diagnostics' device

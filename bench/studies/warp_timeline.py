@@ -84,8 +84,28 @@ def summarise(stamps: np.ndarray, names: list[str]) -> tuple[list[dict], float]:
                 rec["phases_us"][f"{prev[1]} -> {label}"] = {"median": float(np.median(d)), "max": float(d.max())}
             prev = (p, label)
         rec["sms"] = int(len(np.unique(s[:, 0, 2])))
+        end = s[:, [lab for lab in labels if lab is not None].index(list(rec["points"])[-1]), 0]
+        rec["blocks_an_sm_at_once"] = most_at_once(s[:, 0, 2], s[:, 0, 0], end)
+        last = np.argsort(end)[-5:][::-1]  # the launch's last blocks to end: their indices, entries and ends [us]
+        rec["last_blocks"] = [{"block": int(np.nonzero(ok)[0][b]), "entry": float((s[b, 0, 0] - t0) / 1e3),
+                               "end": float((end[b] - t0) / 1e3)} for b in last]
         out.append(rec)
     return out, ghz
+
+
+def most_at_once(sm: np.ndarray, start: np.ndarray, end: np.ndarray) -> dict:
+    """How many of a launch's blocks ran on one SM at the same time: the largest count and how many SMs had it."""
+    top = {}
+    for k in np.unique(sm):
+        on = sm == k
+        ev = sorted([(t, 1) for t in start[on]] + [(t, -1) for t in end[on]], key=lambda x: (x[0], x[1]))
+        now = best = 0
+        for _, d in ev:
+            now += d
+            best = max(best, now)
+        top[int(k)] = best
+    counts = np.bincount(list(top.values()))
+    return {"max": int(counts.size - 1), "sms_with": {str(n): int(c) for n, c in enumerate(counts) if c}}
 
 
 def plot(stamps: np.ndarray, names: list[str], path: str, title: str) -> None:
@@ -130,13 +150,17 @@ def main():
     ap.add_argument("--aot", default=None,
                     help="a folder of `precompile --arch 90 --out` (whole weights, node tiles of 8)")
     ap.add_argument("--samples", type=int, default=7, help="steps stamped a case and capture (their medians kept)")
+    ap.add_argument("--modes", choices=("all", "plain"), default="all",
+                    help="capture modes: plain graph, edge passes plain, every edge programmatic (all), or the plain "
+                         "graph alone")
     ap.add_argument("--json", required=True)
     ap.add_argument("--png", default=None)
     provenance.add_arguments(ap)
     a = ap.parse_args()
     if "stamps" not in Network.__init__.__code__.co_names:
-        raise SystemExit("kernels/ lacks the timeline patch: apply the 'change' of bench/results/"
-                         "warp_timeline_h200.json (patch -p1) to a copy of the tree and run this from there")
+        raise SystemExit("kernels/ lacks the timeline patch: apply change['timeline_patch_for_this_tree'] of "
+                         "bench/results/warp_edge_occupancy_h200.json (patch -p1) to a copy of the tree and run this "
+                         "from there")
     if a.aot:
         precompile.load(a.aot, [a.latent], "cuda:0", 128, tile_rows=32, node_rows=8, k_chunk=a.latent)
     base = l5_case(a.mesh)
@@ -147,8 +171,10 @@ def main():
         net = Network(random_model(kind, int(passes), a.latent), case.topology, device="cuda:0")
         net.set_inputs(case.z, case.u_now, case.u_next, DT)
         names = launch_names(int(passes))
-        # plain graph, every launch overlapped, edge passes plain, the Network's choice (None)
-        for overlap, plain_into in ((False, ()), (True, ()), (True, ("edge_pass",)), (True, None)):
+        # plain graph, edge passes plain, every launch overlapped (Network.capture's default, last: the PNG's)
+        modes = ((False, ()), (True, ("edge_pass",)), (True, ()))
+        chosen = modes if a.modes == "all" else modes[:1]
+        for overlap, plain_into in chosen:
             net.capture(overlap=overlap, plain_into=plain_into)
             for _ in range(20):
                 net.forward()
@@ -158,7 +184,7 @@ def main():
             k = int(np.argsort(step_us)[len(step_us) // 2])  # the median step, whole
             rec, ghz = summaries[k]
             cases.append({"model": kind, "passes": int(passes), "batch": int(batch), "latent": a.latent,
-                          "overlapped": overlap, "plain_into": "default" if plain_into is None else list(plain_into),
+                          "overlapped": overlap, "plain_into": list(plain_into),
                           "stamped_step_us": step_us,
                           "ghz": ghz, "launches": rec})
             print(kind, passes, batch, "overlapped" if overlap else "plain", plain_into, f"{ghz:.2f} GHz",
@@ -168,8 +194,9 @@ def main():
                                for lab, v in r["points"].items())
                 ph = " ".join(f"[{k.split(' -> ')[1]} {v['median']:.2f}/{v['max']:.2f}]"
                               for k, v in r["phases_us"].items())
-                print(f"  {r['index']:2d} {r['launch']:7s} b{r['blocks']:4d} sm{r['sms']:3d} {pts} | {ph}", flush=True)
-            if a.png and plain_into is None and item == a.cases.split(",")[0]:
+                print(f"  {r['index']:2d} {r['launch']:7s} b{r['blocks']:4d} sm{r['sms']:3d} "
+                      f"at once {r['blocks_an_sm_at_once']} {pts} | {ph}", flush=True)
+            if a.png and (overlap, plain_into) == chosen[-1] and item == a.cases.split(",")[0]:
                 plot(samples[k], names, a.png, f"{kind}, {passes} passes, batch {batch}, F = {a.latent}: one captured "
                      "step as Network.capture makes it (each line a block)")
     Path(a.json).write_text(json.dumps(provenance.record(a) | {"cases": cases}, indent=1) + "\n")
