@@ -30,8 +30,9 @@ from .tiles import grid_step, helpers, matmul, matmul_ahead, row_vector, stage, 
 
 FW = FEATURE_WIDTH
 # the edge pass's shared memory with whole weights (kernels below): at most two blocks an SM on sm_80 and sm_90. On an
-# H200 (L5, F = 64, every launch overlapped), 57 -> 80 KiB took the hybrid from 139.0 to 132.3 us at 5 passes and from
-# 291.3 to 271.9 us at 12 (block-stamped steps, bench/results/warp_edge_occupancy_h200.json)
+# H200 (L5, F = 64), 56 KiB with the edge passes' launches plain -> 80 KiB with every launch overlapped took the
+# hybrid from 139.0 to 132.3 us at 5 passes and from 291.3 to 271.9 us at 12 (block-stamped steps,
+# bench/results/warp_edge_occupancy_h200.json)
 EDGE_PASS_SHARED = 80 * 1024
 
 
@@ -47,7 +48,7 @@ def kernels(spec: Spec):
     ahead = spec.kc == F
     # with whole weights the edge pass holds at least EDGE_PASS_SHARED bytes of shared memory (its tiles, then a spare
     # tile), so that at most two of its blocks share an SM (sm_80: 164 KiB an SM, sm_90: 228): overlapped with the
-    # node pass, its blocks (57 KiB each) were otherwise packed three to an SM beside the node pass's and ran their
+    # node pass, its blocks (56 KiB each) were otherwise packed three to an SM beside the node pass's and ran their
     # loads and products slower than the early start gained (kernels/network.py)
     spare = max(0, EDGE_PASS_SHARED // 4 - 3 * T * F - buf_rows * F - w2_rows * F) if ahead else 0
     spare_cols = max(1, -(-spare // T))
@@ -184,8 +185,8 @@ def node_kernel(spec: Spec):
         row0 = blk * T
         grid_step(0)
         # f_v's input [x | sum of mesh messages | sum of actuator messages] as one (T, 3F) tile, so its first layer is
-        # one product over 3F (its weight chunks double-buffered end to end; zeros without actuator graphs, whose
-        # weight block is zero too): the same chunks in the same order as three products, one code path
+        # one product over 3F (with whole weights one chunk, else its K chunks double-buffered end to end; zeros
+        # without actuator graphs, whose weight block is zero too): one code path
         if wp.static(ahead):  # the three products' weight copies first, in flight while the CSR sums' loads are
             w1_buf = wp.tile_empty(shape=(in_rows, F), dtype=float, storage="shared")
             begin_in(w1_buf, w1, 3 * p * F, 0)

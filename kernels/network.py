@@ -168,8 +168,8 @@ class Network:
     def overlap(self, graph, plain_into: tuple[str, ...] = ()) -> int:
         """Make the captured ``graph``'s launches overlap (kernels/pdl.py), except those into the kernels named in
         ``plain_into`` (kernel names, as edge_pass: studies), which start once the launch before has ended. Every
-        launch overlapping is the fastest measured: H200, L5, F = 64, 5 / 12 passes 132.3 / 271.9 us against 139.0 /
-        291.3 with the edge passes plain (whole weights, the edge pass at two blocks an SM: message_passing), F = 128
+        launch overlapping is the fastest measured: H200, L5, F = 64, 5 / 12 passes 132.3 / 271.9 us against 139.9 /
+        291.5 with the edge passes plain (whole weights, the edge pass at two blocks an SM: message_passing), F = 128
         12 passes 706.9 against 723.4 us (K chunks) (bench/results/warp_edge_occupancy_h200.json,
         warp_pdl_modes_h200.json). Returns the edges changed."""
         if not self.device.is_cuda:

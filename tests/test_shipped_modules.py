@@ -64,7 +64,8 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
                 assert need + 1024 <= max_shared, f"{module} needs {need} B a block, the GPU allows {max_shared}"
                 if k_chunk_for(n, F, max_shared):  # whole weights: at most two edge blocks an SM (message_passing)
                     edge = next(v for k, v in meta.items() if "edge_pass" in k)
-                    assert edge >= EDGE_PASS_SHARED and 3 * (edge + 1024) > SM_SHARED[arch], (module, edge)
+                    fits = 3 * (edge + 1024) > SM_SHARED[arch] >= 2 * (edge + 1024)  # two blocks an SM, not three
+                    assert edge >= EDGE_PASS_SHARED and fits, (module, edge)
     assert k_chunk_for(8, 64, 99 * 1024) == 0 and k_chunk_for(8, 64, 163 * 1024) == 64
     # builds without the GPU (precompile --arch) pick by SHARED_OF_ARCH as a Network there would
     assert [k_chunk_for(8, 64, SHARED_OF_ARCH.get(a, 0)) for a in (75, 80, 86, 89, 90)] == [0, 64, 0, 0, 64]

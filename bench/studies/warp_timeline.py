@@ -84,9 +84,11 @@ def summarise(stamps: np.ndarray, names: list[str]) -> tuple[list[dict], float]:
                 rec["phases_us"][f"{prev[1]} -> {label}"] = {"median": float(np.median(d)), "max": float(d.max())}
             prev = (p, label)
         rec["sms"] = int(len(np.unique(s[:, 0, 2])))
-        end = s[:, [lab for lab in labels if lab is not None].index(list(rec["points"])[-1]), 0]
-        rec["blocks_an_sm_at_once"] = most_at_once(s[:, 0, 2], s[:, 0, 0], end)
-        last = np.argsort(end)[-5:][::-1]  # the launch's last blocks to end: their indices, entries and ends [us]
+        end = s[:, max(p for p, lab in enumerate(labels) if lab is not None), 0]
+        done = end > 0  # blocks that reached the launch's last point (not the encoders' early self-loop blocks)
+        rec["blocks_an_sm_at_once"] = most_at_once(s[done, 0, 2], s[done, 0, 0], end[done])
+        # the launch's last blocks to end: their indices, entries and ends [us]
+        last = [b for b in np.argsort(end)[::-1] if done[b]][:5]
         rec["last_blocks"] = [{"block": int(np.nonzero(ok)[0][b]), "entry": float((s[b, 0, 0] - t0) / 1e3),
                                "end": float((end[b] - t0) / 1e3)} for b in last]
         out.append(rec)
