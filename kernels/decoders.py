@@ -20,14 +20,14 @@ import warp as wp
 from .generic_tail import row_operators
 from .integrate import advance
 from .spec import N_GRAD, N_LM, STATE, Spec
-from .tiles import grid_step, helpers, matmul, matmul_ahead, row_steps, row_vector, stage
+from .tiles import grid_step, helpers, index_steps, matmul, matmul_ahead, row_steps, row_vector, stage
 
 
 @functools.cache
 def node_decoder(spec: Spec, owner: str):
     """The hybrid's delta_v on a tile of node latents, for the last node pass (message_passing)."""
     T, F = spec.tile_rows, spec.latent
-    _fill, activate, _second_layer, _segment_sum, _project, _gather, _ahead = helpers(spec, owner)
+    _fill, activate, _second_layer, _sums, _project, _gather, _ahead = helpers(spec, owner)
     mm_grad = matmul(T, F, spec.kc, N_GRAD, spec.gemm, owner)
     fill_grad, _activate_grad = row_steps(T, N_GRAD, owner)
 
@@ -49,16 +49,19 @@ def node_decoder(spec: Spec, owner: str):
 
 @functools.cache
 def kernels(spec: Spec):
+    """hybrid_fields, in spec.module_of("hybrid_fields")."""
+    owner = spec.module_of("hybrid_fields")
     T, F = spec.tile_rows, spec.latent
-    _fill, activate, _second_layer, _segment_sum, _project, gather_pair, _ahead = helpers(spec, spec.module)
-    mm_ff = matmul(T, F, spec.kc, F, spec.gemm, spec.module)
-    mm_lm = matmul(T, F, spec.kc, N_LM, spec.gemm, spec.module)
+    _fill, activate, _second_layer, _sums, _project, gather_pair, _ahead = helpers(spec, owner)
+    mm_ff = matmul(T, F, spec.kc, F, spec.gemm, owner)
+    mm_lm = matmul(T, F, spec.kc, N_LM, spec.gemm, owner)
     ahead = spec.kc == F  # as the edge pass: weight copies first with whole weights
-    ff_rows, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, spec.module)
-    lm_rows, begin_lm, finish_lm = matmul_ahead(T, F, spec.kc, N_LM, spec.gemm, spec.module)
-    fill_lm, _activate_lm = row_steps(T, N_LM, spec.module)
-    sender_grads, port_terms = row_operators(spec)
-    load_rows, loaded = stage(T, F, spec.module)
+    ff_rows, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, owner)
+    lm_rows, begin_lm, finish_lm = matmul_ahead(T, F, spec.kc, N_LM, spec.gemm, owner)
+    fill_lm, _activate_lm = row_steps(T, N_LM, owner)
+    sender_grads, port_terms = row_operators(spec, owner)
+    load_rows, loaded = stage(T, F, owner)
+    stage_ids, _stage_offsets = index_steps(T, owner)
 
     @wp.func
     def edge_fields(lat: wp.array2d(dtype=float), row_recv: wp.array(dtype=wp.int32),
@@ -72,13 +75,15 @@ def kernels(spec: Spec):
             begin_ff(w1_buf, w_e, 0, 0)
             w2_buf = wp.tile_empty(shape=(lm_rows, N_LM), dtype=float, storage="shared")
             begin_lm(w2_buf, w2, 0, 0)
+        ids = wp.tile_empty(shape=(2, T), dtype=wp.int32, storage="shared")
+        stage_ids(ids, row_recv, row_send, row0)  # the graph's: before the wait
         grid_step(1)
         x = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
-        sender_grads(x, grads, row_send, row0)  # for the port terms, in flight with the loads below
+        sender_grads(x, grads, ids)  # for the port terms, in flight with the loads below
         e = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         load_rows(e, lat, row0, 0)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        gather_pair(h, b1, 0, products, row_recv, 0, row_send, 0, F, row0)
+        gather_pair(h, b1, 0, products, ids, 0, 0, F)
         loaded(e)
         if wp.static(ahead):
             finish_ff(e, w_e, 0, 0, w1_buf, h)
@@ -94,7 +99,7 @@ def kernels(spec: Spec):
         y = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
         port_terms(o, x, y, out_row, self_loops, node0, ports, node_terms)
 
-    @wp.kernel(enable_backward=False, module=spec.module)
+    @wp.kernel(enable_backward=False, module=owner)
     def hybrid_fields(lat: wp.array2d(dtype=float), row_recv: wp.array(dtype=wp.int32),
                       row_send: wp.array(dtype=wp.int32), products: wp.array2d(dtype=row_vector(F)),
                       de_e: wp.array2d(dtype=float), de_b1: wp.array2d(dtype=float), de_w2: wp.array2d(dtype=float),
@@ -111,14 +116,15 @@ def kernels(spec: Spec):
 
 @functools.cache
 def vanilla_kernel(spec: Spec):
-    """vanilla_tail on the node tiles (spec.nodes), in spec's module."""
+    """vanilla_tail on the node tiles (spec.nodes), in spec.module_of("vanilla_tail")."""
+    owner = spec.module_of("vanilla_tail")
     T, F = spec.node_tile, spec.latent
-    _fill, activate, _second_layer, _segment_sum, _project, _gather, _ahead = helpers(spec.nodes, spec.module)
-    mm_state = matmul(T, F, spec.kc, STATE, spec.gemm, spec.module)
-    fill_state, _activate_state = row_steps(T, STATE, spec.module)
-    load_products, loaded = stage(T, F, spec.module)
+    _fill, activate, _second_layer, _sums, _project, _gather, _ahead = helpers(spec.nodes, owner)
+    mm_state = matmul(T, F, spec.kc, STATE, spec.gemm, owner)
+    fill_state, _activate_state = row_steps(T, STATE, owner)
+    load_products, loaded = stage(T, F, owner)
 
-    @wp.kernel(enable_backward=False, module=spec.module)
+    @wp.kernel(enable_backward=False, module=owner)
     def vanilla_tail(products: wp.array2d(dtype=float), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
                      b2: wp.array2d(dtype=float), zdot_scale: wp.array(dtype=float), z: wp.array2d(dtype=float),
                      dt: wp.array(dtype=float), rest: wp.array2d(dtype=float), node_type: wp.array(dtype=wp.int32),
@@ -150,16 +156,18 @@ def vanilla_kernel(spec: Spec):
     return vanilla_tail
 
 
-def launches(net, block_dim: int) -> list:
+def launches(net) -> list:
     hybrid_fields, vanilla_tail = kernels(net.spec), vanilla_kernel(net.spec)
     lay, w, g, dev = net.layout, net.weights, net.graph, net.device
     if w.kind == "hybrid":
         return [wp.launch_tiled(
-            hybrid_fields, dim=[lay.tiles(lay.edges_pad + lay.nodes_pad)], block_dim=block_dim, device=dev,
+            hybrid_fields, dim=[lay.tiles(lay.edges_pad + lay.nodes_pad)], block_dim=net.block_dim_of("hybrid_fields"),
+            device=dev,
             record_cmd=True,
             inputs=[net.lat, g.row_recv, g.row_send, net.product_rows, w.de_e, w.de_b1, w.de_w2, w.de_b2, net.grads,
                     lay.mesh_row, lay.tiles(lay.edges_pad), net.ports, net.node_terms])]
     return [wp.launch_tiled(
-        vanilla_tail, dim=[lay.nodes_pad // net.spec.node_tile], block_dim=block_dim, device=dev, record_cmd=True,
+        vanilla_tail, dim=[lay.nodes_pad // net.spec.node_tile], block_dim=net.block_dim_of("vanilla_tail"), device=dev,
+        record_cmd=True,
         inputs=[net.products, w.vd_b1, w.vd_w2, w.vd_b2, w.zdot_scale, net.z, net.dt, g.rest, g.node_type,
                 g.presc_tool, g.presc_weight, net.u_next, lay.n_nodes, net.zdot, net.zdot_std, net.z_next])]

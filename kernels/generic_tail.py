@@ -46,7 +46,7 @@ SENDER_GRADS = ROW_PTR + r"""
     if constexpr (C % 4 == 0 && S % 4 == 0) {
         constexpr int C4 = C / 4;
         const unsigned d0 = static_cast<unsigned>(__cvta_generic_to_shared(x.data.ptr));
-        const int* send = row_send.data + row0;
+        const int* send = ids.data.ptr + tile_ids::Layout::Stride::dim(0);  // the rows' senders (tiles.stage_ids)
         for (int i = WP_TILE_THREAD_IDX; i < R * C4; i += WP_TILE_BLOCK_DIM) {
             const int r = i / C4, c = i - r * C4;
             const char* src = reinterpret_cast<const char*>(row_ptr(grads, send[r])) + 16 * c;
@@ -58,7 +58,7 @@ SENDER_GRADS = ROW_PTR + r"""
 #endif
     if (!done)
         for (int i = WP_TILE_THREAD_IDX; i < R * C; i += WP_TILE_BLOCK_DIM)
-            x.data(wp::tile_coord(i / C, i % C)) = wp::index(grads, wp::index(row_send, row0 + i / C), i % C);
+            x.data(wp::tile_coord(i / C, i % C)) = wp::index(grads, ids.data(wp::tile_coord(1, i / C)), i % C);
 """
 
 PORT_TERMS = r"""
@@ -113,19 +113,20 @@ PORT_TERMS = r"""
 
 
 @functools.cache
-def row_operators(spec: Spec):
-    """(sender_grads, port_terms). sender_grads(x, grads, row_send, row0): starts gathering x[r] = grads[row_send[row0
-    + r]] (on CUDA asynchronous copies: the next wait for the launch's row copies, tiles.stage's, waits for them too).
-    port_terms(lm, x, y, out_row, self_loops, node0, ports, node_terms): ports[out_row + r,
+def row_operators(spec: Spec, owner: str):
+    """(sender_grads, port_terms). sender_grads(x, grads, ids): starts gathering x[r] = grads[ids[1, r]] (the rows'
+    senders, tiles.stage_ids; on CUDA asynchronous copies: the next wait for the launch's row copies, tiles.stage's,
+    waits for them too). port_terms(lm, x, y, out_row, self_loops, node0, ports, node_terms): ports[out_row + r,
     a] = (L_r dE_j + M_r dS_j)[a] for each row r of a (rows, 144) tile of delta_e's outputs, j the row's sender (the
     node itself on a self-loop), L x = A x - A^T x and M x = B (B^T x) from the packed triangles; on self-loop rows
     (self_loops != 0, node node0 + r) also node_terms[node, a] = (L dS)[a]^2 + (M dE)[a]^2 and node_terms[node, 12 +
-    a] = dS[a] (M dS)[a]. ``x``: the senders' (dE, dS), gathered; ``y``: a (rows, 24) shared scratch tile."""
+    a] = dS[a] (M dS)[a]. ``x``: the senders' (dE, dS), gathered; ``y``: a (rows, 24) shared scratch tile. Cached by
+    ``owner``, the module of the kernel using them (as tiles.py's factories)."""
     T = spec.tile_rows
 
     @wp.func_native(SENDER_GRADS)
     def sender_grads(x: wp.tile(dtype=float, shape=(T, 2 * STATE)), grads: wp.array2d(dtype=float),
-                     row_send: wp.array(dtype=wp.int32), row0: int): ...
+                     ids: wp.tile(dtype=wp.int32, shape=(2, T))): ...
 
     @wp.func_native(PORT_TERMS)
     def port_terms(lm: wp.tile(dtype=float, shape=(T, N_LM)), x: wp.tile(dtype=float, shape=(T, 2 * STATE)),

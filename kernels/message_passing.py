@@ -26,7 +26,7 @@ import warp as wp
 
 from .decoders import node_decoder
 from .spec import FEATURE_WIDTH, Spec
-from .tiles import grid_step, helpers, matmul, matmul_ahead, row_vector, stage, store
+from .tiles import grid_step, helpers, index_steps, matmul, matmul_ahead, row_vector, stage, store
 
 FW = FEATURE_WIDTH
 # the edge pass's shared memory with whole weights (kernels below): at most two blocks an SM on sm_80 and sm_90. On an
@@ -37,27 +37,16 @@ EDGE_PASS_SHARED = 80 * 1024
 
 
 @functools.cache
-def kernels(spec: Spec):
+def encoder_kernel(spec: Spec):
+    """encode, in spec.module_of("encode")."""
+    owner = spec.module_of("encode")
     T, F = spec.tile_rows, spec.latent
-    fill, _activate, second_layer, _segment_sum, project, gather_pair, ahead_parts = helpers(spec, spec.module)
-    w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
-    mm_ff = matmul(T, F, spec.kc, F, spec.gemm, spec.module)
-    buf_rows, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, spec.module)
-    # whole weights in one K chunk (small graphs, spec.k_chunk_for): a launch starts its weight copies first, so they
-    # are in flight while its rows' loads are; with chunks the buffers held that long would cost occupancy
-    ahead = spec.kc == F
-    # with whole weights the edge pass holds at least EDGE_PASS_SHARED bytes of shared memory (its tiles, then a spare
-    # tile), so that at most two of its blocks share an SM (sm_80: 164 KiB an SM, sm_90: 228): overlapped with the
-    # node pass, its blocks (56 KiB each) were otherwise packed three to an SM beside the node pass's and ran their
-    # loads and products slower than the early start gained (kernels/network.py)
-    spare = max(0, EDGE_PASS_SHARED // 4 - 3 * T * F - buf_rows * F - w2_rows * F) if ahead else 0
-    spare_cols = max(1, -(-spare // T))
-    mm_in = matmul(T, FW, FW, F, spec.gemm, spec.module)
-    load_rows, loaded = stage(T, F, spec.module)
-    load_feat, loaded_feat = stage(T, FW, spec.module)
-    store_rows = store(T, F, spec.module)
+    fill, _activate, second_layer, _sums, project, _gather, _ahead = helpers(spec, owner)
+    mm_in = matmul(T, FW, FW, F, spec.gemm, owner)
+    load_feat, loaded_feat = stage(T, FW, owner)
+    store_rows = store(T, F, owner)
 
-    @wp.kernel(enable_backward=False, module=spec.module)
+    @wp.kernel(enable_backward=False, module=owner)
     def encode(feat: wp.array2d(dtype=float), w1: wp.array2d(dtype=float), b1: wp.array2d(dtype=float),
                w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float), gain: wp.array2d(dtype=float),
                shift: wp.array2d(dtype=float), self_loop: wp.array2d(dtype=float), proj: wp.array2d(dtype=float),
@@ -112,7 +101,32 @@ def kernels(spec: Spec):
         if cls == 3:  # this pass's tool products, after the node rows
             project(y, tool_proj, tool_pass * F, 0, products, nodes_pad + tool_pass * tools_pad + row0 - tool_row, F)
 
-    @wp.kernel(enable_backward=False, module=spec.module)
+    return encode
+
+
+@functools.cache
+def edge_kernel(spec: Spec):
+    """edge_pass, in spec.module_of("edge_pass")."""
+    owner = spec.module_of("edge_pass")
+    T, F = spec.tile_rows, spec.latent
+    _fill, _activate, second_layer, _sums, _project, gather_pair, ahead_parts = helpers(spec, owner)
+    w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
+    mm_ff = matmul(T, F, spec.kc, F, spec.gemm, owner)
+    buf_rows, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, owner)
+    # whole weights in one K chunk (small graphs, spec.k_chunk_for): a launch starts its weight copies first, so they
+    # are in flight while its rows' loads are; with chunks the buffers held that long would cost occupancy
+    ahead = spec.kc == F
+    # with whole weights the edge pass holds at least EDGE_PASS_SHARED bytes of shared memory (its tiles, then a spare
+    # tile), so that at most two of its blocks share an SM (sm_80: 164 KiB an SM, sm_90: 228): overlapped with the
+    # node pass, its blocks (56 KiB each) were otherwise packed three to an SM beside the node pass's and ran their
+    # loads and products slower than the early start gained (kernels/network.py)
+    spare = max(0, EDGE_PASS_SHARED // 4 - 3 * T * F - buf_rows * F - w2_rows * F) if ahead else 0
+    spare_cols = max(1, -(-spare // T))
+    load_rows, loaded = stage(T, F, owner)
+    store_rows = store(T, F, owner)
+    stage_ids, _stage_offsets = index_steps(T, owner)
+
+    @wp.kernel(enable_backward=False, module=owner)
     def edge_pass(lat: wp.array2d(dtype=float), row_recv: wp.array(dtype=wp.int32),
                   row_send: wp.array(dtype=wp.int32), products: wp.array2d(dtype=row_vector(F)),
                   w_e: wp.array2d(dtype=float), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
@@ -135,13 +149,15 @@ def kernels(spec: Spec):
             begin_ff(w1_buf, w_e, wi * F, 0)
             w2_buf = wp.tile_empty(shape=(w2_rows, F), dtype=float, storage="shared")
             begin_second_layer(w2_buf, w2, wi)
+        ids = wp.tile_empty(shape=(2, T), dtype=wp.int32, storage="shared")
+        stage_ids(ids, row_recv, row_send, row0)  # the graph's indices before the wait: no launch writes them
         grid_step(1)
         if wp.static(spare > 0):  # never read or written: occupancy (above)
             _spare = wp.tile_empty(shape=(T, spare_cols), dtype=float, storage="shared")
         e = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         load_rows(e, lat, row0, 0)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        gather_pair(h, b1, wi, products, row_recv, recv_col, row_send, send_row, F, row0)
+        gather_pair(h, b1, wi, products, ids, recv_col, send_row, F)
         loaded(e)
         o = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         if wp.static(ahead):
@@ -152,27 +168,31 @@ def kernels(spec: Spec):
             second_layer(h, w2, b2, gain, shift, wi, eps, e, 1, o)
         store_rows(o, lat, row0, 0)
 
-    return encode, edge_pass
+    return edge_pass
 
 
 @functools.cache
 def node_kernel(spec: Spec):
-    """node_pass on the node tiles (spec.nodes: they may be smaller than the edges'), in spec's module."""
+    """node_pass on the node tiles (spec.nodes: they may be smaller than the edges'), in spec.module_of("node_pass")."""
+    owner = spec.module_of("node_pass")
     T, F = spec.node_tile, spec.latent
-    fill, _activate, second_layer, segment_sums, _project, _gather, ahead_parts = helpers(spec.nodes, spec.module)
+    fill, _activate, second_layer, sums, _project, _gather, ahead_parts = helpers(spec.nodes, owner)
+    segment_sums, staged_segment_sums = sums
     w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
-    node_fields = node_decoder(spec.nodes, spec.module)
+    node_fields = node_decoder(spec.nodes, owner)
     F3 = 3 * F
-    mm_in, mm_out = matmul(T, F3, spec.kc, F, spec.gemm, spec.module), matmul(T, F, spec.kc, F3, spec.gemm, spec.module)
+    mm_in, mm_out = matmul(T, F3, spec.kc, F, spec.gemm, owner), matmul(T, F, spec.kc, F3, spec.gemm, owner)
     ahead = spec.kc == F  # as the edge pass: weight copies first with whole weights
     # and then the first layer's (3F, F) weight as one chunk too, copied whole at the launch's start (in three chunks
     # the product waited for two copies: 2.81 -> 2.40 us a block, bench/results/warp_edge_occupancy_h200.json)
-    in_rows, begin_in, finish_in = matmul_ahead(T, F3, F3 if ahead else spec.kc, F, spec.gemm, spec.module)
-    out_rows, begin_out, finish_out = matmul_ahead(T, F, spec.kc, F3, spec.gemm, spec.module)
-    load_rows, loaded = stage(T, F, spec.module)
-    store_rows, store_products = store(T, F, spec.module), store(T, F3, spec.module)
+    in_rows, begin_in, finish_in = matmul_ahead(T, F3, F3 if ahead else spec.kc, F, spec.gemm, owner)
+    out_rows, begin_out, finish_out = matmul_ahead(T, F, spec.kc, F3, spec.gemm, owner)
+    load_rows, loaded = stage(T, F, owner)
+    store_rows, store_products = store(T, F, owner), store(T, F3, owner)
+    _stage_ids, stage_offsets = index_steps(T, owner)
+    T1 = T + 1  # a tile's CSR offsets: its nodes' and the next one's
 
-    @wp.kernel(enable_backward=False, module=spec.module)
+    @wp.kernel(enable_backward=False, module=owner)
     def node_pass(lat: wp.array2d(dtype=float), lat_rows: wp.array2d(dtype=row_vector(F)),
                   mesh_off: wp.array(dtype=wp.int32),
                   act_off: wp.array(dtype=wp.int32), w1: wp.array2d(dtype=float), b1: wp.array2d(dtype=float),
@@ -194,11 +214,18 @@ def node_kernel(spec: Spec):
             begin_second_layer(w2_buf, w2, p)
             proj_buf = wp.tile_empty(shape=(out_rows, F3), dtype=float, storage="shared")
             begin_out(proj_buf, proj, (p + 1) * F, 0)
+        if wp.static(ahead):  # few tiles an SM: the graph's CSR offsets before the wait, in its shadow (with K chunks,
+            # batch 64 and F = 128, staging them cost the launch 4-8 %: they are read where they are summed)
+            offs = wp.tile_empty(shape=(2, T1), dtype=wp.int32, storage="shared")
+            stage_offsets(offs, mesh_off, act_off, row0, n_nodes, actuators)
         grid_step(1)
         xin = wp.tile_zeros(shape=(T, F3), dtype=float, storage="shared")
         x = wp.tile_view(xin, offset=(0, 0), shape=(T, F))
         load_rows(x, lat, row0, 0)
-        segment_sums(xin, lat_rows, mesh_off, mesh_row, act_off, act_row, actuators, row0, n_nodes)
+        if wp.static(ahead):
+            staged_segment_sums(xin, lat_rows, offs, mesh_row, act_row, actuators, row0, n_nodes)
+        else:
+            segment_sums(xin, lat_rows, mesh_off, mesh_row, act_off, act_row, actuators, row0, n_nodes)
         loaded(x)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         fill(h, b1, p)
@@ -224,16 +251,16 @@ def node_kernel(spec: Spec):
     return node_pass
 
 
-def launches(net, block_dim: int) -> list:
+def launches(net) -> list:
     """The encoder launch and two launches per pass, recorded (wp.Launch) for replay."""
-    (encode, edge_pass), node_pass = kernels(net.spec), node_kernel(net.spec)
+    encode, edge_pass, node_pass = encoder_kernel(net.spec), edge_kernel(net.spec), node_kernel(net.spec)
     lay, w, dev = net.layout, net.weights, net.device
     A = 1 if w.actuator_graphs else 0
     pass_chunks = 3 if A else 2
     later_tools = (w.passes - 1) * lay.tiles(lay.tools_pad)  # blocks for the later passes' tool products
     node_chunks = (pass_chunks - 1) * lay.tiles(lay.nodes_pad)  # and for the node products' further column blocks
     out = [wp.launch_tiled(
-        encode, dim=[lay.tiles(lay.rows) + later_tools + node_chunks], block_dim=block_dim, device=dev,
+        encode, dim=[lay.tiles(lay.rows) + later_tools + node_chunks], block_dim=net.block_dim_of("encode"), device=dev,
         record_cmd=True,
         inputs=[net.feat, w.enc_w1, w.enc_b1, w.enc_w2, w.enc_b2, w.enc_g, w.enc_be, net.self_loop, w.proj,
                 w.tool_proj, w.eps, lay.mesh_row, lay.self_row, lay.act_row,
@@ -243,13 +270,14 @@ def launches(net, block_dim: int) -> list:
     edge_tiles = mesh_tiles + lay.tiles(lay.act_pad)
     for p in range(w.passes):
         out.append(wp.launch_tiled(
-            edge_pass, dim=[edge_tiles], block_dim=block_dim, device=dev, record_cmd=True,
+            edge_pass, dim=[edge_tiles], block_dim=net.block_dim_of("edge_pass"), device=dev, record_cmd=True,
             inputs=[net.lat, net.graph.row_recv, net.graph.row_send, net.product_rows, w.ew_e, w.ew_b1, w.ew_w2,
                     w.ew_b2, w.ew_g, w.ew_be, w.eps, p, lay.mesh_row, mesh_tiles, lay.act_row, lay.tools_pad]))
         last = p == w.passes - 1
         decode = 1 if last and w.kind == "hybrid" else 0  # then (dE, dS) too, from the third block of proj
         out.append(wp.launch_tiled(
-            node_pass, dim=[lay.nodes_pad // net.spec.node_tile], block_dim=block_dim, device=dev, record_cmd=True,
+            node_pass, dim=[lay.nodes_pad // net.spec.node_tile], block_dim=net.block_dim_of("node_pass"), device=dev,
+            record_cmd=True,
             inputs=[net.lat, net.lat_rows, net.graph.mesh_off, net.graph.act_off, w.nv_w1, w.nv_b1, w.nv_w2, w.nv_b2,
                     w.nv_g, w.nv_be, w.proj, w.eps, p, lay.mesh_row, lay.act_row, lay.n_nodes, A,
                     net.products, decode, *net.node_decoder_args]))

@@ -20,18 +20,22 @@ import warp as wp
 from . import decoders, features, generic_tail, integrate, message_passing, shipped
 from .graph import build
 from .pdl import overlap_launches
-from .spec import FEATURE_WIDTH, N_GRAD, NODE_ROWS, STATE, Spec, k_chunk_for, max_shared_of, node_rows_for
+from .spec import FEATURE_WIDTH, N_GRAD, NODE_ROWS, STATE, Spec, k_chunk_for, max_shared_of, node_rows_for, threads_for
 from .tiles import row_view
 from .weights import pack
 
 
 def build_kernels(spec: Spec) -> None:
-    """Create every kernel of ``spec`` before any launch: they share one Warp module, compiled once."""
-    for module in (features, message_passing, decoders, generic_tail, integrate):
+    """Create every kernel of ``spec`` before any launch: they share one Warp module a block size (Spec.modules),
+    each compiled once."""
+    for module in (features, decoders, generic_tail, integrate):
         module.kernels(spec)
+    message_passing.encoder_kernel(spec)
+    message_passing.edge_kernel(spec)
     message_passing.node_kernel(spec)
     decoders.vanilla_kernel(spec)
-    wp.get_module(spec.module).options["enable_mathdx_gemm"] = spec.gemm == "mathdx"  # part of the module's hash
+    for module in spec.modules:
+        wp.get_module(module).options["enable_mathdx_gemm"] = spec.gemm == "mathdx"  # part of the module's hash
 
 
 def default_block_dim(device) -> int:
@@ -55,12 +59,14 @@ def _as_warp(x, device):
 
 class Network:
     def __init__(self, model, topology, device=None, tile_rows: int = Spec.tile_rows, block_dim: int | None = None,
-                 k_chunk: int | None = None, weights=None, node_rows: int | None = None, gemm: str = Spec.gemm):
+                 k_chunk: int | None = None, weights=None, node_rows: int | None = None, gemm: str = Spec.gemm,
+                 threads: dict | None = None):
         """``model``: a warpgnn TIGNN (its config and weights are read once); ``topology``: a
         warpgnn.graphs.Topology, one simulation or a stacked batch. ``tile_rows``, ``node_rows``, ``k_chunk``,
         ``gemm``: the kernels' Spec (node_rows and k_chunk None: by the graph's size, spec.node_rows_for and
         spec.k_chunk_for, the shapes kernels/aot ships). ``block_dim``: threads a block
-        of the tile kernels (default_block_dim). ``weights``: the
+        of the tile kernels (default_block_dim); ``threads``: {kernel name: threads a block} of those whose CUDA
+        launches take another (Spec.threads; None: by the K chunk, spec.threads_for). ``weights``: the
         model already packed on ``device`` (weights.pack), so Networks of many topologies share one copy."""
         self.device = wp.get_device(device)
         self.weights = w = weights if weights is not None else pack(model, self.device)
@@ -70,7 +76,8 @@ class Network:
         if k_chunk is None:
             tiles_per_sm = -(-topology.n_nodes // node_rows) / self.device.sm_count if self.device.is_cuda else 0
             k_chunk = k_chunk_for(node_rows, w.latent, max_shared_of(self.device), tiles_per_sm)
-        self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm)
+        threads = threads_for(k_chunk, w.latent, self.device.is_cuda) if threads is None else threads
+        self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm, tuple(sorted(dict(threads).items())))
         build_kernels(self.spec)
         self.block_dim = block_dim or default_block_dim(self.device)
         self.shipped_module = shipped.load(self.spec, self.device, self.block_dim)  # else Warp compiles it
@@ -106,11 +113,15 @@ class Network:
         self.degeneracy = zeros(n) if hybrid else None
         self.entropy = zeros(n) if hybrid else None
 
-        self._launches = ([features.launch(self, record=True)] + message_passing.launches(self, self.block_dim)
-                          + decoders.launches(self, self.block_dim) + generic_tail.launches(self))
+        self._launches = ([features.launch(self, record=True)] + message_passing.launches(self)
+                          + decoders.launches(self) + generic_tail.launches(self))
         self._graphs = []  # CUDA graphs of forward and step, once captured
 
     # ----------------------------------------------------------------------------- inputs and outputs
+    def block_dim_of(self, kernel: str) -> int:
+        """Threads a block of ``kernel``'s launches (Spec.threads, else block_dim)."""
+        return self.spec.threads_of(kernel) or self.block_dim
+
     @property
     def n_launches(self) -> int:
         return len(self._launches)

@@ -24,35 +24,40 @@ import warp as wp
 
 from . import shipped
 from .network import build_kernels, default_block_dim
-from .spec import GEMMS, SHARED_OF_ARCH, Spec, k_chunk_for, max_shared_of
+from .spec import GEMMS, SHARED_OF_ARCH, Spec, k_chunk_for, max_shared_of, threads_for
 
 
 def _modules(latents, block_dim: int, max_shared: int | None, **shape) -> list:
-    """``shape``: Spec's tile_rows, node_rows, k_chunk (its defaults where absent; k_chunk None: the one a Network
-    with those node tiles picks on a GPU allowing a block ``max_shared`` bytes, spec.k_chunk_for)."""
-    k_chunk = shape.pop("k_chunk", None)
+    """[(module, block_dim)] of each width's Spec. ``shape``: Spec's tile_rows, node_rows, k_chunk, threads
+    (its defaults where absent; k_chunk None: the one a Network with those node tiles picks on a GPU allowing a
+    block ``max_shared`` bytes, spec.k_chunk_for; threads None: a Network's on a GPU, spec.threads_for)."""
+    k_chunk, threads = shape.pop("k_chunk", None), shape.pop("threads", None)
     node_rows = shape.get("node_rows", Spec.node_rows)
-    specs = [Spec(F, k_chunk=k_chunk_for(node_rows, F, max_shared) if k_chunk is None else k_chunk, **shape)
-             for F in latents]
+    specs = []
+    for F in latents:
+        k = k_chunk_for(node_rows, F, max_shared) if k_chunk is None else k_chunk
+        specs.append(Spec(F, k_chunk=k, threads=threads_for(k, F, True) if threads is None else threads, **shape))
     for spec in specs:
         build_kernels(spec)
-    return [shipped.module_of(s, block_dim) for s in specs]
+    return [pair for s in specs for pair in shipped.modules_of(s, block_dim)]
 
 
 def compile_modules(latents, device=None, **shape) -> float:
     """Build and load the module of each latent width on ``device`` (Warp's cache keeps them); seconds."""
     device = wp.get_device(device)
     block_dim = default_block_dim(device)
+    if not device.is_cuda and shape.get("threads") is None:  # as a Network there: one block size
+        shape["threads"] = ()
     t0 = time.perf_counter()
-    for m in _modules(latents, block_dim, max_shared_of(device), **shape):
-        wp.load_module(m, device=device, block_dim=block_dim)
+    for m, dim in _modules(latents, block_dim, max_shared_of(device), **shape):
+        wp.load_module(m, device=device, block_dim=dim)
     return time.perf_counter() - t0
 
 
 def compile_ahead(latents, arch: int, out, block_dim: int = shipped.BLOCK_DIM, **shape) -> float:
     """Build the modules for GPU architecture ``arch`` into the folder ``out`` (cubins) without a GPU; seconds."""
     t0 = time.perf_counter()
-    for m in _modules(latents, block_dim, SHARED_OF_ARCH.get(arch, 0), **shape):
+    for m, _dim in _modules(latents, block_dim, SHARED_OF_ARCH.get(arch, 0), **shape):
         wp.compile_aot_module(m, arch=arch, module_dir=str(out), use_ptx=False)
     return time.perf_counter() - t0
 
@@ -62,7 +67,7 @@ def load(folder, latents, device, block_dim: int = shipped.BLOCK_DIM, **shape) -
     Seconds."""
     device = wp.get_device(device)
     t0 = time.perf_counter()
-    for m in _modules(latents, block_dim, max_shared_of(device), **shape):
+    for m, _dim in _modules(latents, block_dim, max_shared_of(device), **shape):
         wp.load_aot_module(m, device=device, arch=device.arch, module_dir=str(folder), use_ptx=False)
     return time.perf_counter() - t0
 
@@ -74,14 +79,22 @@ def ship(log=print) -> None:
     for spec in shipped.specs():
         for arch in shipped.ARCHS:
             with tempfile.TemporaryDirectory() as tmp:
-                seconds = compile_ahead([spec.latent], arch, tmp, node_rows=spec.node_rows, k_chunk=spec.k_chunk)
-                cubin, meta = shipped.files(spec, arch)
-                cubin.write_bytes(lzma.compress((Path(tmp) / cubin.stem).read_bytes(), preset=6))
-                shutil.copy(Path(tmp) / meta.name, meta)
-            keep.update((cubin, meta))
-            log(f"{spec.module}, sm_{arch}: built in {seconds:.0f} s, {cubin.stat().st_size / 1e6:.2f} MB shipped")
+                seconds = compile_ahead([spec.latent], arch, tmp, node_rows=spec.node_rows, k_chunk=spec.k_chunk,
+                                        threads=spec.threads)
+                for cubin, meta in shipped.files(spec, arch):
+                    cubin.write_bytes(lzma.compress((Path(tmp) / cubin.stem).read_bytes(), preset=6))
+                    shutil.copy(Path(tmp) / meta.name, meta)
+                    keep.update((cubin, meta))
+                    log(f"{cubin.name}: {cubin.stat().st_size / 1e6:.2f} MB shipped")
+            log(f"{spec.module}, sm_{arch}: built in {seconds:.0f} s")
     for stale in set(shipped.FOLDER.iterdir()) - keep:
         stale.unlink()
+
+
+def parse_threads(text: str) -> tuple:
+    """"node_pass=256,hybrid_fields=256" (or "none") -> Spec.threads."""
+    pairs = [p.split("=") for p in text.split(",") if p.strip() and p.strip() != "none"]
+    return tuple(sorted((k.strip(), int(n)) for k, n in pairs))
 
 
 def main(argv=None) -> None:
@@ -97,10 +110,14 @@ def main(argv=None) -> None:
     parser.add_argument("--block-dim", type=int, default=shipped.BLOCK_DIM,
                         help="threads a block, with --arch (default %(default)s; not --ship)")
     parser.add_argument("--gemm", default=Spec.gemm, choices=GEMMS, help="Spec.gemm (not --ship)")
+    parser.add_argument("--threads", default=None,
+                        help="Spec.threads as KERNEL=N,... (default: a Network's pick on a GPU; 'none': every "
+                             "kernel on --block-dim; not --ship)")
     parser.add_argument("--ship", action="store_true", help="rebuild the shipped modules (kernels/aot)")
     args = parser.parse_args(argv)
     latents = sorted({int(x) for x in args.latent.split(",") if x.strip()})
-    shape = {"tile_rows": args.tile_rows, "node_rows": args.node_rows, "k_chunk": args.k_chunk, "gemm": args.gemm}
+    shape = {"tile_rows": args.tile_rows, "node_rows": args.node_rows, "k_chunk": args.k_chunk, "gemm": args.gemm,
+             "threads": None if args.threads is None else parse_threads(args.threads)}
     if args.ship:
         ship()
     elif args.arch is not None:

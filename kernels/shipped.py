@@ -21,7 +21,7 @@ from pathlib import Path
 
 import warp as wp
 
-from .spec import NODE_ROWS, Spec, k_chunk_for
+from .spec import NODE_ROWS, Spec, k_chunk_for, threads_for
 
 FOLDER = Path(__file__).resolve().parent / "aot"
 LATENTS = (64,)  # the shipped network's width, with each of spec.NODE_ROWS (a Network picks by graph size)
@@ -35,23 +35,27 @@ def specs() -> list[Spec]:
     """The shipped specs: each latent width of LATENTS with each node tile size of NODE_ROWS and its K chunk, and
     the small graphs' tiles with the K chunk of GPUs allowing a block less shared memory (sm_86/sm_89, which run
     the sm_80 build: spec.k_chunk_for)."""
-    out = [Spec(F, node_rows=n, k_chunk=k_chunk_for(n, F)) for F in LATENTS for n in NODE_ROWS]
-    out += [Spec(F, node_rows=NODE_ROWS[0], k_chunk=k_chunk_for(NODE_ROWS[0], F, max_shared=0)) for F in LATENTS]
+    shapes = [(F, n, k_chunk_for(n, F)) for F in LATENTS for n in NODE_ROWS]
+    shapes += [(F, NODE_ROWS[0], k_chunk_for(NODE_ROWS[0], F, max_shared=0)) for F in LATENTS]
+    out = [Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, cuda=True)) for F, n, k in shapes]
     return list({s.module: s for s in out}.values())
 
 
-def module_of(spec: Spec, block_dim: int = BLOCK_DIM):
-    """The Warp module of ``spec`` (its kernels built) with ``block_dim`` as its default, which ahead-of-time
-    builds and loads use."""
-    module = wp.get_module(spec.module)
-    module.options["block_dim"] = block_dim
-    return module
+def modules_of(spec: Spec, block_dim: int = BLOCK_DIM) -> list:
+    """The Warp modules of ``spec`` (its kernels built), each with the block size it is built for as its default,
+    which ahead-of-time builds and loads use: [(module, block_dim)], one a block size (Spec.modules)."""
+    out = []
+    for name, threads in spec.modules.items():
+        module = wp.get_module(name)
+        module.options["block_dim"] = threads or block_dim
+        out.append((module, threads or block_dim))
+    return out
 
 
-def files(spec: Spec, arch: int, block_dim: int = BLOCK_DIM) -> tuple[Path, Path]:
-    """The shipped (cubin.xz, meta) of ``spec`` for ``arch``, present or not."""
-    ident = module_of(spec, block_dim).get_module_identifier(block_dim)
-    return FOLDER / f"{ident}.sm{arch}.cubin.xz", FOLDER / f"{ident}.meta"
+def files(spec: Spec, arch: int, block_dim: int = BLOCK_DIM) -> list[tuple[Path, Path]]:
+    """The shipped (cubin.xz, meta) of each of ``spec``'s modules for ``arch``, present or not."""
+    idents = [module.get_module_identifier(dim) for module, dim in modules_of(spec, block_dim)]
+    return [(FOLDER / f"{ident}.sm{arch}.cubin.xz", FOLDER / f"{ident}.meta") for ident in idents]
 
 
 def shipped_arch(device_arch: int) -> int | None:
@@ -69,17 +73,18 @@ def load(spec: Spec, device, block_dim: int = BLOCK_DIM) -> bool:
     arch = shipped_arch(device.arch) if device.is_cuda else None
     if arch is None:
         return False
-    cubin, meta = files(spec, arch, block_dim)
-    if not cubin.exists() or not meta.exists():
+    pairs = files(spec, arch, block_dim)
+    if not all(cubin.exists() and meta.exists() for cubin, meta in pairs):
         return False
-    try:
-        with tempfile.TemporaryDirectory() as tmp:
-            (Path(tmp) / cubin.stem).write_bytes(lzma.decompress(cubin.read_bytes()))  # NAME.smXX.cubin
-            shutil.copy(meta, tmp)
-            wp.load_aot_module(module_of(spec, block_dim), device=device, arch=arch, module_dir=tmp, use_ptx=False)
-    except Exception as exc:  # noqa: BLE001 - a damaged file or a driver that refuses it: compile as without one
-        warnings.warn(f"{cubin.name} not loaded ({type(exc).__name__}: {exc}); Warp compiles the module instead",
-                      stacklevel=2)
-        return False
+    for (cubin, meta), (module, _dim) in zip(pairs, modules_of(spec, block_dim)):
+        try:
+            with tempfile.TemporaryDirectory() as tmp:
+                (Path(tmp) / cubin.stem).write_bytes(lzma.decompress(cubin.read_bytes()))  # NAME.smXX.cubin
+                shutil.copy(meta, tmp)
+                wp.load_aot_module(module, device=device, arch=arch, module_dir=tmp, use_ptx=False)
+        except Exception as exc:  # noqa: BLE001 - a damaged file or a driver that refuses it: compile as without one
+            warnings.warn(f"{cubin.name} not loaded ({type(exc).__name__}: {exc}); Warp compiles the module instead",
+                          stacklevel=2)
+            return False
     _loaded.add(key)
     return True

@@ -44,7 +44,10 @@ class Spec:
     # slower than "native" on an H200, warp_fp16_h200.json). The CPU runs "mathdx" as "scalar" and "fp16" with the
     # same rounding
     gemm: str = GEMMS[0]
-
+    # ((kernel, threads a block), ...): tile kernels whose CUDA launches take another block than the others' (the
+    # kernels' names: encode, edge_pass, node_pass, hybrid_fields, vanilla_tail). Each lives in a module of its block
+    # size (module_of): Warp builds a module for one. A Network picks them (threads_for)
+    threads: tuple = ()
     def __post_init__(self):
         if self.gemm not in GEMMS:
             raise ValueError(f"gemm {self.gemm!r}: expected one of {', '.join(GEMMS)}")
@@ -73,6 +76,20 @@ class Spec:
         nodes = f"_N{self.node_tile}" if self.node_tile != self.tile_rows else ""
         gemm = "" if self.gemm == GEMMS[0] else f"_{self.gemm}"
         return f"warpgnn_kernels_F{self.latent}_T{self.tile_rows}{nodes}_K{self.kc}{gemm}"
+
+    def threads_of(self, kernel: str) -> int:
+        """Threads a block of ``kernel``'s launches (0: the Network's block_dim)."""
+        return dict(self.threads).get(kernel, 0)
+
+    def module_of(self, kernel: str) -> str:
+        """The Warp module of ``kernel``: the spec's own, or that of its block size (threads_of)."""
+        n = self.threads_of(kernel)
+        return f"{self.module}_B{n}" if n else self.module
+
+    @property
+    def modules(self) -> dict:
+        """{module name: threads a block (0: the Network's block_dim)} of every module of this spec."""
+        return {self.module: 0} | {self.module_of(k): n for k, n in self.threads}
 
 
 NODE_ROWS = (8, 16)  # node tile sizes a Network picks from by its graph's size (node_rows_for); both shipped
@@ -115,6 +132,18 @@ def k_chunk_for(node_rows: int, latent: int, max_shared: int | None = None, node
     fits = max_shared is None or max_shared >= WHOLE_WEIGHTS_SHARED
     small = node_rows == NODE_ROWS[0] and node_tiles_per_sm <= 1
     return latent if small and latent <= 64 and fits else 0
+
+
+WIDE = 256  # threads a block of the kernels threads_for names
+
+
+def threads_for(k_chunk: int, latent: int, cuda: bool) -> tuple:
+    """Spec.threads of a Network on CUDA (``cuda``) with ``k_chunk`` (k_chunk_for): with whole weights (small
+    graphs), the node pass on WIDE threads: its block holds an SM alone (137 KiB at F = 64), and 256 threads give its
+    products two warps a scheduler instead of one, each summing half of K (tiles.GEMM), and its CSR sums two threads
+    a row vector (tiles.SEGMENT_SUMS): 141.8 -> 138.3 us a 5-pass step, 278.4 -> 269.8 at 12 passes on an H200
+    (bench/results/warp_wide_blocks_h200.json). Else () (with K chunks node blocks share SMs: batch 64 among them)."""
+    return (("node_pass", WIDE),) if cuda and k_chunk == latent else ()
 
 
 def check_config(config) -> None:

@@ -166,19 +166,24 @@ GEMM = r"""
     constexpr int RM = cost4 <= cost2 && cost4 <= cost1 ? 4 : cost2 <= cost1 ? 2 : 1;
     constexpr int ITEMS = M / RM * NC;
     constexpr bool VA = KV == 4 && SA % 4 == 0, VB = CN == 4 && SB % 4 == 0;  // 16-byte loads of a, of b
+    // K split in SPLIT parts where the items leave half the threads idle (node tiles of 8 on a block of 256: two warps
+    // a scheduler each summing half of K instead of one warp all of it); the parts' sums are added to acc in part
+    // order, so a run repeats bit for bit
+    constexpr int SPLIT = 2 * ITEMS <= BD && K % (2 * KV) == 0 ? 2 : 1;
+    constexpr int KP = K / SPLIT;
     const wp::float32* __restrict__ pa = a.data.ptr;
     const wp::float32* __restrict__ pb = b.data.ptr;
     wp::float32* __restrict__ pc = acc.data.ptr;
-    for (int t = WP_TILE_THREAD_IDX; t < ITEMS; t += BD) {
+    // item t's (RM, CN) block of a[:, k0:k0 + KP] @ b[k0:k0 + KP, :] into s
+    auto partial = [&](int t, int k0, wp::float32 (&s)[RM][CN]) {
         const int r0 = t / NC * RM, c0 = (t - t / NC * NC) * CN;
-        wp::float32 s[RM][CN];
 #pragma unroll
         for (int i = 0; i < RM; ++i)
 #pragma unroll
             for (int j = 0; j < CN; ++j)
                 s[i][j] = wp::float32(0);
 #pragma unroll 2
-        for (int k = 0; k < K; k += KV) {
+        for (int k = k0; k < k0 + KP; k += KV) {
             wp::float32 av[RM][KV];
 #pragma unroll
             for (int i = 0; i < RM; ++i) {
@@ -217,6 +222,10 @@ GEMM = r"""
                         s[i][j] = wp::muladd(av[i][q], bv[j], s[i][j]);
             }
         }
+    };
+    // acc's (RM, CN) block of item t += s
+    auto add = [&](int t, const wp::float32 (&s)[RM][CN]) {
+        const int r0 = t / NC * RM, c0 = (t - t / NC * NC) * CN;
 #if defined(__CUDA_ARCH__)
         if constexpr (CN == 4 && SC % 4 == 0) {  // 16-byte read-modify-writes (scalar ones: 4-way bank conflicts)
 #pragma unroll
@@ -226,15 +235,31 @@ GEMM = r"""
                 v.x += s[i][0]; v.y += s[i][CN > 1 ? 1 : 0]; v.z += s[i][CN > 2 ? 2 : 0]; v.w += s[i][CN - 1];
                 *q = v;
             }
-        } else
-#endif
-        {
-#pragma unroll
-            for (int i = 0; i < RM; ++i)
-#pragma unroll
-                for (int j = 0; j < CN; ++j)
-                    pc[(r0 + i) * SC + c0 + j] += s[i][j];
+            return;
         }
+#endif
+#pragma unroll
+        for (int i = 0; i < RM; ++i)
+#pragma unroll
+            for (int j = 0; j < CN; ++j)
+                pc[(r0 + i) * SC + c0 + j] += s[i][j];
+    };
+    if constexpr (SPLIT == 1) {
+        for (int t = WP_TILE_THREAD_IDX; t < ITEMS; t += BD) {
+            wp::float32 s[RM][CN];
+            partial(t, 0, s);
+            add(t, s);
+        }
+    } else {  // a thread one (item, part): parts in different warps (no bank conflicts between them)
+        const int part = WP_TILE_THREAD_IDX / ITEMS, t = WP_TILE_THREAD_IDX - part * ITEMS;
+        wp::float32 s[RM][CN];
+        if (part < SPLIT)
+            partial(t, part * KP, s);
+        if (part == 0)
+            add(t, s);
+        WP_TILE_SYNC();
+        if (part == 1)
+            add(t, s);
     }
     WP_TILE_SYNC();
 """  # noqa: E501 (C++ inside)
@@ -563,8 +588,8 @@ def vector_items(tile: str, rows: str, blocks: int = 1) -> str:
 
 GATHER_PAIR = vector_items("h", "products") + r"""
     Vec a[PER], b[PER];
-    const int* __restrict__ rv = &wp::index(recv, row0);
-    const int* __restrict__ sv = &wp::index(send, row0);
+    const int* __restrict__ rv = ids.data.ptr;  // the rows' receivers and senders (stage_ids)
+    const int* __restrict__ sv = rv + tile_ids::Layout::Stride::dim(0);
 #pragma unroll
     for (int k = 0; k < PER; ++k) {  // every load of the thread issued before the first use
         const unsigned idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM, r = idx / FV, c = idx % FV;
@@ -594,47 +619,130 @@ GATHER_PAIR = vector_items("h", "products") + r"""
 # warp_sums_grads_h200.json).
 SEGMENT_SUMS = vector_items("agg", "lat", blocks=3) + r"""
     constexpr int MR = 8, AR = 4;  // mesh and actuator rows in flight a round
-    for (int idx = WP_TILE_THREAD_IDX; idx < N; idx += WP_TILE_BLOCK_DIM) {
+    // two threads an item where the items leave half the block idle (node tiles of 8 on 256 threads): each sums every
+    // other round of a segment, so a segment of up to 2 MR mesh rows waits for one L2 latency, not two; the second
+    // thread's sums are added to the first's (a fixed order)
+    constexpr int PARTS = 2 * N <= WP_TILE_BLOCK_DIM ? 2 : 1;
+    // SEG_OFF
+    // item idx's sums over rounds part, part + PARTS, ... of node (node0 + idx / FV)'s mesh and actuator segments
+    auto segment = [&](int idx, int part, Vec& sm, Vec& sa) {
         const int r = idx / FV, c = idx - r * FV, i = node0 + r;
-        Vec sm = Vec(wp::float32(0)), sa = Vec(wp::float32(0));
-        if (i < n_nodes) {
-            int e = wp::index(mesh_off, i), f = 0;
-            const int e_end = wp::index(mesh_off, i + 1);
-            int f_end = 0;
-            if (actuators) {
-                f = wp::index(act_off, i);
-                f_end = wp::index(act_off, i + 1);
-            }
-            while (e < e_end || f < f_end) {  // rows clamped at their segment's end, not added past it
-                Vec x[MR], y[AR];
-                if (e < e_end) {
-#pragma unroll
-                    for (int m = 0; m < MR; ++m)
-                        x[m] = row_ptr(lat, mesh_row + (e + m < e_end ? e + m : e_end - 1))[c];
-                }
-                if (f < f_end) {
-#pragma unroll
-                    for (int m = 0; m < AR; ++m)
-                        y[m] = row_ptr(lat, act_row + (f + m < f_end ? f + m : f_end - 1))[c];
-                }
+        sm = Vec(wp::float32(0));
+        sa = Vec(wp::float32(0));
+        if (i >= n_nodes)
+            return;
+        int e = seg_off(0, r) + part * MR, f = part * AR;
+        const int e_end = seg_off(0, r + 1);
+        int f_end = 0;
+        if (actuators) {
+            f += seg_off(1, r);
+            f_end = seg_off(1, r + 1);
+        }
+        while (e < e_end || f < f_end) {  // rows clamped at their segment's end, not added past it
+            Vec x[MR], y[AR];
+            if (e < e_end) {
 #pragma unroll
                 for (int m = 0; m < MR; ++m)
-                    if (e + m < e_end)
-                        sm = sm + x[m];
+                    x[m] = row_ptr(lat, mesh_row + (e + m < e_end ? e + m : e_end - 1))[c];
+            }
+            if (f < f_end) {
 #pragma unroll
                 for (int m = 0; m < AR; ++m)
-                    if (f + m < f_end)
-                        sa = sa + y[m];
-                e += MR;
-                f += AR;
+                    y[m] = row_ptr(lat, act_row + (f + m < f_end ? f + m : f_end - 1))[c];
             }
+#pragma unroll
+            for (int m = 0; m < MR; ++m)
+                if (e + m < e_end)
+                    sm = sm + x[m];
+#pragma unroll
+            for (int m = 0; m < AR; ++m)
+                if (f + m < f_end)
+                    sa = sa + y[m];
+            e += PARTS * MR;
+            f += PARTS * AR;
         }
+    };
+    auto put = [&](int idx, const Vec& sm, const Vec& sa) {
+        const int r = idx / FV, c = idx - r * FV;
         put_row_vector(r, F + c * V, sm);
         if (actuators)
             put_row_vector(r, 2 * F + c * V, sa);
+    };
+    if constexpr (PARTS == 1) {
+        for (int idx = WP_TILE_THREAD_IDX; idx < N; idx += WP_TILE_BLOCK_DIM) {
+            Vec sm, sa;
+            segment(idx, 0, sm, sa);
+            put(idx, sm, sa);
+        }
+    } else {  // a thread one (item, part), the second part's sums through the tile
+        const int part = WP_TILE_THREAD_IDX / N, idx = WP_TILE_THREAD_IDX - part * N;
+        Vec sm, sa;
+        if (part < PARTS)
+            segment(idx, part, sm, sa);
+        if (part == 1)
+            put(idx, sm, sa);
+        WP_TILE_SYNC();
+        if (part == 0) {
+            const int r = idx / FV, c = idx - r * FV;
+            for (int j = 0; j < V; ++j) {
+                sm[j] = sm[j] + agg.data(wp::tile_coord(r, F + c * V + j));
+                if (actuators)
+                    sa[j] = sa[j] + agg.data(wp::tile_coord(r, 2 * F + c * V + j));
+            }
+            put(idx, sm, sa);
+        }
     }
     WP_TILE_SYNC();
 """
+# seg_off(s, j): offset j of node node0's mesh (s = 0) or actuator (1) CSR segments, read from the arrays where they are
+# summed, or from a tile staged before the launch's wait (stage_offsets)
+SEGMENT_SUMS_STAGED = SEGMENT_SUMS.replace("    // SEG_OFF\n", """\
+    auto seg_off = [&](int s, int j) { return offs.data.ptr[s * tile_offs::Layout::Stride::dim(0) + j]; };
+""")
+SEGMENT_SUMS = SEGMENT_SUMS.replace("    // SEG_OFF\n", """\
+    auto seg_off = [&](int s, int j) { return s ? wp::index(act_off, node0 + j) : wp::index(mesh_off, node0 + j); };
+""")
+
+
+
+# A tile's graph indices into shared memory: plain loads before the launch's wait for the launch before (they read
+# only the graph, which no launch writes), so that its gathers and CSR sums after the wait take one L2 round trip,
+# not two (index, then rows). ids[0, r], ids[1, r] = recv[row0 + r], send[row0 + r]; offs[0, j], offs[1, j] =
+# mesh_off[node0 + j], act_off[node0 + j] (clamped at n_nodes; act_off only with actuators). One barrier.
+STAGE_IDS = r"""
+    constexpr int T = tile_ids::Layout::Shape::dim(1), S = tile_ids::Layout::Stride::dim(0);
+    for (int i = WP_TILE_THREAD_IDX; i < 2 * T; i += WP_TILE_BLOCK_DIM)
+        ids.data.ptr[i / T * S + i % T] = i < T ? wp::index(recv, row0 + i) : wp::index(send, row0 + i - T);
+    WP_TILE_SYNC();
+"""
+
+STAGE_OFFSETS = r"""
+    constexpr int J = tile_offs::Layout::Shape::dim(1), S = tile_offs::Layout::Stride::dim(0);
+    for (int i = WP_TILE_THREAD_IDX; i < 2 * J; i += WP_TILE_BLOCK_DIM) {
+        const int j = i % J, node = node0 + j < n_nodes ? node0 + j : n_nodes;
+        if (i < J)
+            offs.data.ptr[j] = wp::index(mesh_off, node);
+        else if (actuators)
+            offs.data.ptr[S + j] = wp::index(act_off, node);
+    }
+    WP_TILE_SYNC();
+"""
+
+
+@functools.cache
+def index_steps(rows: int, owner: str):
+    """stage_ids(ids (2, rows), recv, send, row0) and stage_offsets(offs (2, rows + 1), mesh_off, act_off, node0,
+    n_nodes, actuators): a tile's graph indices into shared memory (STAGE_IDS), for gather_pair, sender_grads and
+    segment_sums."""
+    @wp.func_native(STAGE_IDS)
+    def stage_ids(ids: wp.tile(dtype=wp.int32, shape=(2, rows)), recv: wp.array(dtype=wp.int32),
+                  send: wp.array(dtype=wp.int32), row0: int): ...
+
+    @wp.func_native(STAGE_OFFSETS)
+    def stage_offsets(offs: wp.tile(dtype=wp.int32, shape=(2, rows + 1)), mesh_off: wp.array(dtype=wp.int32),
+                      act_off: wp.array(dtype=wp.int32), node0: int, n_nodes: int, actuators: int): ...
+
+    return stage_ids, stage_offsets
 
 
 @functools.cache
@@ -680,16 +788,26 @@ def helpers(spec: Spec, owner: str):
         consecutive threads consecutive vectors (coalesced); a round loads eight mesh rows and four actuator rows
         before its first add, so one L2 latency serves up to twelve edges (one float and four rows in flight made
         the node launch latency-bound: 56-62 us at L5 on an H100, where the bytes need ~3 us). Rows past a
-        segment's end are loaded (clamped) but not added, so each sum is the plain sequential one; the tile is
-        written with one barrier."""
+        segment's end are loaded (clamped) but not added, so each sum is the plain sequential one (on a block of
+        twice the items, the sum of every other round's rows plus that of the others'); the tile is written with one
+        barrier (two then)."""
+        ...
+
+    @wp.func_native(SEGMENT_SUMS_STAGED)
+    def staged_segment_sums(agg: wp.tile(dtype=float, shape=(T, 3 * F)), lat: wp.array2d(dtype=vec),
+                            offs: wp.tile(dtype=wp.int32, shape=(2, T + 1)), mesh_row: int, act_row: int,
+                            actuators: int, node0: int, n_nodes: int):
+        """segment_sums with the tile's CSR offsets staged in shared memory before the launch's wait (stage_offsets):
+        its sums then wait for one L2 latency, not two (offsets, then rows)."""
         ...
 
     @wp.func_native(GATHER_PAIR)
     def gather_pair(h: wp.tile(dtype=float, shape=(T, F)), bias: wp.array2d(dtype=float), bias_row: int,
-                    products: wp.array2d(dtype=vec), recv: wp.array(dtype=wp.int32), recv_col: int,
-                    send: wp.array(dtype=wp.int32), send_row: int, send_col: int, row0: int):
-        """h[r] = bias[bias_row] + P[recv[row0 + r], recv_col:] + P[send_row + send[row0 + r], send_col:] (F
-        columns each; ``products`` seen as vectors, row_view, the columns in floats): an edge MLP's first
+                    products: wp.array2d(dtype=vec), ids: wp.tile(dtype=wp.int32, shape=(2, T)), recv_col: int,
+                    send_row: int, send_col: int):
+        """h[r] = bias[bias_row] + P[ids[0, r], recv_col:] + P[send_row + ids[1, r], send_col:] (F columns each, ids
+        the rows' receivers and senders: stage_ids; ``products`` seen as vectors, row_view, the columns in floats): an
+        edge MLP's first
         layer split per node. Plain per-thread vector loads, every load of a thread issued before the first
         add (Warp's tile_load_indexed gathers cost 36 us a pass more than their bytes at F = 128; calibration
         notes); one barrier. The sum is (b + P_r) + P_s, to which the products then add e W_e chunk by chunk:
@@ -741,4 +859,4 @@ def helpers(spec: Spec, owner: str):
     # the last: second_layer in two parts, W2's buffer rows, the copy's start and the rest (a kernel that starts
     # its weight copies first)
     ahead = (buf_rows, begin_second_layer, second_layer_ahead)
-    return fill, activate, second_layer, segment_sums, project, gather_pair, ahead
+    return fill, activate, second_layer, (segment_sums, staged_segment_sums), project, gather_pair, ahead

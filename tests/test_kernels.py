@@ -202,6 +202,21 @@ def test_weight_chunks_double_buffered(monkeypatch):
 
 
 @pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
+def test_kernels_on_blocks_of_their_own_size(monkeypatch, kind):
+    """The node pass and the decoder on blocks of their own size (Spec.threads: modules of their own), with twice the
+    threads the node tiles' items need, as node tiles of 8 on 256 threads on a GPU: the products split over K
+    (tiles.GEMM) and the CSR sums over rounds (SEGMENT_SUMS); 64 threads against 5 for the other launches (CPU
+    fibers): the reference's answer."""
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    top = tool_topology(box((4, 3, 2)), 2, seed=5)
+    decoder = "hybrid_fields" if kind == "hybrid" else "vanilla_tail"
+    net, _ = check(random_model(kind, 2, 16, seed=5), top, seed=5, node_rows=8, k_chunk=16, block_dim=5,
+                   threads={"node_pass": 64, decoder: 64})
+    assert [net.block_dim_of(k) for k in ("edge_pass", "node_pass", decoder)] == [5, 64, 64]
+    assert net.spec.module_of("node_pass") == net.spec.module_of(decoder) != net.spec.module_of("edge_pass")
+
+
+@pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
 @pytest.mark.parametrize("tile_rows,node_rows", [(16, 8), (32, 16)])
 def test_node_tiles_smaller_than_edge_tiles(kind, tile_rows, node_rows):
     """The node launches on tiles of 8 or 16 rows in a layout padded to tiles of 16 or 32 (Spec.node_rows): the

@@ -12,7 +12,8 @@ from warpgnn.kernels import shipped
 
 
 def fresh_process_files() -> dict:
-    """shipped.files of every shipped (latent, arch) as a new process sees them. Not this process's: once Warp has
+    """shipped.files of every shipped (spec, arch) as a new process sees them: {"module:arch": [(cubin, meta), ...]}
+    (one pair a module of the spec: Spec.modules). Not this process's: once Warp has
     built a module for another block size (the CPU runs blocks of one), its kernels can hash differently for 128
     (its ModuleHasher notes that statics deferred on tile lengths change a kernel's hash), so a test run that built
     CPU modules first would look for another file than a user's process does."""
@@ -20,10 +21,10 @@ def fresh_process_files() -> dict:
              "out = {}\nfor spec in shipped.specs():\n"
              "    build_kernels(spec)\n"
              "    for arch in shipped.ARCHS:\n"
-             "        out[f'{spec.module}:{arch}'] = [str(p) for p in shipped.files(spec, arch)]\n"
+             "        out[f'{spec.module}:{arch}'] = [[str(p) for p in pair] for pair in shipped.files(spec, arch)]\n"
              "print(json.dumps(out))\n")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
-    return {k: tuple(Path(p) for p in v) for k, v in json.loads(out.splitlines()[-1]).items()}
+    return {k: [tuple(Path(p) for p in pair) for pair in v] for k, v in json.loads(out.splitlines()[-1]).items()}
 
 
 def test_shipped_modules_are_the_current_kernels():
@@ -31,12 +32,14 @@ def test_shipped_modules_are_the_current_kernels():
     files = fresh_process_files()
     for spec in shipped.specs():
         for arch in shipped.ARCHS:
-            cubin, meta = files[f"{spec.module}:{arch}"]
-            assert cubin.exists() and meta.exists(), (
-                f"{cubin.name} missing: the kernels changed; rebuild with python -m warpgnn.kernels.precompile --ship")
-            head = lzma.LZMADecompressor().decompress(cubin.read_bytes()[:4096], max_length=4)
-            assert head == b"\x7fELF", f"{cubin.name} is not a compressed cubin"
-            expected.update((cubin.name, meta.name))
+            assert len(files[f"{spec.module}:{arch}"]) == len(spec.modules)
+            for cubin, meta in files[f"{spec.module}:{arch}"]:
+                assert cubin.exists() and meta.exists(), (
+                    f"{cubin.name} missing: the kernels changed; rebuild with python -m warpgnn.kernels.precompile "
+                    "--ship")
+                head = lzma.LZMADecompressor().decompress(cubin.read_bytes()[:4096], max_length=4)
+                assert head == b"\x7fELF", f"{cubin.name} is not a compressed cubin"
+                expected.update((cubin.name, meta.name))
     stale = {p.name for p in shipped.FOLDER.iterdir()} - expected
     assert not stale, f"stale shipped modules: {sorted(stale)}"
 
@@ -48,7 +51,7 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
     Warp wrote at the build) fits with 1 KiB to spare for Warp's static allocations; with whole weights the edge pass
     holds enough that at most two of its blocks share an SM."""
     from warpgnn.kernels.message_passing import EDGE_PASS_SHARED
-    from warpgnn.kernels.spec import NODE_ROWS, SHARED_OF_ARCH, Spec, k_chunk_for
+    from warpgnn.kernels.spec import NODE_ROWS, SHARED_OF_ARCH, Spec, k_chunk_for, threads_for
 
     SM_SHARED = {80: 164 * 1024, 90: 228 * 1024}  # shared memory an SM (CUDA programming guide)
 
@@ -57,9 +60,13 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
     for max_shared, arch in ((99 * 1024, 80), (163 * 1024, 80), (227 * 1024, 90)):
         for F in shipped.LATENTS:
             for n in NODE_ROWS:
-                module = Spec(F, node_rows=n, k_chunk=k_chunk_for(n, F, max_shared)).module
-                assert module in shipped_specs, f"{module} (a GPU of {max_shared} B a block) is not shipped"
-                meta = json.loads(files[f"{module}:{arch}"][1].read_text())
+                k = k_chunk_for(n, F, max_shared)
+                spec = Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, cuda=True))
+                module = spec.module
+                assert shipped_specs.get(module) == spec, f"{module} (a GPU of {max_shared} B a block) is not shipped"
+                meta = {}  # every kernel's shared memory, from the .meta of each of the spec's modules
+                for _cubin, path in files[f"{module}:{arch}"]:
+                    meta.update(json.loads(path.read_text()))
                 need = max(meta.values())
                 assert need + 1024 <= max_shared, f"{module} needs {need} B a block, the GPU allows {max_shared}"
                 if k_chunk_for(n, F, max_shared):  # whole weights: at most two edge blocks an SM (message_passing)

@@ -91,6 +91,9 @@ def main():
     ap.add_argument("--shapes", default=f"{Spec.tile_rows}:{Spec.node_rows}:{shipped.BLOCK_DIM}",
                     help="tile_rows:node_rows:block_dim[:k_chunk[:gemm]], comma-separated (default: the shipped shape, "
                     "%(default)s)")
+    ap.add_argument("--threads", default=None,
+                    help="Spec.threads as KERNEL=N,... ('none': every kernel on the shape's block; default: a "
+                    "Network's pick, spec.threads_for)")
     ap.add_argument("--repeats", type=int, default=300, help="captured steps timed a case")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
@@ -113,24 +116,28 @@ def main():
         sh = shape_args(shape)
         T, N, B, K, G = sh["tile_rows"], sh["node_rows"], sh["block_dim"], sh["k_chunk"], sh["gemm"]
         tiles = {"tile_rows": T, "node_rows": N, "k_chunk": K, "gemm": G}
+        threads = None if a.threads is None else dict(precompile.parse_threads(a.threads))
         if a.aot:
             if not N or K is None:
                 raise SystemExit("--aot needs each shape's node rows and K chunk (T:N:B:K), as its module was built")
-            precompile.load(aot_folder(a.aot, a.latent, sh), [a.latent], "cuda:0", B, **tiles)
+            precompile.load(aot_folder(a.aot, a.latent, sh), [a.latent], "cuda:0", B, **tiles,
+                            threads=None if threads is None else tuple(sorted(threads.items())))
         for item in a.cases.split(","):
             kind, passes, batch = item.split(":")
             case = base.stacked(int(batch))
             net = Network(random_model(kind, int(passes), a.latent), case.topology, device="cuda:0", block_dim=B,
-                          **tiles)
+                          threads=threads, **tiles)
             net.set_inputs(case.z, case.u_now, case.u_next, DT)
             kernels = kernel_means(net, a.calls)
             p10, median, p90 = captured_step_ms(net, a.repeats)
             N_used, K_used = net.spec.node_tile, net.spec.kc  # what the Network took (by graph size where not given)
             cases.append({"model": kind, "passes": int(passes), "batch": int(batch), "latent": a.latent,
                           "tile_rows": T, "node_rows": N_used, "block_dim": B, "k_chunk": K_used, "gemm": G,
+                          "threads": dict(net.spec.threads),
                           "step_ms": median, "step_p10_ms": p10, "step_p90_ms": p90, "launches": net.n_launches,
                           "kernels": kernels})
-            print(f"T{T} N{N_used} B{B} K{K_used} {G}", kind, passes, batch, f"step {median * 1e3:.1f} us",
+            print(f"T{T} N{N_used} B{B} K{K_used} {G} {dict(net.spec.threads)}", kind, passes, batch,
+                  f"step {median * 1e3:.1f} us",
                   {k: round(v["mean_us"], 1) for k, v in kernels.items()}, flush=True)
     Path(a.json).write_text(json.dumps(provenance.record(a) | {"cases": cases}, indent=1) + "\n")
 
