@@ -119,7 +119,8 @@ def edge_kernel(spec: Spec):
     # with whole weights the edge pass holds at least EDGE_PASS_SHARED bytes of shared memory (its tiles, then a spare
     # tile), so that at most two of its blocks share an SM (sm_80: 164 KiB an SM, sm_90: 228): overlapped with the
     # node pass, its blocks (56 KiB each) were otherwise packed three to an SM beside the node pass's and ran their
-    # loads and products slower than the early start gained (kernels/network.py)
+    # loads and products slower than the early start gained (kernels/network.py); the staged indices' 256 B come on
+    # top (82,176 B: two blocks an SM on sm_80 too, with 1.5 KiB to spare)
     spare = max(0, EDGE_PASS_SHARED // 4 - 3 * T * F - buf_rows * F - w2_rows * F) if ahead else 0
     spare_cols = max(1, -(-spare // T))
     load_rows, loaded = stage(T, F, owner)
@@ -215,7 +216,7 @@ def node_kernel(spec: Spec):
             proj_buf = wp.tile_empty(shape=(out_rows, F3), dtype=float, storage="shared")
             begin_out(proj_buf, proj, (p + 1) * F, 0)
         if wp.static(ahead):  # few tiles an SM: the graph's CSR offsets before the wait, in its shadow (with K chunks,
-            # batch 64 and F = 128, staging them cost the launch 4-8 %: they are read where they are summed)
+            # batch 64 and F = 128, staging them cost the launch 5-14 %: they are read where they are summed)
             offs = wp.tile_empty(shape=(2, T1), dtype=wp.int32, storage="shared")
             stage_offsets(offs, mesh_off, act_off, row0, n_nodes, actuators)
         grid_step(1)

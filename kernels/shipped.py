@@ -4,7 +4,7 @@ Warp compiles a module on its first launch: the F = 64 module builds in ~15-30 s
 default products (Spec.gemm; with cuBLASDx products, one per product shape, it took 149 s on an H100 and 287 s
 here). The shipped network's width is shipped built for sm_80 (A100, and by binary
 compatibility sm_86/sm_89) and sm_90 (H100, H200), in each shape a Network picks on them (specs()), as
-xz-compressed cubins of ~0.08 MB; loading the sm_90 one
+xz-compressed cubins of 0.02-0.06 MB (one a module: Spec.modules); loading the sm_90 one
 took 3 ms on an H200 (bench/results/warp_gemm_h200.json's run; the cuBLASDx module took 0.6 s). A file is named
 by Warp's module identifier, which holds a hash of the kernels' code and options: a changed kernel finds no file
 and compiles as before, and tests/test_shipped_modules.py fails until ``python -m warpgnn.kernels.precompile
@@ -65,9 +65,9 @@ def shipped_arch(device_arch: int) -> int | None:
 
 
 def load(spec: Spec, device, block_dim: int = BLOCK_DIM) -> bool:
-    """Load ``spec``'s shipped module on a CUDA ``device`` if one matches; False: Warp compiles it on first use."""
+    """Load ``spec``'s shipped modules on a CUDA ``device`` if they match; False: Warp compiles them on first use."""
     device = wp.get_device(device)
-    key = (spec.module, device.alias, block_dim)
+    key = (tuple(spec.modules), device.alias, block_dim)
     if key in _loaded:
         return True
     arch = shipped_arch(device.arch) if device.is_cuda else None

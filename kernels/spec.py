@@ -1,10 +1,10 @@
 """What a set of compiled kernels is specialised for, and the configurations the kernels cover.
 
 Tile shapes are compile-time constants in Warp, so every kernel is built by a factory for one
-``Spec`` (latent width F, rows per tile, K chunk of the products) and all kernels of one spec share
-one Warp module: one compile per spec whatever the passes, the variant (vanilla or hybrid, with or
-without actuator graphs) or the topology (on a 2-core CPU ~15 s a module, of which the C++ headers
-alone cost ~4 s: one module, not one per kernel).
+``Spec`` (latent width F, rows per tile, K chunk of the products) and all kernels of one spec and one
+block size share one Warp module: one compile per spec and block size whatever the passes, the
+variant (vanilla or hybrid, with or without actuator graphs) or the topology (on a 2-core CPU ~15 s
+a module, of which the C++ headers alone cost ~4 s: one module, not one per kernel).
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ N_GRAD = 2 * STATE  # delta_v's outputs per node: dE, dS
 FEATURE_WIDTH = 24  # widest encoder input (18: the single-graph node features) padded to a multiple of 8
 STAT_WIDTH = 9  # widest standardised raw feature set (the node's v, sigma)
 GEMMS = ("native", "scalar", "mathdx", "fp16")  # the first is the default
+TILE_KERNELS = ("encode", "edge_pass", "node_pass", "hybrid_fields", "vanilla_tail")  # Spec.threads may name them
 
 
 @dataclass(frozen=True)
@@ -44,13 +45,19 @@ class Spec:
     # slower than "native" on an H200, warp_fp16_h200.json). The CPU runs "mathdx" as "scalar" and "fp16" with the
     # same rounding
     gemm: str = GEMMS[0]
-    # ((kernel, threads a block), ...): tile kernels whose CUDA launches take another block than the others' (the
-    # kernels' names: encode, edge_pass, node_pass, hybrid_fields, vanilla_tail). Each lives in a module of its block
-    # size (module_of): Warp builds a module for one. A Network picks them (threads_for)
+    # ((kernel, threads a block), ...): tile kernels whose CUDA launches take another block than the others' (names
+    # of TILE_KERNELS). Each lives in a module of its block size (module_of): Warp builds a module for one. A Network
+    # picks them (threads_for)
     threads: tuple = ()
+
     def __post_init__(self):
         if self.gemm not in GEMMS:
             raise ValueError(f"gemm {self.gemm!r}: expected one of {', '.join(GEMMS)}")
+        threads = tuple(sorted((str(k), int(n)) for k, n in dict(self.threads).items() if n))
+        unknown = sorted({k for k, _ in threads} - set(TILE_KERNELS))
+        if unknown:
+            raise ValueError(f"threads: unknown kernel {unknown[0]!r}: expected one of {', '.join(TILE_KERNELS)}")
+        object.__setattr__(self, "threads", threads)  # one order, so equal specs compare and hash equal
 
     @property
     def kc(self) -> int:
@@ -68,14 +75,17 @@ class Spec:
 
     @property
     def nodes(self) -> "Spec":
-        """The tile shape of the node launches (their tile helpers; the kernels stay in this spec's module)."""
+        """The tile shape of the node launches (their tile helpers; the kernels live in this spec's modules)."""
         return Spec(self.latent, self.node_tile, 0, self.k_chunk, self.gemm)
 
     @property
     def module(self) -> str:
         nodes = f"_N{self.node_tile}" if self.node_tile != self.tile_rows else ""
         gemm = "" if self.gemm == GEMMS[0] else f"_{self.gemm}"
-        return f"warpgnn_kernels_F{self.latent}_T{self.tile_rows}{nodes}_K{self.kc}{gemm}"
+        # kernels moved to a module of another block size (threads) leave this one: its name says which, so that two
+        # specs differing only there never share (and mix the kernels of) one Warp module
+        moved = "".join(f"_{k}{n}" for k, n in self.threads)
+        return f"warpgnn_kernels_F{self.latent}_T{self.tile_rows}{nodes}_K{self.kc}{gemm}{moved}"
 
     def threads_of(self, kernel: str) -> int:
         """Threads a block of ``kernel``'s launches (0: the Network's block_dim)."""
@@ -142,7 +152,8 @@ def threads_for(k_chunk: int, latent: int, cuda: bool) -> tuple:
     graphs), the node pass on WIDE threads: its block holds an SM alone (137 KiB at F = 64), and 256 threads give its
     products two warps a scheduler instead of one, each summing half of K (tiles.GEMM), and its CSR sums two threads
     a row vector (tiles.SEGMENT_SUMS): 141.8 -> 138.3 us a 5-pass step, 278.4 -> 269.8 at 12 passes on an H200
-    (bench/results/warp_wide_blocks_h200.json). Else () (with K chunks node blocks share SMs: batch 64 among them)."""
+    (bench/results/warp_wide_blocks_h200.json). Else (): with K chunks (batch 64, F = 128) each thread's half of a
+    32-row chunk is 16 k with a barrier every chunk (F = 128: 705.5 -> 712.6 us at 12 passes on 256 threads)."""
     return (("node_pass", WIDE),) if cuda and k_chunk == latent else ()
 
 

@@ -148,7 +148,8 @@ def store(rows: int, cols: int, owner: str):
 # acc += a @ b for shared tiles, a thread an (RM, CN) block of acc held in registers over K: rows of a and b read as
 # 16-byte vectors on CUDA (a's 4 k a load, b's 4 columns), the K loop rolled (kept in the instruction cache) rather
 # than unrolled as Warp's scalar GEMM does for K <= 32. RM is chosen for the fewest multiply-adds and loads on the
-# busiest thread: 4 rows for tiles of 32 edge rows, 1 for node tiles of 8 (every thread busy).
+# busiest thread: 4 rows for tiles of 32 edge rows, 1 for node tiles of 8 (every thread busy on 128 threads; on 256, K
+# is split in two, below).
 GEMM = r"""
     using LA = typename tile_a::Layout;
     using LB = typename tile_b::Layout;
@@ -167,8 +168,8 @@ GEMM = r"""
     constexpr int ITEMS = M / RM * NC;
     constexpr bool VA = KV == 4 && SA % 4 == 0, VB = CN == 4 && SB % 4 == 0;  // 16-byte loads of a, of b
     // K split in SPLIT parts where the items leave half the threads idle (node tiles of 8 on a block of 256: two warps
-    // a scheduler each summing half of K instead of one warp all of it); the parts' sums are added to acc in part
-    // order, so a run repeats bit for bit
+    // a scheduler each summing half of K instead of one warp all of it; on 128 threads also the narrow (dE, dS) and
+    // vanilla-decoder products); the parts' sums are added to acc in part order, so a run repeats bit for bit
     constexpr int SPLIT = 2 * ITEMS <= BD && K % (2 * KV) == 0 ? 2 : 1;
     constexpr int KP = K / SPLIT;
     const wp::float32* __restrict__ pa = a.data.ptr;
@@ -250,7 +251,7 @@ GEMM = r"""
             partial(t, 0, s);
             add(t, s);
         }
-    } else {  // a thread one (item, part): parts in different warps (no bank conflicts between them)
+    } else {  // a thread one (item, part): the parts in different warps where ITEMS is a multiple of 32
         const int part = WP_TILE_THREAD_IDX / ITEMS, t = WP_TILE_THREAD_IDX - part * ITEMS;
         wp::float32 s[RM][CN];
         if (part < SPLIT)
@@ -702,6 +703,7 @@ SEGMENT_SUMS_STAGED = SEGMENT_SUMS.replace("    // SEG_OFF\n", """\
 SEGMENT_SUMS = SEGMENT_SUMS.replace("    // SEG_OFF\n", """\
     auto seg_off = [&](int s, int j) { return s ? wp::index(act_off, node0 + j) : wp::index(mesh_off, node0 + j); };
 """)
+assert "auto seg_off" in SEGMENT_SUMS and "auto seg_off" in SEGMENT_SUMS_STAGED
 
 
 
@@ -732,8 +734,8 @@ STAGE_OFFSETS = r"""
 @functools.cache
 def index_steps(rows: int, owner: str):
     """stage_ids(ids (2, rows), recv, send, row0) and stage_offsets(offs (2, rows + 1), mesh_off, act_off, node0,
-    n_nodes, actuators): a tile's graph indices into shared memory (STAGE_IDS), for gather_pair, sender_grads and
-    segment_sums."""
+    n_nodes, actuators): a tile's graph indices into shared memory (STAGE_IDS, STAGE_OFFSETS), for gather_pair,
+    sender_grads and staged_segment_sums."""
     @wp.func_native(STAGE_IDS)
     def stage_ids(ids: wp.tile(dtype=wp.int32, shape=(2, rows)), recv: wp.array(dtype=wp.int32),
                   send: wp.array(dtype=wp.int32), row0: int): ...

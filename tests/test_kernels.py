@@ -201,19 +201,23 @@ def test_weight_chunks_double_buffered(monkeypatch):
     check(random_model("hybrid", 2, 32, seed=3), tool_topology(box((3, 3, 2)), 2), seed=3, k_chunk=8, block_dim=5)
 
 
+@pytest.mark.parametrize("k_chunk", [16, 8], ids=["whole", "chunks"])
 @pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
-def test_kernels_on_blocks_of_their_own_size(monkeypatch, kind):
+def test_kernels_on_blocks_of_their_own_size(monkeypatch, kind, k_chunk):
     """The node pass and the decoder on blocks of their own size (Spec.threads: modules of their own), with twice the
     threads the node tiles' items need, as node tiles of 8 on 256 threads on a GPU: the products split over K
-    (tiles.GEMM) and the CSR sums over rounds (SEGMENT_SUMS); 64 threads against 5 for the other launches (CPU
-    fibers): the reference's answer."""
+    (tiles.GEMM, whole weights or K chunks) and the CSR sums over rounds (SEGMENT_SUMS: offsets staged with whole
+    weights, read from the arrays with chunks); 64 threads against 5 for the other launches (CPU fibers): the
+    reference's answer."""
     monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
     top = tool_topology(box((4, 3, 2)), 2, seed=5)
     decoder = "hybrid_fields" if kind == "hybrid" else "vanilla_tail"
-    net, _ = check(random_model(kind, 2, 16, seed=5), top, seed=5, node_rows=8, k_chunk=16, block_dim=5,
+    net, _ = check(random_model(kind, 2, 16, seed=5), top, seed=5, node_rows=8, k_chunk=k_chunk, block_dim=5,
                    threads={"node_pass": 64, decoder: 64})
     assert [net.block_dim_of(k) for k in ("edge_pass", "node_pass", decoder)] == [5, 64, 64]
     assert net.spec.module_of("node_pass") == net.spec.module_of(decoder) != net.spec.module_of("edge_pass")
+    with pytest.raises(ValueError, match="unknown kernel 'node'"):
+        Network(random_model(kind, 1, 16), top, device="cpu", threads={"node": 64})
 
 
 @pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
