@@ -77,7 +77,7 @@ class Network:
             tiles_per_sm = -(-topology.n_nodes // node_rows) / self.device.sm_count if self.device.is_cuda else 0
             k_chunk = k_chunk_for(node_rows, w.latent, max_shared_of(self.device), tiles_per_sm)
         threads = threads_for(k_chunk, w.latent, self.device.is_cuda) if threads is None else threads
-        self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm, tuple(sorted(dict(threads).items())))
+        self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm, tuple(dict(threads).items()))
         build_kernels(self.spec)
         self.block_dim = block_dim or default_block_dim(self.device)
         self.shipped_module = shipped.load(self.spec, self.device, self.block_dim)  # else Warp compiles it

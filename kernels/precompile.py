@@ -92,9 +92,9 @@ def ship(log=print) -> None:
 
 
 def parse_threads(text: str) -> tuple:
-    """"node_pass=256,hybrid_fields=256" (or "none") -> Spec.threads."""
+    """"node_pass=256,hybrid_fields=256" (or "none") -> Spec.threads (which Spec sorts and checks)."""
     pairs = [p.split("=") for p in text.split(",") if p.strip() and p.strip() != "none"]
-    return tuple(sorted((k.strip(), int(n)) for k, n in pairs))
+    return tuple((k.strip(), int(n)) for k, n in pairs)
 
 
 def main(argv=None) -> None:

@@ -121,7 +121,7 @@ def main():
             if not N or K is None:
                 raise SystemExit("--aot needs each shape's node rows and K chunk (T:N:B:K), as its module was built")
             precompile.load(aot_folder(a.aot, a.latent, sh), [a.latent], "cuda:0", B, **tiles,
-                            threads=None if threads is None else tuple(sorted(threads.items())))
+                            threads=None if threads is None else tuple(threads.items()))
         for item in a.cases.split(","):
             kind, passes, batch = item.split(":")
             case = base.stacked(int(batch))
