@@ -51,16 +51,16 @@ def encoder_kernel(spec: Spec):
                w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float), gain: wp.array2d(dtype=float),
                shift: wp.array2d(dtype=float), self_loop: wp.array2d(dtype=float), proj: wp.array2d(dtype=float),
                tool_proj: wp.array2d(dtype=float), eps: float, mesh_row: int, self_row: int, act_row: int,
-               tool_row: int, nodes_pad: int, tools_pad: int, proj_chunks: int, row_tiles: int, later_tools: int,
-               lat: wp.array2d(dtype=float), products: wp.array2d(dtype=float)):
+               tool_row: int, nodes_pad: int, tools_pad: int, proj_chunks: int, first_chunks: int, row_tiles: int,
+               later_tools: int, lat: wp.array2d(dtype=float), products: wp.array2d(dtype=float)):
         blk, _lane = wp.tid()
         grid_step(0)
         grid_step(1)
         tool_pass = wp.int32(0)  # which pass's tool products this block writes (-1: none, nor the latents)
         chunk0 = wp.int32(0)  # on node rows, the pass-0 node products' (F, F) column blocks [chunk0, chunk1)
-        chunk1 = wp.int32(1)
-        if blk >= row_tiles + later_tools:  # the node tiles again, a block for each further column block: the
-            # longest chain of the launch was a node tile's two layers and its three products one after another
+        chunk1 = first_chunks
+        if blk >= row_tiles + later_tools:  # the node tiles again, a block for each further column block (split):
+            # the longest chain of the launch was a node tile's two layers and its three products one after another
             k = blk - row_tiles - later_tools
             chunk0 = 1 + k % (proj_chunks - 1)
             chunk1 = chunk0 + 1
@@ -259,14 +259,18 @@ def launches(net) -> list:
     A = 1 if w.actuator_graphs else 0
     pass_chunks = 3 if A else 2
     later_tools = (w.passes - 1) * lay.tiles(lay.tools_pad)  # blocks for the later passes' tool products
-    node_chunks = (pass_chunks - 1) * lay.tiles(lay.nodes_pad)  # and for the node products' further column blocks
+    # and for the node products' further column blocks, on small graphs (whole weights): there the longest chain
+    # bounds the launch, on large ones the recomputed layers cost more than the chain (batch 64: 451 -> 403 us
+    # chained, bench/results/warp_large_graphs_h200.json)
+    first_chunks = 1 if net.spec.kc == w.latent else pass_chunks
+    node_chunks = (pass_chunks - first_chunks) * lay.tiles(lay.nodes_pad)
     out = [wp.launch_tiled(
         encode, dim=[lay.tiles(lay.rows) + later_tools + node_chunks], block_dim=net.block_dim_of("encode"), device=dev,
         record_cmd=True,
         inputs=[net.feat, w.enc_w1, w.enc_b1, w.enc_w2, w.enc_b2, w.enc_g, w.enc_be, net.self_loop, w.proj,
                 w.tool_proj, w.eps, lay.mesh_row, lay.self_row, lay.act_row,
-                lay.tool_row, lay.nodes_pad, lay.tools_pad, pass_chunks, lay.tiles(lay.rows), later_tools,
-                net.lat, net.products])]
+                lay.tool_row, lay.nodes_pad, lay.tools_pad, pass_chunks, first_chunks, lay.tiles(lay.rows),
+                later_tools, net.lat, net.products])]
     mesh_tiles = lay.tiles(lay.edges_pad)
     edge_tiles = mesh_tiles + lay.tiles(lay.act_pad)
     for p in range(w.passes):

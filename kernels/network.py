@@ -71,7 +71,8 @@ class Network:
         self.device = wp.get_device(device)
         self.weights = w = weights if weights is not None else pack(model, self.device)
         if not node_rows:  # by the graph's size, a divisor of tile_rows
-            picked = node_rows_for(topology.n_nodes, self.device.sm_count if self.device.is_cuda else 0)
+            picked = node_rows_for(topology.n_nodes, self.device.sm_count if self.device.is_cuda else 0, w.latent,
+                                   max_shared_of(self.device))
             node_rows = next(n for n in (picked, NODE_ROWS[0], tile_rows) if tile_rows % n == 0)
         if k_chunk is None:
             tiles_per_sm = -(-topology.n_nodes // node_rows) / self.device.sm_count if self.device.is_cuda else 0
@@ -94,6 +95,7 @@ class Network:
         self.n_tools = k
         # scratch: features and latents of every row, node (and tool) products, decoder fields
         self.feat = zeros(lay.rows, FEATURE_WIDTH)
+        self.feat_groups = row_view(self.feat, FEATURE_WIDTH)  # the same rows, 4 floats an item (kernels.features)
         self.lat = zeros(lay.rows, F)
         self.lat_rows = row_view(self.lat, F)  # the same rows as vectors, for the node pass's CSR sums
         hybrid = w.kind == "hybrid"

@@ -102,18 +102,6 @@ class Spec:
         return {self.module: 0} | {self.module_of(k): n for k, n in self.threads}
 
 
-NODE_ROWS = (8, 16)  # node tile sizes a Network picks from by its graph's size (node_rows_for); both shipped
-
-
-def node_rows_for(n_nodes: int, sm_count: int) -> int:
-    """Rows per node tile for a graph of ``n_nodes`` on a GPU of ``sm_count`` SMs (0: not a GPU): 8 while tiles of
-    8 are few per SM, as at batch 1 (L5's 84 tiles for 132 SMs: the node pass 30 us against 41 at 16 rows on an
-    H100, warp_tile_shapes_h100.json), 16 from 8 such tiles an SM on (batch 64 of L5 is 40: the hybrid step 6.32
-    ms against 6.82, the vanilla 4.81 against 5.29 on an H200, warp_native_steps_h200.json). The crossover between
-    the two measured sizes is not measured; 8 tiles an SM is the middle of them, ~batch 13 of L5 on an H200."""
-    return NODE_ROWS[1] if sm_count and n_nodes >= 8 * NODE_ROWS[0] * sm_count else NODE_ROWS[0]
-
-
 # Shared memory a block must be allowed (the device's opt-in limit) for whole weights: the node pass then takes 137
 # KiB (kernels/aot's .meta). sm_80/sm_87 allow 163 KiB and sm_90 227 KiB; sm_86/sm_89/sm_120 (RTX 30x0, 40x0, 50x0,
 # the paper's RTX 3090 among them) 99 KiB, where those kernels cannot launch and chunks of 32 (80 KiB at most) can.
@@ -121,6 +109,30 @@ WHOLE_WEIGHTS_SHARED = 160 * 1024
 # that limit by architecture, for builds without the GPU (precompile --arch); others allow less than
 # WHOLE_WEIGHTS_SHARED (sm_75 64 KiB; sm_86, sm_89, sm_120 99 KiB)
 SHARED_OF_ARCH = {80: 163 * 1024, 87: 163 * 1024, 90: 227 * 1024, 100: 227 * 1024}
+
+
+NODE_ROWS = (8, 16, 32)  # node tile sizes a Network picks from by its graph's size (node_rows_for); all shipped
+
+
+def node_rows_allowed(latent: int, max_shared: int | None = None) -> tuple:
+    """The NODE_ROWS a Network may take at width ``latent`` on a device allowing a block ``max_shared`` bytes of
+    shared memory (None: no limit, as on the CPU): tiles of 32 only at F <= 64 on GPUs that take whole weights (their
+    node pass holds 112 KiB with K chunks of 32 at F = 64: more than sm_86 / sm_89 allow, kernels/aot's .meta)."""
+    wide = latent <= 64 and (max_shared is None or max_shared >= WHOLE_WEIGHTS_SHARED)
+    return NODE_ROWS if wide else NODE_ROWS[:2]
+
+
+def node_rows_for(n_nodes: int, sm_count: int, latent: int = 64, max_shared: int | None = None) -> int:
+    """Rows per node tile for a graph of ``n_nodes`` on a GPU of ``sm_count`` SMs (0: not a GPU): the largest of
+    node_rows_allowed that still makes a tile an SM, else the smallest. Larger tiles copy each weight once for more
+    rows (the node pass's three weights are 112 KiB at F = 64), smaller ones keep every SM busy. On an H200 (132 SMs,
+    L5's 670 nodes a graph, K chunks of 32) it picks the fastest measured at every batch: 8 at 1 and 2 (220 against
+    249 / 298 us a 5-pass hybrid step at batch 2), 16 at 4 (364 against 397 / 411), 32 from 8 on (633 against 687
+    / 680 at 8, 4.29 against 4.85 / 4.50 ms at 64) (bench/results/warp_large_graphs_h200.json)."""
+    for rows in sorted(node_rows_allowed(latent, max_shared), reverse=True):
+        if sm_count and -(-n_nodes // rows) >= sm_count:
+            return rows
+    return NODE_ROWS[0]
 
 
 def max_shared_of(device) -> int | None:

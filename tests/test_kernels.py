@@ -230,12 +230,15 @@ def test_node_tiles_smaller_than_edge_tiles(kind, tile_rows, node_rows):
 
 
 def test_tiles_by_graph_size():
-    """Tiles of 8 node rows for few tiles an SM (batch 1 of L5 on an H200's 132 SMs), 16 for many (batch 64), 8
-    off a GPU; with tiles of 8 at most one an SM, whole weights of F <= 64 a K chunk, else Spec's chunks of 32 (at
-    most F); a Network takes them unless told."""
+    """Node tiles of the most rows that still make a tile an SM: 8 at batch 1 and 2 of L5 (670 nodes) on an H200's
+    132 SMs, 16 at batch 4, 32 from batch 8 on (batch 64), at most 16 at F = 128 or where a block may take less than
+    whole weights' shared memory, 8 off a GPU; with tiles of 8 at most one an SM, whole weights of F <= 64 a K
+    chunk, else Spec's chunks of 32 (at most F); a Network takes them unless told."""
     from warpgnn.kernels.spec import k_chunk_for, node_rows_for
 
-    assert node_rows_for(670, 132) == 8 and node_rows_for(64 * 670, 132) == 16 and node_rows_for(10**6, 0) == 8
+    assert [node_rows_for(b * 670, 132) for b in (1, 2, 4, 8, 64)] == [8, 8, 16, 32, 32]
+    assert node_rows_for(64 * 670, 132, 128) == 16 and node_rows_for(64 * 670, 132, 64, 99 * 1024) == 16
+    assert node_rows_for(10**6, 0) == 8
     assert (k_chunk_for(8, 64), k_chunk_for(16, 64), k_chunk_for(8, 128), k_chunk_for(8, 16)) == (64, 0, 0, 16)
     assert k_chunk_for(8, 64, node_tiles_per_sm=84 / 132) == 64 and k_chunk_for(8, 64, node_tiles_per_sm=168 / 132) == 0
     top = tool_topology(box((3, 3, 2)), 2)

@@ -51,7 +51,7 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
     Warp wrote at the build) fits with 1 KiB to spare for Warp's static allocations; with whole weights the edge pass
     holds enough that at most two of its blocks share an SM."""
     from warpgnn.kernels.message_passing import EDGE_PASS_SHARED
-    from warpgnn.kernels.spec import NODE_ROWS, SHARED_OF_ARCH, Spec, k_chunk_for, threads_for
+    from warpgnn.kernels.spec import SHARED_OF_ARCH, Spec, k_chunk_for, node_rows_allowed, threads_for
 
     SM_SHARED = {80: 164 * 1024, 90: 228 * 1024}  # shared memory an SM (CUDA programming guide)
 
@@ -59,7 +59,7 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
     shipped_specs = {s.module: s for s in shipped.specs()}
     for max_shared, arch in ((99 * 1024, 80), (163 * 1024, 80), (227 * 1024, 90)):
         for F in shipped.LATENTS:
-            for n in NODE_ROWS:
+            for n in node_rows_allowed(F, max_shared):
                 k = k_chunk_for(n, F, max_shared)
                 spec = Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, cuda=True))
                 module = spec.module
