@@ -47,15 +47,26 @@ def node_decoder(spec: Spec, owner: str):
     return node_fields
 
 
+EO_ALIGN = 4  # floats: the row length of the decoder's shared e / o tile, a multiple of this
+LM_CHUNK = 16  # K rows of the (F, 144) weight's chunks where blocks queue for the SMs (Spec.many_blocks)
+
+
 @functools.cache
 def kernels(spec: Spec):
     """hybrid_fields, in spec.module_of("hybrid_fields")."""
     owner = spec.module_of("hybrid_fields")
     T, F = spec.tile_rows, spec.latent
     _fill, activate, _second_layer, _sums, _project, gather_pair, _ahead = helpers(spec, owner)
-    mm_ff = matmul(T, F, spec.kc, F, spec.gemm, owner)
-    mm_lm = matmul(T, F, spec.kc, N_LM, spec.gemm, owner)
+    # where blocks queue for the SMs its (F, 144) weight in K chunks of LM_CHUNK rows (double-buffered, 18 KiB instead
+    # of 36 at 32 rows: with e in o, four blocks an SM instead of three; batch 64 723 -> 699 us)
+    mm_lm = matmul(T, F, min(spec.kc, LM_CHUNK) if spec.many_blocks else spec.kc, N_LM, spec.gemm, owner)
     ahead = spec.kc == F  # as the edge pass: weight copies first with whole weights
+    # with K chunks e's rows live in o's tile, read by the first product only (it ends with a barrier): where blocks
+    # queue for the SMs three fit an SM instead of two (78 -> 68 KiB): batch 64 879 -> 723 us (a row of 160 floats
+    # instead of 144, 128-byte aligned: 750 us; bench/results/warp_occupancy_h200.json)
+    shared_eo = not ahead
+    eo_cols = -(-max(F, N_LM) // EO_ALIGN) * EO_ALIGN
+    mm_ff = matmul(T, F, spec.kc, F, spec.gemm, owner, eo_cols if shared_eo else 0)  # e's rows eo_cols apart
     ff_rows, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, owner)
     lm_rows, begin_lm, finish_lm = matmul_ahead(T, F, spec.kc, N_LM, spec.gemm, owner)
     fill_lm, _activate_lm = row_steps(T, N_LM, owner)
@@ -80,7 +91,11 @@ def kernels(spec: Spec):
         grid_step(1)
         x = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
         sender_grads(x, grads, ids)  # for the port terms, in flight with the loads below
-        e = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+        if wp.static(shared_eo):
+            eo = wp.tile_empty(shape=(T, eo_cols), dtype=float, storage="shared")
+            e = wp.tile_view(eo, offset=(0, 0), shape=(T, F))
+        else:
+            e = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         load_rows(e, lat, row0, 0)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         gather_pair(h, b1, 0, products, ids, 0, 0, F)
@@ -90,7 +105,10 @@ def kernels(spec: Spec):
         else:
             mm_ff(e, w_e, 0, 0, h)
         activate(h, b1, 0, 0)
-        o = wp.tile_empty(shape=(T, N_LM), dtype=float, storage="shared")
+        if wp.static(shared_eo):
+            o = wp.tile_view(eo, offset=(0, 0), shape=(T, N_LM))
+        else:
+            o = wp.tile_empty(shape=(T, N_LM), dtype=float, storage="shared")
         fill_lm(o, b2, 0)
         if wp.static(ahead):
             finish_lm(h, w2, 0, 0, w2_buf, o)

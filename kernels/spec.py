@@ -67,6 +67,12 @@ class Spec:
         return kc
 
     @property
+    def many_blocks(self) -> bool:
+        """K chunks at F <= 64: a Network's pick for graphs of more than a node tile an SM (k_chunk_for), where the
+        blocks queue for the SMs and how many fit an SM (their shared memory and registers) sets a launch's speed."""
+        return self.kc != self.latent and self.latent <= 64
+
+    @property
     def node_tile(self) -> int:
         n = self.node_rows or self.tile_rows
         if self.tile_rows % n:

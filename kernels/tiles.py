@@ -344,15 +344,25 @@ def gemm(rows: int, k: int, n: int, kind: str, owner: str):
     return native
 
 
+def operand(rows: int, k: int, row_stride: int = 0):
+    """The type of a (rows, k) shared tile whose rows are row_stride floats apart (0: k, contiguous), as a function
+    that views it must declare it: Warp types a view made inside a function by the declared strides, not the
+    caller's tile's."""
+    if row_stride:
+        return wp.tile(dtype=float, shape=(rows, k), storage="shared", strides=(row_stride, 1))
+    return wp.tile(dtype=float, shape=(rows, k))
+
+
 @functools.cache
-def matmul_ahead(rows: int, k: int, kc: int, n: int, kind: str, owner: str):
+def matmul_ahead(rows: int, k: int, kc: int, n: int, kind: str, owner: str, a_stride: int = 0):
     """A staged product in two parts, so a kernel can start its weight copy first, in flight while its gathers'
     plain loads are (the first wait for a copy, ``staged``'s cp.async.wait_all, waits for all begun so far):
     (buf_rows, begin, finish). The caller allocates ``buf`` (buf_rows, n) in shared memory; begin(buf, W, row0,
     col0) starts copying the first K chunk of W[row0:row0 + k, col0:col0 + n] into it (cp.async on CUDA), and
     finish(a, W, row0, col0, buf, acc) runs acc (rows, n) += a (rows, k) @ W[...] over K chunks of kc,
     double-buffered: chunk c + 1 is copied while chunk c's product runs. A product of one chunk (k == kc) needs
-    one buffer, not two."""
+    one buffer, not two. ``a_stride``: floats between a's rows where they are not k (a view of a wider tile)."""
+    a_tile = operand(rows, k, a_stride)
     chunks = k // kc
     buf_rows = kc * min(chunks, 2)
     stage_copy, staged = stage(kc, n, owner)
@@ -363,7 +373,7 @@ def matmul_ahead(rows: int, k: int, kc: int, n: int, kind: str, owner: str):
         stage_copy(wp.tile_view(buf, offset=(0, 0), shape=(kc, n)), w, row0, col0)
 
     @wp.func
-    def finish(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
+    def finish(a: a_tile, w: wp.array2d(dtype=float), row0: int, col0: int,
                buf: wp.tile(dtype=float, shape=(buf_rows, n)), acc: wp.tile(dtype=float, shape=(rows, n))):
         c = int(0)
         while c < chunks:  # a while loop: Warp does not unroll it
@@ -379,17 +389,18 @@ def matmul_ahead(rows: int, k: int, kc: int, n: int, kind: str, owner: str):
 
 
 @functools.cache
-def matmul(rows: int, k: int, kc: int, n: int, kind: str, owner: str):
+def matmul(rows: int, k: int, kc: int, n: int, kind: str, owner: str, a_stride: int = 0):
     """acc (rows, n) += a (rows, k, shared) @ W[row0:row0 + k, col0:col0 + n], K in chunks of kc, double-buffered
     (matmul_ahead, its weight copy started where the product is): chunk c + 1 is copied into shared memory (cp.async
     on CUDA) while chunk c's product runs, so a product waits for one weight load rather than one a chunk. On an
     H200 (L5, F = 64) this took the batch-64 step from 8.89 to 7.99 ms (edge pass 858 -> 708 us) and the 12-pass
     F = 128 step from 1.26 to 1.12 ms, same numbers bit for bit (bench/results/warp_staged_h200.json,
     warp_staged_f128_h200.json)."""
-    buf_rows, begin, finish = matmul_ahead(rows, k, kc, n, kind, owner)
+    buf_rows, begin, finish = matmul_ahead(rows, k, kc, n, kind, owner, a_stride)
+    a_tile = operand(rows, k, a_stride)
 
     @wp.func
-    def matmul_acc(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
+    def matmul_acc(a: a_tile, w: wp.array2d(dtype=float), row0: int, col0: int,
                    acc: wp.tile(dtype=float, shape=(rows, n))):
         buf = wp.tile_empty(shape=(buf_rows, n), dtype=float, storage="shared")
         begin(buf, w, row0, col0)

@@ -193,12 +193,16 @@ def test_several_threads_a_block(monkeypatch):
         check(random_model(kind, 2, 16, seed=11), top, seed=11, block_dim=5)
 
 
-def test_weight_chunks_double_buffered(monkeypatch):
-    """Products over four K chunks (k_chunk 8 at F = 32): the next chunk's weights are staged while the current
-    one's product runs (tiles.matmul), with 5 threads a block (CPU fibers, so the block's row LayerNorm and
-    CSR sums take several threads too): the reference's answer."""
+@pytest.mark.parametrize("latent,k_chunk", [(32, 8), (48, 24)], ids=["F32-K8", "F48-K24"])
+def test_weight_chunks_double_buffered(monkeypatch, latent, k_chunk):
+    """Products over K chunks (four of 8 at F = 32; two of 24 at F = 48, where the hybrid decoder's (F, 144) weight
+    comes in chunks of decoders.LM_CHUNK = 16 instead: Spec.many_blocks): the next chunk's weights are staged while
+    the current one's product runs (tiles.matmul), the decoder's edge rows read from inside its output tile, with 5
+    threads a block (CPU fibers, so the block's row LayerNorm and CSR sums take several threads too): the
+    reference's answer."""
     monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
-    check(random_model("hybrid", 2, 32, seed=3), tool_topology(box((3, 3, 2)), 2), seed=3, k_chunk=8, block_dim=5)
+    check(random_model("hybrid", 2, latent, seed=3), tool_topology(box((3, 3, 2)), 2), seed=3, k_chunk=k_chunk,
+          block_dim=5)
 
 
 @pytest.mark.parametrize("k_chunk", [16, 8], ids=["whole", "chunks"])
