@@ -16,9 +16,9 @@ Works on any stacked topology (graphs.batch): indices are global, graphs never n
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-import numpy as np
+import torch
 import warp as wp
 
 
@@ -76,18 +76,29 @@ class Layout:
         return rows // self.tile_rows
 
 
-def _csr(receivers: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+def _csr(receivers: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Stable order by receiver and the (n + 1) segment offsets."""
-    order = np.argsort(receivers, kind="stable")
-    offsets = np.zeros(n + 1, np.int64)
-    np.cumsum(np.bincount(receivers, minlength=n), out=offsets[1:])
+    order = torch.sort(receivers, stable=True).indices
+    offsets = torch.zeros(n + 1, dtype=torch.int64, device=receivers.device)
+    offsets[1:] = torch.cumsum(torch.bincount(receivers, minlength=n), 0)
     return order, offsets
+
+
+def _last_wins(index: torch.Tensor, values: torch.Tensor, n: int, empty) -> torch.Tensor:
+    """out[index[i]] = values[i], the last i winning where an index repeats (as index_put on a CPU), ``empty``
+    elsewhere: the largest i of each index by scatter_reduce (index_put's choice among repeats is undefined on
+    CUDA)."""
+    last = torch.full((n,), -1, dtype=torch.int64, device=index.device)
+    last.scatter_reduce_(0, index, torch.arange(len(index), device=index.device), reduce="amax")
+    picked = values[last.clamp(min=0)] if len(values) else torch.zeros(n, dtype=values.dtype, device=index.device)
+    return torch.where(last >= 0, picked, torch.as_tensor(empty, dtype=values.dtype, device=index.device))
 
 
 @dataclass
 class Graph:
     layout: Layout
     arrays: dict  # name -> wp.array
+    tensors: list = field(default_factory=list)  # the torch tensors the arrays view, kept alive with them
 
     def __getattr__(self, name):
         try:
@@ -97,13 +108,18 @@ class Graph:
 
 
 def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = True, device=None) -> Graph:
-    """The kernels' view of a ``warpgnn.graphs.Topology`` (one simulation or a stacked batch)."""
-    def np_(t):
-        return t.detach().cpu().numpy()
+    """The kernels' view of a ``warpgnn.graphs.Topology`` (one simulation or a stacked batch), built by torch on the
+    Warp ``device``: no copy to the host, which would wait for the GPU's work in flight (eval builds a chunk's
+    Network while the one before rolls out)."""
+    device = wp.get_device(device)
+    dev = wp.device_to_torch(device)
+
+    def t_(x, dtype=torch.int64):
+        return x.detach().to(dev, dtype)
 
     n, k = top.n_nodes, top.n_tools
-    senders, receivers = np_(top.senders).astype(np.int64), np_(top.receivers).astype(np.int64)
-    act_tool, act_node = np_(top.act_senders).astype(np.int64), np_(top.act_receivers).astype(np.int64)
+    senders, receivers = t_(top.senders), t_(top.receivers)
+    act_tool, act_node = t_(top.act_senders), t_(top.act_receivers)
     if not actuator_graphs:
         act_tool, act_node = act_tool[:0], act_node[:0]
     lay = Layout(n, len(senders), k if actuator_graphs else 0, len(act_tool), tile_rows, self_loops)
@@ -112,40 +128,47 @@ def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = 
     mesh_recv, mesh_send = receivers[order], senders[order]
     a_order, act_off = _csr(act_node, n)
     act_node, act_tool = act_node[a_order], act_tool[a_order]
-    loaded = np_(top.loaded).astype(np.int64)
+    loaded = t_(top.loaded)
     # tools loaded at each node: the single-graph ablation adds their features to the node's
     t_order, tool_off = _csr(loaded, n)
 
     # per latent row: the rows of the node-product buffer its edge MLP gathers (receiver, sender);
     # tool products sit after the node rows (message_passing stores them there, one block per pass)
-    row_recv = np.zeros(lay.rows, np.int64)
-    row_send = np.zeros(lay.rows, np.int64)
+    row_recv = torch.zeros(lay.rows, dtype=torch.int64, device=dev)
+    row_send = torch.zeros(lay.rows, dtype=torch.int64, device=dev)
     row_recv[lay.mesh_row:lay.mesh_row + lay.n_edges] = mesh_recv
     row_send[lay.mesh_row:lay.mesh_row + lay.n_edges] = mesh_send
     if self_loops:
-        row_recv[lay.self_row:lay.self_row + n] = np.arange(n)
-        row_send[lay.self_row:lay.self_row + n] = np.arange(n)
+        row_recv[lay.self_row:lay.self_row + n] = torch.arange(n, device=dev)
+        row_send[lay.self_row:lay.self_row + n] = torch.arange(n, device=dev)
     row_recv[lay.act_row:lay.act_row + lay.n_act_edges] = act_node
     row_send[lay.act_row:lay.act_row + lay.n_act_edges] = lay.nodes_pad + act_tool
 
     # boundary conditions per node: the tool driving it (-1: none) and its weight; where a node is listed
     # twice the last entry wins, as in apply_boundary_conditions' index_put
-    presc_tool = np.full(n, -1, np.int64)
-    presc_weight = np.zeros(n, np.float32)
-    presc, ptool, pw = np_(top.prescribed), np_(top.prescribed_tool), np_(top.prescribed_weight)
-    presc_tool[presc] = ptool
-    presc_weight[presc] = pw
+    presc = t_(top.prescribed)
+    presc_tool = _last_wins(presc, t_(top.prescribed_tool), n, -1)
+    presc_weight = _last_wins(presc, t_(top.prescribed_weight, torch.float32), n, 0.0)
 
-    def ints(a):
-        return wp.array(np.ascontiguousarray(a, np.int32).reshape(-1) if len(a) else np.zeros(1, np.int32),
-                        dtype=wp.int32, device=device)
+    held = []  # the torch tensors the Warp arrays view (Graph keeps them)
 
+    def view(x, dtype):
+        x = x.to(torch.int32 if dtype is wp.int32 else torch.float32).contiguous()
+        x = x.reshape(-1) if x.numel() else torch.zeros(1, dtype=x.dtype, device=dev)
+        held.append(x)
+        return wp.from_torch(x, dtype=dtype)
+
+    def ints(x):
+        return view(x, wp.int32)
+
+    rest = t_(top.rest, torch.float32).reshape(n, 3).contiguous()
+    held.append(rest)
     arrays = {
-        "rest": wp.array(np_(top.rest).astype(np.float32).reshape(n, 3), dtype=float, device=device),
-        "node_type": ints(np_(top.node_type)), "loaded": ints(loaded),
+        "rest": wp.from_torch(rest, dtype=wp.float32),
+        "node_type": ints(t_(top.node_type)), "loaded": ints(loaded),
         "mesh_off": ints(mesh_off), "mesh_recv": ints(mesh_recv), "mesh_send": ints(mesh_send),
         "act_off": ints(act_off), "act_node": ints(act_node), "act_tool": ints(act_tool),
         "tool_off": ints(tool_off), "tool_list": ints(t_order),
         "row_recv": ints(row_recv), "row_send": ints(row_send),
-        "presc_tool": ints(presc_tool), "presc_weight": wp.array(presc_weight, dtype=float, device=device)}
-    return Graph(lay, arrays)
+        "presc_tool": ints(presc_tool), "presc_weight": view(presc_weight, wp.float32)}
+    return Graph(lay, arrays, held)
