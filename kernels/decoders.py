@@ -14,6 +14,7 @@
 
 # No `from __future__ import annotations`: row_vector(F) in signatures is evaluated when defined.
 import functools
+import math
 
 import warp as wp
 
@@ -59,7 +60,7 @@ def kernels(spec: Spec):
     _fill, activate, _second_layer, _sums, _project, gather_pair, _ahead = helpers(spec, owner)
     # where blocks queue for the SMs its (F, 144) weight in K chunks of LM_CHUNK rows (double-buffered, 18 KiB instead
     # of 36 at 32 rows: with e in o, four blocks an SM instead of three; batch 64 723 -> 699 us)
-    mm_lm = matmul(T, F, min(spec.kc, LM_CHUNK) if spec.many_blocks else spec.kc, N_LM, spec.gemm, owner)
+    mm_lm = matmul(T, F, math.gcd(spec.kc, LM_CHUNK) if spec.many_blocks else spec.kc, N_LM, spec.gemm, owner)
     ahead = spec.kc == F  # as the edge pass: weight copies first with whole weights
     # with K chunks e's rows live in o's tile, read by the first product only (it ends with a barrier): where blocks
     # queue for the SMs three fit an SM instead of two (78 -> 68 KiB): batch 64 879 -> 723 us (a row of 160 floats

@@ -77,11 +77,10 @@ class Layout:
 
 
 def _csr(receivers: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Stable order by receiver and the (n + 1) segment offsets."""
-    order = torch.sort(receivers, stable=True).indices
-    offsets = torch.zeros(n + 1, dtype=torch.int64, device=receivers.device)
-    offsets[1:] = torch.cumsum(torch.bincount(receivers, minlength=n), 0)
-    return order, offsets
+    """Stable order by receiver and the (n + 1) segment offsets (each node's first position in that order, by a
+    search: torch.bincount on CUDA reads its input's extremes back to the host, which waits for the GPU)."""
+    ordered, order = torch.sort(receivers, stable=True)
+    return order, torch.searchsorted(ordered, torch.arange(n + 1, device=receivers.device))
 
 
 def _last_wins(index: torch.Tensor, values: torch.Tensor, n: int, empty) -> torch.Tensor:
@@ -91,7 +90,7 @@ def _last_wins(index: torch.Tensor, values: torch.Tensor, n: int, empty) -> torc
     last = torch.full((n,), -1, dtype=torch.int64, device=index.device)
     last.scatter_reduce_(0, index, torch.arange(len(index), device=index.device), reduce="amax")
     picked = values[last.clamp(min=0)] if len(values) else torch.zeros(n, dtype=values.dtype, device=index.device)
-    return torch.where(last >= 0, picked, torch.as_tensor(empty, dtype=values.dtype, device=index.device))
+    return torch.where(last >= 0, picked, empty)  # a Python number: no copy to the device
 
 
 @dataclass
@@ -161,7 +160,7 @@ def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = 
     def ints(x):
         return view(x, wp.int32)
 
-    rest = t_(top.rest, torch.float32).reshape(n, 3).contiguous()
+    rest = t_(top.rest, torch.float32).reshape(n, 3).clone()  # the Network's own copy, as the arrays below are
     held.append(rest)
     arrays = {
         "rest": wp.from_torch(rest, dtype=wp.float32),

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import warp as wp
 
-from .spec import NODE_ROWS, Spec, k_chunk_for, threads_for
+from .spec import NODE_ROWS, Spec, k_chunk_for, node_rows_allowed, threads_for
 
 FOLDER = Path(__file__).resolve().parent / "aot"
 LATENTS = (64,)  # the shipped network's width, with each of spec.NODE_ROWS (a Network picks by graph size)
@@ -35,7 +35,7 @@ def specs() -> list[Spec]:
     """The shipped specs: each latent width of LATENTS with each node tile size of NODE_ROWS and its K chunk, and
     the small graphs' tiles with the K chunk of GPUs allowing a block less shared memory (sm_86/sm_89, which run
     the sm_80 build: spec.k_chunk_for)."""
-    shapes = [(F, n, k_chunk_for(n, F)) for F in LATENTS for n in NODE_ROWS]
+    shapes = [(F, n, k_chunk_for(n, F)) for F in LATENTS for n in node_rows_allowed(F)]
     shapes += [(F, NODE_ROWS[0], k_chunk_for(NODE_ROWS[0], F, max_shared=0)) for F in LATENTS]
     out = [Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, cuda=True)) for F, n, k in shapes]
     return list({s.module: s for s in out}.values())

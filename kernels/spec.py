@@ -69,7 +69,9 @@ class Spec:
     @property
     def many_blocks(self) -> bool:
         """K chunks at F <= 64: a Network's pick for graphs of more than a node tile an SM (k_chunk_for), where the
-        blocks queue for the SMs and how many fit an SM (their shared memory and registers) sets a launch's speed."""
+        blocks queue for the SMs and how many fit an SM (their shared memory and registers) sets a launch's speed;
+        also on GPUs allowing a block less than whole weights' shared memory (sm_86 / sm_89), at every size there
+        (not measured on those)."""
         return self.kc != self.latent and self.latent <= 64
 
     @property

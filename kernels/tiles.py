@@ -363,6 +363,8 @@ def matmul_ahead(rows: int, k: int, kc: int, n: int, kind: str, owner: str, a_st
     double-buffered: chunk c + 1 is copied while chunk c's product runs. A product of one chunk (k == kc) needs
     one buffer, not two. ``a_stride``: floats between a's rows where they are not k (a view of a wider tile)."""
     a_tile = operand(rows, k, a_stride)
+    if k % kc:
+        raise ValueError(f"a K chunk of {kc} rows must divide K = {k}")
     chunks = k // kc
     buf_rows = kc * min(chunks, 2)
     stage_copy, staged = stage(kc, n, owner)

@@ -233,6 +233,33 @@ def test_node_tiles_smaller_than_edge_tiles(kind, tile_rows, node_rows):
     check(random_model(kind, 2, 16, seed=5), top, seed=5, tile_rows=tile_rows, node_rows=node_rows)
 
 
+def test_graph_built_as_numpy_would():
+    """kernels.graph.build (torch on the Warp device, no copy to the host): CSR order and offsets as a stable
+    argsort and counts give them, and each node's boundary condition from its last entry where a node is listed
+    twice (as index_put on a CPU)."""
+    import dataclasses
+
+    from warpgnn.kernels.graph import build
+
+    top = tool_topology(box((4, 3, 2)), 3, seed=2)
+    presc = torch.cat([top.prescribed, top.prescribed[:3]])  # three nodes listed twice, the second entry different
+    tool = torch.cat([top.prescribed_tool, (top.prescribed_tool[:3] + 1) % 3])
+    weight = torch.cat([top.prescribed_weight, top.prescribed_weight[:3] + 0.5])
+    top = dataclasses.replace(top, prescribed=presc, prescribed_tool=tool, prescribed_weight=weight)
+    g = build(top, 16, device="cpu")
+    recv = top.receivers.numpy()
+    order = np.argsort(recv, kind="stable")
+    np.testing.assert_array_equal(g.mesh_recv.numpy(), recv[order])
+    np.testing.assert_array_equal(g.mesh_send.numpy(), top.senders.numpy()[order])
+    offsets = np.concatenate([[0], np.cumsum(np.bincount(recv, minlength=top.n_nodes))])
+    np.testing.assert_array_equal(g.mesh_off.numpy(), offsets)
+    want_tool, want_weight = np.full(top.n_nodes, -1), np.zeros(top.n_nodes, np.float32)
+    want_tool[presc.numpy()] = tool.numpy()  # numpy: the last of repeated indices wins
+    want_weight[presc.numpy()] = weight.numpy()
+    np.testing.assert_array_equal(g.presc_tool.numpy(), want_tool)
+    np.testing.assert_array_equal(g.presc_weight.numpy(), want_weight)
+
+
 def test_tiles_by_graph_size():
     """Node tiles of the most rows that still make a tile an SM: 8 at batch 1 and 2 of L5 (670 nodes) on an H200's
     132 SMs, 16 at batch 4, 32 from batch 8 on (batch 64), at most 16 at F = 128 or where a block may take less than
