@@ -16,7 +16,7 @@ Works on any stacked topology (graphs.batch): indices are global, graphs never n
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 import warp as wp
@@ -96,8 +96,7 @@ def _last_wins(index: torch.Tensor, values: torch.Tensor, n: int, empty) -> torc
 @dataclass
 class Graph:
     layout: Layout
-    arrays: dict  # name -> wp.array
-    tensors: list = field(default_factory=list)  # the torch tensors the arrays view, kept alive with them
+    arrays: dict  # name -> wp.array (views of torch tensors, which wp.from_torch keeps alive)
 
     def __getattr__(self, name):
         try:
@@ -149,25 +148,19 @@ def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = 
     presc_tool = _last_wins(presc, t_(top.prescribed_tool), n, -1)
     presc_weight = _last_wins(presc, t_(top.prescribed_weight, torch.float32), n, 0.0)
 
-    held = []  # the torch tensors the Warp arrays view (Graph keeps them)
-
     def view(x, dtype):
         x = x.to(torch.int32 if dtype is wp.int32 else torch.float32).contiguous()
-        x = x.reshape(-1) if x.numel() else torch.zeros(1, dtype=x.dtype, device=dev)
-        held.append(x)
-        return wp.from_torch(x, dtype=dtype)
+        return wp.from_torch(x.reshape(-1) if x.numel() else torch.zeros(1, dtype=x.dtype, device=dev), dtype=dtype)
 
     def ints(x):
         return view(x, wp.int32)
 
-    rest = t_(top.rest, torch.float32).reshape(n, 3).clone()  # the Network's own copy, as the arrays below are
-    held.append(rest)
     arrays = {
-        "rest": wp.from_torch(rest, dtype=wp.float32),
+        "rest": wp.from_torch(t_(top.rest, torch.float32).reshape(n, 3).clone(), dtype=wp.float32),  # its own copy
         "node_type": ints(t_(top.node_type)), "loaded": ints(loaded),
         "mesh_off": ints(mesh_off), "mesh_recv": ints(mesh_recv), "mesh_send": ints(mesh_send),
         "act_off": ints(act_off), "act_node": ints(act_node), "act_tool": ints(act_tool),
         "tool_off": ints(tool_off), "tool_list": ints(t_order),
         "row_recv": ints(row_recv), "row_send": ints(row_send),
         "presc_tool": ints(presc_tool), "presc_weight": view(presc_weight, wp.float32)}
-    return Graph(lay, arrays, held)
+    return Graph(lay, arrays)
