@@ -106,11 +106,15 @@ class Graph:
 
 
 def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = True, device=None) -> Graph:
-    """The kernels' view of a ``warpgnn.graphs.Topology`` (one simulation or a stacked batch), built by torch on the
-    Warp ``device``: no copy to the host, which would wait for the GPU's work in flight (eval builds a chunk's
-    Network while the one before rolls out)."""
+    """The kernels' view of a ``warpgnn.graphs.Topology`` (one simulation or a stacked batch) on the Warp ``device``,
+    computed by torch where the topology lives and never copied to the host: a copy from the device would wait for
+    the GPU's work in flight (eval builds a chunk's Network while the one before rolls out). A topology on the CPU
+    (eval's, as the dataset gave it) is built there, the results sent on through pinned memory without waiting: on
+    the H200 the first chunk's build took 111 ms on the device, most of it torch loading its sort, search and scatter
+    kernels on first use, against ~20 ms on the host (bench/results/warp_rollout_l5_h200.json)."""
     device = wp.get_device(device)
-    dev = wp.device_to_torch(device)
+    dev = top.senders.device
+    target = torch.device(wp.device_to_torch(device))
 
     def t_(x, dtype=torch.int64):
         return x.detach().to(dev, dtype)
@@ -149,14 +153,17 @@ def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = 
     presc_weight = _last_wins(presc, t_(top.prescribed_weight, torch.float32), n, 0.0)
 
     def view(x, dtype):
-        x = x.to(torch.int32 if dtype is wp.int32 else torch.float32).contiguous()
-        return wp.from_torch(x.reshape(-1) if x.numel() else torch.zeros(1, dtype=x.dtype, device=dev), dtype=dtype)
+        x = x.to(torch.int32 if dtype is wp.int32 else torch.float32)
+        x = x if x.numel() else torch.zeros(1, dtype=x.dtype, device=dev)
+        if x.device != target:  # from the host: pinned, so that the copy is queued, not waited for
+            x = x.pin_memory().to(target, non_blocking=True) if target.type == "cuda" else x.to(target)
+        return wp.from_torch(x.contiguous(), dtype=dtype)
 
     def ints(x):
         return view(x, wp.int32)
 
     arrays = {
-        "rest": wp.from_torch(t_(top.rest, torch.float32).reshape(n, 3).clone(), dtype=wp.float32),  # its own copy
+        "rest": view(t_(top.rest, torch.float32).reshape(n, 3).clone(), wp.float32),  # its own copy
         "node_type": ints(t_(top.node_type)), "loaded": ints(loaded),
         "mesh_off": ints(mesh_off), "mesh_recv": ints(mesh_recv), "mesh_send": ints(mesh_send),
         "act_off": ints(act_off), "act_node": ints(act_node), "act_tool": ints(act_tool),

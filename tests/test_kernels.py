@@ -233,10 +233,13 @@ def test_node_tiles_smaller_than_edge_tiles(kind, tile_rows, node_rows):
     check(random_model(kind, 2, 16, seed=5), top, seed=5, tile_rows=tile_rows, node_rows=node_rows)
 
 
-def test_graph_built_as_numpy_would():
-    """kernels.graph.build (torch on the Warp device, no copy to the host): CSR order and offsets as a stable
-    argsort and counts give them, and each node's boundary condition from its last entry where a node is listed
-    twice (as index_put on a CPU)."""
+@pytest.mark.parametrize("where,device", [("cpu", "cpu")] + [
+    pytest.param(w, "cuda:0", marks=pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device"))
+    for w in ("cpu", "cuda:0")])
+def test_graph_built_as_numpy_would(where, device):
+    """kernels.graph.build (torch where the topology is, never copied to the host; from the host to a GPU through
+    pinned memory): CSR order and offsets as a stable argsort and counts give them, and each node's boundary
+    condition from its last entry where a node is listed twice (as index_put on a CPU)."""
     import dataclasses
 
     from warpgnn.kernels.graph import build
@@ -246,7 +249,9 @@ def test_graph_built_as_numpy_would():
     tool = torch.cat([top.prescribed_tool, (top.prescribed_tool[:3] + 1) % 3])
     weight = torch.cat([top.prescribed_weight, top.prescribed_weight[:3] + 0.5])
     top = dataclasses.replace(top, prescribed=presc, prescribed_tool=tool, prescribed_weight=weight)
-    g = build(top, 16, device="cpu")
+    g = build(top.to(where), 16, device=device)
+    assert all(str(a.device) == device for a in g.arrays.values())
+    np.testing.assert_array_equal(g.rest.numpy(), top.rest.numpy())
     recv = top.receivers.numpy()
     order = np.argsort(recv, kind="stable")
     np.testing.assert_array_equal(g.mesh_recv.numpy(), recv[order])

@@ -55,15 +55,16 @@ def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None, first
     for c in range(0, len(sims), chunk):
         part = sims[c:c + chunk]
         device = part[0].z.device
-        top = batch([s.topology for s in part]).to(device)
+        top = batch([s.topology for s in part])  # where the simulations' topologies are (eval's: the host)
         z = torch.cat(z0[c:c + chunk]).to(device)
         u = torch.cat([s.u[first:] for s in part], 1).to(device)  # (steps + 1, tools of the chunk, 3)
-        if hasattr(model, "rollout"):
+        if hasattr(model, "rollout"):  # the Warp kernels build their graph where the topology is (kernels/graph.py)
             states, diagnostics = model.rollout(top, z, u, part[0].dt)
             if progress:
                 progress(len(part) * (len(u) - 1))
         else:
-            states, diagnostics = stepwise(model, top, z, u, part[0].dt, progress and partial(progress, len(part)))
+            states, diagnostics = stepwise(model, top.to(device), z, u, part[0].dt,
+                                           progress and partial(progress, len(part)))
         fetched = _to_host([states, *(diagnostics or ())])
         # the chunk before is read back now, while this one runs: on CUDA the next chunk's graph is built and
         # captured, and its results reduced, while the GPU still works on this one

@@ -2,7 +2,10 @@
 warpgnn.evaluation.evaluate in this process (run it fresh, as eval is), the functions by cumulative time.
 
     python bench/studies/warp_rollout_profile.py CHECKPOINT DATA.h5 --chunk 64 --json OUT.json --device "..." \
-        --command "..."
+        --command "..." [--phases]
+
+``--phases``: no profiler; instead each call of the rollout's stages timed apart (the Networks, their graphs'
+builds, kernel definitions and module loads, the replays, the copies back and their collection), chunk by chunk.
 
 Its first run (H200, the 190 L5 test rollouts): of rollout()'s 0.82 s (0.72 s unprofiled; the GPU's share ~0.23 s),
 the three chunks' Networks 0.36 s, the per-graph diagnostics' reductions 0.10 s, reading back 0.13 s; one chunk of
@@ -10,18 +13,43 @@ the three chunks' Networks 0.36 s, the per-graph diagnostics' reductions 0.10 s,
 """
 
 import argparse
+import collections
 import cProfile
+import functools
 import io
 import json
 import pstats
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/: provenance.py
 import provenance
 
+from warpgnn import rollout
 from warpgnn.evaluation import evaluate
+from warpgnn.kernels import backend, network
+
+
+def time_calls(stages: dict) -> dict:
+    """Wrap each (owner, attribute) of ``stages`` ({label: (owner, name)}) to append its calls' milliseconds to
+    the returned {label: [ms, ...]}."""
+    times = collections.defaultdict(list)
+    for label, (owner, name) in stages.items():
+        def timed(*args, _f=getattr(owner, name), _label=label, **kw):
+            t = time.perf_counter()
+            out = _f(*args, **kw)
+            times[_label].append(round((time.perf_counter() - t) * 1e3, 2))
+            return out
+        setattr(owner, name, functools.wraps(getattr(owner, name))(timed))
+    return times
+
+
+STAGES = {"Network": (network.Network, "__init__"), "kernel definitions": (network, "build_kernels"),
+          "module load": (network.shipped, "load"), "graph build": (network, "build"),
+          "replay": (backend._Topology, "run"), "copies back": (rollout, "_to_host"),
+          "collect": (rollout, "_collect")}
 
 
 def main():
@@ -30,16 +58,32 @@ def main():
     ap.add_argument("data")
     ap.add_argument("--chunk", type=int, default=64, help="simulations rolled out side by side (eval's default 64)")
     ap.add_argument("--top", type=int, default=40, help="functions kept, by cumulative time")
+    ap.add_argument("--phases", action="store_true", help="time the rollout's stages call by call, no profiler")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
-    profile = cProfile.Profile()
+    profile = None if a.phases else cProfile.Profile()
+    times = time_calls(STAGES) if a.phases else None
     with tempfile.TemporaryDirectory() as out:
-        profile.enable()
+        if profile:
+            profile.enable()
         result = evaluate(a.checkpoint, a.data, out, backend="warp", chunk=a.chunk, plots=False, log=lambda *_: None)
-        profile.disable()
+        if profile:
+            profile.disable()
+    print(f"chunk {a.chunk}: rollout_seconds {result['rollout_seconds']:.3f}")
+    record = provenance.record(a) | {"chunk": a.chunk, "rollout_seconds": result["rollout_seconds"]}
+    if times is not None:
+        for label, ms in times.items():
+            print(f"{label:20s} {ms} ms")
+        record["stages_ms"] = dict(times)
+    else:
+        record["top"] = top_functions(profile, a.top)
+    Path(a.json).write_text(json.dumps(record, indent=1) + "\n")
+
+
+def top_functions(profile, count: int) -> list[dict]:
     text = io.StringIO()
-    pstats.Stats(profile, stream=text).sort_stats("cumulative").print_stats(a.top)
+    pstats.Stats(profile, stream=text).sort_stats("cumulative").print_stats(count)
     lines = text.getvalue().splitlines()
     first = next(i for i, line in enumerate(lines) if "ncalls" in line)
     top = []
@@ -48,9 +92,7 @@ def main():
         if len(parts) == 6:
             top.append({"ncalls": parts[0], "tottime_s": float(parts[1]), "cumtime_s": float(parts[3]),
                         "function": parts[5]})
-    print(f"chunk {a.chunk}: rollout_seconds {result['rollout_seconds']:.3f}")
-    record = provenance.record(a) | {"chunk": a.chunk, "rollout_seconds": result["rollout_seconds"], "top": top}
-    Path(a.json).write_text(json.dumps(record, indent=1) + "\n")
+    return top
 
 
 if __name__ == "__main__":
