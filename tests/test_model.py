@@ -844,6 +844,31 @@ def test_rollout_from_a_later_snapshot_continues_the_full_rollout(two_sims):
         assert not np.allclose(truth.z[1], full.z[k + 1])  # the truth's start, not the network's
 
 
+def test_rollout_spares_the_collector_and_restores_it(two_sims):
+    """During a rollout what was alive before it is frozen out of the garbage collector's way (no full collection over
+    torch's and Warp's modules inside); afterwards the collector is as it was, a caller's own freeze included."""
+    import gc
+
+    from warpgnn.rollout import rollout
+    counts = []
+
+    class Recording:  # a whole-rollout network (as the Warp backend), recording the collector's frozen objects
+        def rollout(self, top, z, u, dt):
+            counts.append(gc.get_freeze_count())
+            return torch.stack([z] * len(u)), None
+
+    assert gc.get_freeze_count() == 0
+    rollout(Recording(), two_sims)
+    assert counts[-1] > 0 and gc.get_freeze_count() == 0
+    gc.freeze()
+    try:
+        before = gc.get_freeze_count()
+        rollout(Recording(), two_sims)
+        assert counts[-1] >= before and gc.get_freeze_count() >= before  # the caller's freeze left in place
+    finally:
+        gc.unfreeze()
+
+
 # --------------------------------------------------------------------- 10. normaliser
 def test_normalizer_fit_matches_numpy():
     rng = np.random.default_rng(0)
