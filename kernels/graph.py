@@ -154,9 +154,11 @@ def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = 
 
     def view(x, dtype):
         x = x.to(torch.int32 if dtype is wp.int32 else torch.float32)
-        x = x if x.numel() else torch.zeros(1, dtype=x.dtype, device=dev)
-        if x.device != target:  # from the host: pinned, so that the copy is queued, not waited for
-            x = x.pin_memory().to(target, non_blocking=True) if target.type == "cuda" else x.to(target)
+        x = x if x.numel() else torch.zeros((1, *x.shape[1:]), dtype=x.dtype, device=dev)
+        if x.device.type == "cpu" and target.type == "cuda":  # pinned, so that the copy is queued, not waited for
+            x = x.pin_memory().to(target, non_blocking=True)
+        elif x.device != target:
+            x = x.to(target)
         return wp.from_torch(x.contiguous(), dtype=dtype)
 
     def ints(x):

@@ -234,8 +234,9 @@ def test_node_tiles_smaller_than_edge_tiles(kind, tile_rows, node_rows):
 
 
 @pytest.mark.parametrize("where,device", [("cpu", "cpu")] + [
-    pytest.param(w, "cuda:0", marks=pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device"))
-    for w in ("cpu", "cuda:0")])
+    pytest.param(w, d, marks=pytest.mark.skipif(not (HAS_CUDA and torch.cuda.is_available()),
+                                                reason="needs a CUDA device (Warp's and torch's)"))
+    for w, d in (("cpu", "cuda:0"), ("cuda:0", "cuda:0"), ("cuda:0", "cpu"))])
 def test_graph_built_as_numpy_would(where, device):
     """kernels.graph.build (torch where the topology is, never copied to the host; from the host to a GPU through
     pinned memory): CSR order and offsets as a stable argsort and counts give them, and each node's boundary

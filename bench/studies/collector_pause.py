@@ -55,12 +55,14 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--one", choices=["plain", "frozen"], help=argparse.SUPPRESS)  # a child process's case
     ap.add_argument("--repeats", type=int, default=2, help="fresh processes a case, alternated")
-    ap.add_argument("--json")
+    ap.add_argument("--json", help="the record (required but in a child process)")
     provenance.add_arguments(ap)
     a = ap.parse_args()
     if a.one:
         print(json.dumps(one(a.one == "frozen")))
         return
+    if not a.json:
+        ap.error("--json is required")
     runs = []
     for _ in range(a.repeats):
         for case in ("plain", "frozen"):
