@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
+from warpgnn.graphs import to_device
+
 
 def _pad(n: int, t: int) -> int:
     return (n + t - 1) // t * t
@@ -155,11 +157,7 @@ def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = 
     def view(x, dtype):
         x = x.to(torch.int32 if dtype is wp.int32 else torch.float32)
         x = x if x.numel() else torch.zeros((1, *x.shape[1:]), dtype=x.dtype, device=dev)
-        if x.device.type == "cpu" and target.type == "cuda":  # pinned, so that the copy is queued, not waited for
-            x = x.pin_memory().to(target, non_blocking=True)
-        elif x.device != target:
-            x = x.to(target)
-        return wp.from_torch(x.contiguous(), dtype=dtype)
+        return wp.from_torch(to_device(x, target).contiguous(), dtype=dtype)
 
     def ints(x):
         return view(x, wp.int32)

@@ -49,15 +49,18 @@ class Topology:
         return self.loaded.shape[0]
 
     def to(self, device) -> "Topology":
-        """A copy on ``device``; from the CPU through pinned memory, so the copy does not wait
-        for the GPU (training builds each batch's topology on the CPU while the GPU works)."""
+        """A copy on ``device`` (to_device: training builds each batch's topology on the CPU while the GPU works)."""
         device = torch.device(device)
-        if device.type == "cuda" and self.rest.device.type == "cpu":
-            move = lambda t: t.pin_memory().to(device, non_blocking=True)  # noqa: E731
-        else:
-            move = lambda t: t.to(device)  # noqa: E731
-        return Topology(**{f.name: move(getattr(self, f.name)) if f.name != "graph_sizes"
+        return Topology(**{f.name: to_device(getattr(self, f.name), device) if f.name != "graph_sizes"
                            else self.graph_sizes for f in fields(self)})
+
+
+def to_device(t: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """``t`` on ``device``; from the CPU to a GPU through pinned memory, so the copy is queued, not waited for (a copy
+    from pageable memory waits for the GPU's work in flight)."""
+    if device.type == "cuda" and t.device.type == "cpu":
+        return t.pin_memory().to(device, non_blocking=True)
+    return t.to(device)
 
 
 def make_topology(mesh: TetMesh, loaded, prescribed=None, prescribed_tool=None, prescribed_weight=None,
