@@ -68,8 +68,8 @@ def kernels(spec: Spec):
     shared_eo = not ahead
     eo_cols = -(-max(F, N_LM) // EO_ALIGN) * EO_ALIGN
     mm_ff = matmul(T, F, spec.kc, F, spec.gemm, owner, eo_cols if shared_eo else 0)  # e's rows eo_cols apart
-    (ff_r, ff_c), begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, owner)
-    (lm_r, lm_c), begin_lm, finish_lm = matmul_ahead(T, F, spec.kc, N_LM, spec.gemm, owner)
+    ff_rows, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, owner)
+    lm_rows, begin_lm, finish_lm = matmul_ahead(T, F, spec.kc, N_LM, spec.gemm, owner)
     fill_lm, _activate_lm = row_steps(T, N_LM, owner)
     sender_grads, port_terms = row_operators(spec, owner)
     load_rows, loaded = stage(T, F, owner)
@@ -83,9 +83,9 @@ def kernels(spec: Spec):
                     self_loops: int, node0: int, ports: wp.array2d(dtype=float), node_terms: wp.array2d(dtype=float)):
         """delta_e on a tile of mesh edges or self-loops (receiver = sender = the node) -> (l, m) -> port terms."""
         if wp.static(ahead):  # whole weights: both copies first, in flight while the rows' and gather's loads are
-            w1_buf = wp.tile_empty(shape=(ff_r, ff_c), dtype=float, storage="shared")
+            w1_buf = wp.tile_empty(shape=(ff_rows, F), dtype=float, storage="shared")
             begin_ff(w1_buf, w_e, 0, 0)
-            w2_buf = wp.tile_empty(shape=(lm_r, lm_c), dtype=float, storage="shared")
+            w2_buf = wp.tile_empty(shape=(lm_rows, N_LM), dtype=float, storage="shared")
             begin_lm(w2_buf, w2, 0, 0)
         ids = wp.tile_empty(shape=(2, T), dtype=wp.int32, storage="shared")
         stage_ids(ids, row_recv, row_send, row0)  # the graph's: before the wait

@@ -121,9 +121,9 @@ def edge_kernel(spec: Spec):
     owner = spec.module_of("edge_pass")
     T, F = spec.tile_rows, spec.latent
     _fill, _activate, second_layer, _sums, _project, gather_pair, ahead_parts = helpers(spec, owner)
-    (w2_r, w2_c), begin_second_layer, second_layer_ahead = ahead_parts
+    w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
     mm_ff = matmul(T, F, spec.kc, F, spec.gemm, owner)
-    (buf_r, buf_c), begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, owner)
+    buf_rows, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, owner)
     # whole weights in one K chunk (small graphs, spec.k_chunk_for): a launch starts its weight copies first, so they
     # are in flight while its rows' loads are; with chunks the buffers held that long would cost occupancy
     ahead = spec.kc == F
@@ -132,7 +132,7 @@ def edge_kernel(spec: Spec):
     # node pass, its blocks (56 KiB each) were otherwise packed three to an SM beside the node pass's and ran their
     # loads and products slower than the early start gained (kernels/network.py); the staged indices' 256 B come on
     # top (82,176 B: two blocks an SM on sm_80 too, with 1.5 KiB to spare)
-    spare = max(0, EDGE_PASS_SHARED // 4 - 3 * T * F - buf_r * buf_c - w2_r * w2_c) if ahead else 0
+    spare = max(0, EDGE_PASS_SHARED // 4 - 3 * T * F - buf_rows * F - w2_rows * F) if ahead else 0
     spare_cols = max(1, -(-spare // T))
     load_rows, loaded = stage(T, F, owner)
     store_rows = store(T, F, owner)
@@ -157,9 +157,9 @@ def edge_kernel(spec: Spec):
         wi = 2 * p + s
         grid_step(0)
         if wp.static(ahead):  # whole weights: both layers' copies first, in flight while the gather's loads are
-            w1_buf = wp.tile_empty(shape=(buf_r, buf_c), dtype=float, storage="shared")
+            w1_buf = wp.tile_empty(shape=(buf_rows, F), dtype=float, storage="shared")
             begin_ff(w1_buf, w_e, wi * F, 0)
-            w2_buf = wp.tile_empty(shape=(w2_r, w2_c), dtype=float, storage="shared")
+            w2_buf = wp.tile_empty(shape=(w2_rows, F), dtype=float, storage="shared")
             begin_second_layer(w2_buf, w2, wi)
         ids = wp.tile_empty(shape=(2, T), dtype=wp.int32, storage="shared")
         stage_ids(ids, row_recv, row_send, row0)  # the graph's indices before the wait: no launch writes them
@@ -190,15 +190,15 @@ def node_kernel(spec: Spec):
     T, F = spec.node_tile, spec.latent
     fill, _activate, second_layer, sums, _project, _gather, ahead_parts = helpers(spec.nodes, owner)
     segment_sums, staged_segment_sums = sums
-    (w2_r, w2_c), begin_second_layer, second_layer_ahead = ahead_parts
+    w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
     node_fields = node_decoder(spec.nodes, owner)
     F3 = 3 * F
     mm_in, mm_out = matmul(T, F3, spec.kc, F, spec.gemm, owner), matmul(T, F, spec.kc, F3, spec.gemm, owner)
     ahead = spec.kc == F  # as the edge pass: weight copies first with whole weights
     # and then the first layer's (3F, F) weight as one chunk too, copied whole at the launch's start (in three chunks
     # the product waited for two copies: 2.81 -> 2.40 us a block, bench/results/warp_edge_occupancy_h200.json)
-    (in_r, in_c), begin_in, finish_in = matmul_ahead(T, F3, F3 if ahead else spec.kc, F, spec.gemm, owner)
-    (out_r, out_c), begin_out, finish_out = matmul_ahead(T, F, spec.kc, F3, spec.gemm, owner)
+    in_rows, begin_in, finish_in = matmul_ahead(T, F3, F3 if ahead else spec.kc, F, spec.gemm, owner)
+    out_rows, begin_out, finish_out = matmul_ahead(T, F, spec.kc, F3, spec.gemm, owner)
     load_rows, loaded = stage(T, F, owner)
     store_rows, store_products = store(T, F, owner), store(T, F3, owner)
     _stage_ids, stage_offsets = index_steps(T, owner)
@@ -220,11 +220,11 @@ def node_kernel(spec: Spec):
         # one product over 3F (with whole weights one chunk, else its K chunks double-buffered end to end; zeros
         # without actuator graphs, whose weight block is zero too): one code path
         if wp.static(ahead):  # the three products' weight copies first, in flight while the CSR sums' loads are
-            w1_buf = wp.tile_empty(shape=(in_r, in_c), dtype=float, storage="shared")
+            w1_buf = wp.tile_empty(shape=(in_rows, F), dtype=float, storage="shared")
             begin_in(w1_buf, w1, 3 * p * F, 0)
-            w2_buf = wp.tile_empty(shape=(w2_r, w2_c), dtype=float, storage="shared")
+            w2_buf = wp.tile_empty(shape=(w2_rows, F), dtype=float, storage="shared")
             begin_second_layer(w2_buf, w2, p)
-            proj_buf = wp.tile_empty(shape=(out_r, out_c), dtype=float, storage="shared")
+            proj_buf = wp.tile_empty(shape=(out_rows, F3), dtype=float, storage="shared")
             begin_out(proj_buf, proj, (p + 1) * F, 0)
         if wp.static(ahead):  # few tiles an SM: the graph's CSR offsets before the wait, in its shadow (with K chunks,
             # batch 64 and F = 128, staging them cost the launch 5-14 %: they are read where they are summed)

@@ -69,9 +69,7 @@ class Network:
         launches take another (Spec.threads; None: by the K chunk, spec.threads_for). ``weights``: the
         model already packed on ``device`` (weights.pack), so Networks of many topologies share one copy."""
         self.device = wp.get_device(device)
-        self.weights = w = weights if weights is not None else pack(model, self.device, gemm)
-        if w.gemm != ("tf32x3" if gemm == "tf32x3" else "native"):
-            raise ValueError(f"weights packed for gemm {w.gemm!r} cannot run gemm {gemm!r}: pack(model, device, gemm)")
+        self.weights = w = weights if weights is not None else pack(model, self.device)
         if not node_rows:  # by the graph's size, a divisor of tile_rows
             picked = node_rows_for(topology.n_nodes, self.device.sm_count if self.device.is_cuda else 0, w.latent,
                                    max_shared_of(self.device))

@@ -19,7 +19,7 @@ N_LM = N_L + N_M  # delta_e's outputs per edge and self-loop
 N_GRAD = 2 * STATE  # delta_v's outputs per node: dE, dS
 FEATURE_WIDTH = 24  # widest encoder input (18: the single-graph node features) padded to a multiple of 8
 STAT_WIDTH = 9  # widest standardised raw feature set (the node's v, sigma)
-GEMMS = ("native", "scalar", "mathdx", "fp16", "tf32x3")  # the first is the default
+GEMMS = ("native", "scalar", "mathdx", "fp16")  # the first is the default
 TILE_KERNELS = ("encode", "edge_pass", "node_pass", "hybrid_fields", "vanilla_tail")  # Spec.threads may name them
 
 
@@ -35,16 +35,16 @@ class Spec:
     # a block's shared memory bounded at F = 128, where one (F, F) fp32 weight is 64 KiB. A Network picks it with
     # its node tiles (k_chunk_for: whole F = 64 weights with tiles of 8)
     k_chunk: int = 0
-    # the tile products: "native", C++ over shared tiles (tiles.GEMM: a thread a (4, 4) or (1, 4) block held in
-    # registers, rows read as 16-byte vectors, the K loop rolled); "scalar", Warp's cooperative scalar GEMM (on an
-    # H200 it matched cuBLASDx bit for bit, steps 2-4 % faster and a module built in 28 s instead of 287 s:
+    # the tile products: "native", C++ over shared tiles (tiles.GEMM: a thread a (4, 4) block held in registers over
+    # a part of K, rows read as 16-byte vectors, the K loop unrolled by 4); "scalar", Warp's cooperative scalar GEMM
+    # (on an H200 it matched cuBLASDx bit for bit, steps 2-4 % faster and a module built in 28 s instead of 287 s:
     # bench/results/warp_gemm_h200.json); "mathdx", cuBLASDx. TF32 cuBLASDx products were slower still (359 us at
-    # 5 passes against 335) and 3e-3 to 6e-3 off, and this tree's own mma.sync TF32 products slower than "native" too
-    # (bench/results/warp_tensor_cores_h200.json), so they are not offered; "fp16", operands rounded to half
+    # 5 passes against 335) and 3e-3 to 6e-3 off, and this tree's own mma.sync TF32 products slower than "native" too,
+    # with padded rows (bench/results/warp_tensor_cores_h200.json) and without, the weights in blocks of 16 k
+    # (warp_tensor_core_blocks_h200.json), so they are not offered; "fp16", operands rounded to half
     # precision and fp32 sums, on tensor cores from sm_80 (tiles.GEMM_F16; the half-precision stretch target: 1.5-1.9x
     # slower than "native" on an H200, warp_fp16_h200.json). The CPU runs "mathdx" as "scalar" and "fp16" with the
-    # same rounding; "tf32x3", tensor cores in fp32 data (three TF32 products a step: fp32's accuracy; tiles.GEMM_TC,
-    # its weights in blocks of 16 rows, weights.pack), F a multiple of 16
+    # same rounding
     gemm: str = GEMMS[0]
     # ((kernel, threads a block), ...): tile kernels whose CUDA launches take another block than the others' (names
     # of TILE_KERNELS). Each lives in a module of its block size (module_of): Warp builds a module for one. A Network
@@ -54,8 +54,6 @@ class Spec:
     def __post_init__(self):
         if self.gemm not in GEMMS:
             raise ValueError(f"gemm {self.gemm!r}: expected one of {', '.join(GEMMS)}")
-        if self.gemm == "tf32x3" and self.latent % 16:
-            raise ValueError(f"gemm 'tf32x3' needs a latent width that is a multiple of 16, not {self.latent}")
         threads = tuple(sorted((str(k), int(n)) for k, n in dict(self.threads).items() if n))
         unknown = sorted({k for k, _ in threads} - set(TILE_KERNELS))
         if unknown:

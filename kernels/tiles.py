@@ -321,141 +321,10 @@ GEMM_F16 = r"""
 assert "half_round(av" in GEMM_F16
 
 
-# Spec.gemm = "tf32x3": the products on tensor cores in fp32 data (sm_80 on), mma.sync m16n8k8 with each operand x
-# split into hi = tf32(x) and lo = x - hi, summing hi_a hi_b + (lo_a hi_b + hi_a lo_b) (the dropped lo_a lo_b is
-# ~2^-22 relative: fp32's accuracy, as CUTLASS's 3xTF32). The weight is read in blocks of 16 k (TC_K; weights.pack
-# stores it so: element (k, j) at [k / 16, 16 j + k % 16]), so a lane's B values for two k steps are one 16-byte load
-# and a quarter warp's eight loads are 128 contiguous bytes (no bank conflict); the tile's k are permuted the same way
-# within each block of 16 (the fragment's k = q and q + 4 of step h are 4 q + 2 h and 4 q + 2 h + 1), so a lane's A
-# values are one 16-byte load too (two rows of a tile in a quarter warp: a two-way conflict where rows are 32 banks
-# apart). No padded rows: the commit before this one's mma products (bench/results/warp_tensor_cores_h200.json,
-# warp_padded_tiles_h200.json) staged the weights in rows of N + 4 floats and read scalar B values, and lost. A warp
-# takes NG n tiles of 8 columns for every 16 rows, the K loop rolled (the instruction cache). Elsewhere (the CPU,
-# older GPUs) one thread an output element, fp32 sums in k order, reading the same block layout.
-TC_K = 16
-
-
-def tensor_cores(kind: str, k: int, kc: int, n: int) -> bool:
-    """Whether a product of (rows, k) by a (k, n) weight in K chunks of kc runs on tensor cores (GEMM_TC), its weight
-    in blocks of TC_K rows (weights.pack, the same rule): Spec.gemm "tf32x3" where the shapes are whole such blocks
-    and n tiles of 8 (the encoders' first layer, K = 24, and the vanilla decoder's 12 outputs stay fp32 FFMA)."""
-    return kind == "tf32x3" and k % TC_K == 0 and kc % TC_K == 0 and n % 8 == 0
-
-
-GEMM_TC = r"""
-    using LA = typename tile_a::Layout;
-    using LB = typename tile_b::Layout;
-    using LC = typename tile_acc::Layout;
-    constexpr int M = LC::Shape::dim(0), N = LC::Shape::dim(1), K = LA::Shape::dim(1);
-    constexpr int SA = LA::Stride::dim(0), SB = LB::Stride::dim(0), SC = LC::Stride::dim(0);
-    static_assert(LB::Shape::dim(0) * 16 == K && LB::Shape::dim(1) == 16 * N, "a weight in blocks of 16 k");
-    const wp::float32* __restrict__ pa = a.data.ptr;
-    const wp::float32* __restrict__ pb = b.data.ptr;
-    wp::float32* __restrict__ pc = acc.data.ptr;
-#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
-    if constexpr (WP_TILE_BLOCK_DIM % 32 == 0 && SA % 4 == 0 && SC % 2 == 0 && SB % 4 == 0) {
-        constexpr int NW = WP_TILE_BLOCK_DIM / 32, MT = (M + 15) / 16, NT = N / 8, KB = K / 16;
-        // n tiles a warp: two (each A fragment used twice) unless one leaves fewer rounds of warps
-        constexpr int cost1 = (NT + NW - 1) / NW, cost2 = NT % 2 ? 1 << 30 : (NT / 2 + NW - 1) / NW * 2;
-        constexpr int NG = cost2 <= cost1 ? 2 : 1, ITEMS = NT / NG;
-        const int warp = threadIdx.x / 32, lane = threadIdx.x % 32, g = lane / 4, q = lane % 4;
-        auto split = [](wp::float32 x, unsigned& hi, unsigned& lo) {
-            asm("cvt.rna.tf32.f32 %0, %1;\n" : "=r"(hi) : "f"(x));
-            lo = __float_as_uint(x - __uint_as_float(hi));
-        };
-        auto mma = [](wp::float32 (&d)[4], unsigned a0, unsigned a1, unsigned a2, unsigned a3, unsigned b0,
-                      unsigned b1) {
-            asm("mma.sync.aligned.m16n8k8.row.col.f32.tf32.tf32.f32 {%0, %1, %2, %3}, {%4, %5, %6, %7}, {%8, %9}, "
-                "{%0, %1, %2, %3};\n"
-                : "+f"(d[0]), "+f"(d[1]), "+f"(d[2]), "+f"(d[3])
-                : "r"(a0), "r"(a1), "r"(a2), "r"(a3), "r"(b0), "r"(b1));
-        };
-        for (int item = warp; item < ITEMS; item += NW) {
-            wp::float32 d[MT][NG][4], e[MT][NG][4];  // hi hi, and the two cross terms apart (shorter chains)
-#pragma unroll
-            for (int m = 0; m < MT; ++m)
-#pragma unroll
-                for (int j = 0; j < NG; ++j)
-#pragma unroll
-                    for (int i = 0; i < 4; ++i)
-                        d[m][j][i] = e[m][j][i] = wp::float32(0);
-#pragma unroll 1
-            for (int kb = 0; kb < KB; ++kb) {
-                unsigned ah[MT][2][4], al[MT][2][4], bh[NG][4], bl[NG][4];
-#pragma unroll
-                for (int m = 0; m < MT; ++m)
-#pragma unroll
-                    for (int s = 0; s < 2; ++s) {
-                        const int r = m * 16 + g + 8 * s;
-                        const float4 v = r < M ? *reinterpret_cast<const float4*>(pa + r * SA + kb * 16 + 4 * q)
-                                               : make_float4(0.f, 0.f, 0.f, 0.f);
-                        split(v.x, ah[m][s][0], al[m][s][0]); split(v.y, ah[m][s][1], al[m][s][1]);
-                        split(v.z, ah[m][s][2], al[m][s][2]); split(v.w, ah[m][s][3], al[m][s][3]);
-                    }
-#pragma unroll
-                for (int j = 0; j < NG; ++j) {
-                    const float4 u = *reinterpret_cast<const float4*>(pb + kb * SB + ((item * NG + j) * 8 + g) * 16
-                                                                      + 4 * q);
-                    split(u.x, bh[j][0], bl[j][0]); split(u.y, bh[j][1], bl[j][1]);
-                    split(u.z, bh[j][2], bl[j][2]); split(u.w, bh[j][3], bl[j][3]);
-                }
-#pragma unroll
-                for (int h = 0; h < 2; ++h)
-#pragma unroll
-                    for (int m = 0; m < MT; ++m)
-#pragma unroll
-                        for (int j = 0; j < NG; ++j) {
-                            const int x = 2 * h, y = 2 * h + 1;
-                            mma(e[m][j], al[m][0][x], al[m][1][x], al[m][0][y], al[m][1][y], bh[j][x], bh[j][y]);
-                            mma(e[m][j], ah[m][0][x], ah[m][1][x], ah[m][0][y], ah[m][1][y], bl[j][x], bl[j][y]);
-                            mma(d[m][j], ah[m][0][x], ah[m][1][x], ah[m][0][y], ah[m][1][y], bh[j][x], bh[j][y]);
-                        }
-            }
-#pragma unroll
-            for (int m = 0; m < MT; ++m)
-#pragma unroll
-                for (int j = 0; j < NG; ++j)
-#pragma unroll
-                    for (int s = 0; s < 2; ++s) {
-                        const int r = m * 16 + g + 8 * s;
-                        if (r < M) {
-                            float2* dst = reinterpret_cast<float2*>(pc + r * SC + (item * NG + j) * 8 + 2 * q);
-                            float2 v = *dst;
-                            v.x += d[m][j][2 * s] + e[m][j][2 * s];
-                            v.y += d[m][j][2 * s + 1] + e[m][j][2 * s + 1];
-                            *dst = v;
-                        }
-                    }
-        }
-        WP_TILE_SYNC();
-        return;
-    }
-#endif
-    for (int i = WP_TILE_THREAD_IDX; i < M * N; i += WP_TILE_BLOCK_DIM) {  // an output element a thread
-        const int r = i / N, j = i - r * N;
-        wp::float32 s = wp::float32(0);
-        for (int k = 0; k < K; ++k)
-            s = wp::muladd(pa[r * SA + k], pb[k / 16 * SB + 16 * j + k % 16], s);
-        pc[r * SC + j] += s;
-    }
-    WP_TILE_SYNC();
-"""  # noqa: E501 (C++ inside)
-
-
 @functools.cache
 def gemm(rows: int, k: int, n: int, kind: str, owner: str):
     """acc (rows, n) += a (rows, k) @ b (k, n), shared tiles: GEMM above ("native"), GEMM_F16 ("fp16") or Warp's
-    wp.tile_matmul ("scalar", "mathdx"): Spec.gemm. "tf32x3": GEMM_TC, b a (k / TC_K, TC_K n) tile (its weight
-    in blocks of TC_K rows), where tensor_cores(kind, k, k, n); else the "native" product."""
-    if kind == "tf32x3":
-        if not tensor_cores(kind, k, k, n):
-            kind = "native"
-        else:
-            @wp.func_native(GEMM_TC)
-            def tensor(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(k // TC_K, TC_K * n)),
-                       acc: wp.tile(dtype=float, shape=(rows, n))): ...
-
-            return tensor
+    wp.tile_matmul ("scalar", "mathdx"): Spec.gemm."""
     if kind == "fp16":
         @wp.func_native(GEMM_F16)
         def half(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(k, n)),
@@ -490,43 +359,37 @@ def operand(rows: int, k: int, row_stride: int = 0):
 def matmul_ahead(rows: int, k: int, kc: int, n: int, kind: str, owner: str, a_stride: int = 0):
     """A staged product in two parts, so a kernel can start its weight copy first, in flight while its gathers'
     plain loads are (the first wait for a copy, ``staged``'s cp.async.wait_all, waits for all begun so far):
-    (buf_shape, begin, finish). The caller allocates ``buf`` of buf_shape in shared memory; begin(buf, W, row0,
+    (buf_rows, begin, finish). The caller allocates ``buf`` (buf_rows, n) in shared memory; begin(buf, W, row0,
     col0) starts copying the first K chunk of W[row0:row0 + k, col0:col0 + n] into it (cp.async on CUDA), and
     finish(a, W, row0, col0, buf, acc) runs acc (rows, n) += a (rows, k) @ W[...] over K chunks of kc,
     double-buffered: chunk c + 1 is copied while chunk c's product runs. A product of one chunk (k == kc) needs
-    one buffer, not two. ``a_stride``: floats between a's rows where they are not k (a view of a wider tile). On
-    tensor cores (tensor_cores) W is stored in blocks of TC_K rows (weights.pack): a chunk is then W's
-    [row0 / TC_K:, TC_K col0:] block of (kc / TC_K, TC_K n), the same floats."""
+    one buffer, not two. ``a_stride``: floats between a's rows where they are not k (a view of a wider tile)."""
     a_tile = operand(rows, k, a_stride)
     if k % kc:
         raise ValueError(f"a K chunk of {kc} rows must divide K = {k}")
-    tc = tensor_cores(kind, k, kc, n)
-    kind = kind if tc or kind != "tf32x3" else "native"
     chunks = k // kc
-    b_rows, b_cols = (kc // TC_K, TC_K * n) if tc else (kc, n)  # one chunk in shared memory
-    buf_shape = buf_r, buf_c = (b_rows * min(chunks, 2), b_cols)
-    R = TC_K if tc else 1  # W's rows a chunk row, columns a column
-    stage_copy, staged = stage(b_rows, b_cols, owner)
+    buf_rows = kc * min(chunks, 2)
+    stage_copy, staged = stage(kc, n, owner)
     product = gemm(rows, kc, n, kind, owner)
 
     @wp.func
-    def begin(buf: wp.tile(dtype=float, shape=(buf_r, buf_c)), w: wp.array2d(dtype=float), row0: int, col0: int):
-        stage_copy(wp.tile_view(buf, offset=(0, 0), shape=(b_rows, b_cols)), w, row0 // R, col0 * R)
+    def begin(buf: wp.tile(dtype=float, shape=(buf_rows, n)), w: wp.array2d(dtype=float), row0: int, col0: int):
+        stage_copy(wp.tile_view(buf, offset=(0, 0), shape=(kc, n)), w, row0, col0)
 
     @wp.func
     def finish(a: a_tile, w: wp.array2d(dtype=float), row0: int, col0: int,
-               buf: wp.tile(dtype=float, shape=(buf_r, buf_c)), acc: wp.tile(dtype=float, shape=(rows, n))):
+               buf: wp.tile(dtype=float, shape=(buf_rows, n)), acc: wp.tile(dtype=float, shape=(rows, n))):
         c = int(0)
         while c < chunks:  # a while loop: Warp does not unroll it
-            b = wp.tile_view(buf, offset=((c % 2) * b_rows, 0), shape=(b_rows, b_cols))
+            b = wp.tile_view(buf, offset=((c % 2) * kc, 0), shape=(kc, n))
             staged(b)  # chunk c is in; every thread is done with chunk c - 1's buffer
             if c + 1 < chunks:
-                stage_copy(wp.tile_view(buf, offset=(((c + 1) % 2) * b_rows, 0), shape=(b_rows, b_cols)), w,
-                           (row0 + (c + 1) * kc) // R, col0 * R)
+                stage_copy(wp.tile_view(buf, offset=(((c + 1) % 2) * kc, 0), shape=(kc, n)), w,
+                           row0 + (c + 1) * kc, col0)
             product(wp.tile_view(a, offset=(0, c * kc), shape=(rows, kc)), b, acc)
             c += 1
 
-    return buf_shape, begin, finish
+    return buf_rows, begin, finish
 
 
 @functools.cache
@@ -537,13 +400,13 @@ def matmul(rows: int, k: int, kc: int, n: int, kind: str, owner: str, a_stride: 
     H200 (L5, F = 64) this took the batch-64 step from 8.89 to 7.99 ms (edge pass 858 -> 708 us) and the 12-pass
     F = 128 step from 1.26 to 1.12 ms, same numbers bit for bit (bench/results/warp_staged_h200.json,
     warp_staged_f128_h200.json)."""
-    (buf_r, buf_c), begin, finish = matmul_ahead(rows, k, kc, n, kind, owner, a_stride)
+    buf_rows, begin, finish = matmul_ahead(rows, k, kc, n, kind, owner, a_stride)
     a_tile = operand(rows, k, a_stride)
 
     @wp.func
     def matmul_acc(a: a_tile, w: wp.array2d(dtype=float), row0: int, col0: int,
                    acc: wp.tile(dtype=float, shape=(rows, n))):
-        buf = wp.tile_empty(shape=(buf_r, buf_c), dtype=float, storage="shared")
+        buf = wp.tile_empty(shape=(buf_rows, n), dtype=float, storage="shared")
         begin(buf, w, row0, col0)
         finish(a, w, row0, col0, buf, acc)
 
@@ -979,12 +842,11 @@ def helpers(spec: Spec, owner: str):
         wp.tile_store(out, acc, offset=(out_row, out_col))
 
     fill, activate = row_steps(T, F, owner)
-    buf_shape, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, owner)
-    buf_r, buf_c = buf_shape
+    buf_rows, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, owner)
 
     @wp.func
     def second_layer_ahead(h: wp.tile(dtype=float, shape=(T, F)), w2: wp.array2d(dtype=float),
-                           w2_buf: wp.tile(dtype=float, shape=(buf_r, buf_c)), b2: wp.array2d(dtype=float),
+                           w2_buf: wp.tile(dtype=float, shape=(buf_rows, F)), b2: wp.array2d(dtype=float),
                            gain: wp.array2d(dtype=float), shift: wp.array2d(dtype=float), row: int, eps: float,
                            res: wp.tile(dtype=float, shape=(T, F)), residual: int,
                            o: wp.tile(dtype=float, shape=(T, F))):
@@ -998,7 +860,7 @@ def helpers(spec: Spec, owner: str):
         layer_norm(o, gain, shift, row, eps, res, residual)
 
     @wp.func
-    def begin_second_layer(w2_buf: wp.tile(dtype=float, shape=(buf_r, buf_c)), w2: wp.array2d(dtype=float), row: int):
+    def begin_second_layer(w2_buf: wp.tile(dtype=float, shape=(buf_rows, F)), w2: wp.array2d(dtype=float), row: int):
         """Start copying block ``row``'s W2 into w2_buf, for second_layer_ahead of the same ``row``."""
         begin_ff(w2_buf, w2, row * F, 0)
 
@@ -1007,11 +869,11 @@ def helpers(spec: Spec, owner: str):
                      gain: wp.array2d(dtype=float), shift: wp.array2d(dtype=float), row: int, eps: float,
                      res: wp.tile(dtype=float, shape=(T, F)), residual: int, o: wp.tile(dtype=float, shape=(T, F))):
         """second_layer_ahead with W2's copy begun here."""
-        w2_buf = wp.tile_empty(shape=(buf_r, buf_c), dtype=float, storage="shared")
+        w2_buf = wp.tile_empty(shape=(buf_rows, F), dtype=float, storage="shared")
         begin_second_layer(w2_buf, w2, row)
         second_layer_ahead(h, w2, w2_buf, b2, gain, shift, row, eps, res, residual, o)
 
-    # the last: second_layer in two parts, W2's buffer shape, the copy's start and the rest (a kernel that starts
+    # the last: second_layer in two parts, W2's buffer rows, the copy's start and the rest (a kernel that starts
     # its weight copies first)
-    ahead = (buf_shape, begin_second_layer, second_layer_ahead)
+    ahead = (buf_rows, begin_second_layer, second_layer_ahead)
     return fill, activate, second_layer, (segment_sums, staged_segment_sums), project, gather_pair, ahead

@@ -13,22 +13,11 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from .spec import FEATURE_WIDTH, N_GRAD, N_LM, STAT_WIDTH, STATE, Spec, check_config
+from .spec import FEATURE_WIDTH, N_GRAD, N_LM, STAT_WIDTH, STATE, check_config
 
 # encoder classes, in the row order of the latent buffer (graph.Layout)
 ENCODERS = ("node_encoder", "edge_encoder", "actuator_edge_encoder", "actuator_encoder")
 STATS = ("node", "mesh_edge", "actuator_edge", "actuator_node")  # the normaliser's feature set of each class
-
-
-# the weights the tile products read (tiles.matmul), stored in blocks of 16 rows for tensor-core products
-# (tiles.tensor_cores: Spec.gemm "tf32x3", widths a multiple of 8; the encoders' first layer, K = 24, is read as rows)
-PRODUCT_WEIGHTS = ("enc_w2", "ew_e", "ew_w2", "nv_w1", "nv_w2", "proj", "tool_proj", "de_e", "de_w2", "dv_w2", "vd_w2")
-
-
-def k_blocks(w: np.ndarray, rows: int = 16) -> np.ndarray:
-    """A (K, N) weight in blocks of ``rows`` k: element (k, j) at [k // rows, rows * j + k % rows] (tiles.GEMM_TC)."""
-    k, n = w.shape
-    return w.reshape(k // rows, rows, n).transpose(0, 2, 1).reshape(k // rows, rows * n)
 
 
 @dataclass
@@ -40,7 +29,6 @@ class Weights:
     eps: float  # LayerNorm epsilon
     n_node_features: int  # 12, or 18 for the single-graph ablation
     arrays: dict  # name -> wp.array (see pack)
-    gemm: str = "native"  # the Spec.gemm whose layouts these are ("tf32x3": PRODUCT_WEIGHTS in blocks, k_blocks)
 
     def __getattr__(self, name):
         try:
@@ -58,9 +46,8 @@ def _v(b) -> np.ndarray:
     return b.detach().cpu().float().numpy()
 
 
-def pack(model, device=None, gemm: str = "native") -> Weights:
-    """Pack a TIGNN (any checkpoint of a covered configuration) for the kernels on ``device``, in the layouts of
-    Spec.gemm ``gemm``."""
+def pack(model, device=None) -> Weights:
+    """Pack a TIGNN (any checkpoint of a covered configuration) for the kernels on ``device``."""
     c = model.config
     check_config(c)
     sd = model.state_dict()
@@ -154,10 +141,5 @@ def pack(model, device=None, gemm: str = "native") -> Weights:
         mean[k, :len(m)], std[k, :len(s)] = m, s
     arrays.update(stat_mean=mean, stat_std=std, zdot_scale=_v(sd["normalizer.zdot_scale"]))
 
-    Spec(F, gemm=gemm)  # a width the products' layout allows, else one line
-    if gemm == "tf32x3":
-        for name in PRODUCT_WEIGHTS:
-            if name in arrays and arrays[name].shape[1] % 8 == 0:  # tiles.tensor_cores' rule
-                arrays[name] = k_blocks(arrays[name])
     arrays = {k: wp.array(np.ascontiguousarray(v, np.float32), dtype=float, device=device) for k, v in arrays.items()}
-    return Weights(c.kind, P, F, A, eps, n_node_features, arrays, "tf32x3" if gemm == "tf32x3" else "native")
+    return Weights(c.kind, P, F, A, eps, n_node_features, arrays)

@@ -337,52 +337,6 @@ def test_half_precision_network_close_to_reference():
         assert_matches(half, ref, tol=TOL)
 
 
-@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
-    not HAS_CUDA, reason="needs a CUDA device"))])
-@pytest.mark.parametrize("rows,k,n", [(32, 32, 24), (8, 48, 16)])
-def test_tensor_core_products_match_numpy(device, rows, k, n):
-    """Spec.gemm = "tf32x3" (tiles.GEMM_TC): acc += a @ b with b in blocks of 16 k (weights.k_blocks), three TF32
-    products a step on CUDA's tensor cores (a partial row tile of 8 among them), against numpy in float64: within
-    fp32's rounding, far inside one TF32 product's (~1e-3)."""
-    from warpgnn.kernels import tiles
-    from warpgnn.kernels.weights import k_blocks
-
-    owner = f"test_tensor_core_products_{rows}_{k}_{n}"
-    product = tiles.gemm(rows, k, n, "tf32x3", owner)
-    kb, nb = k // 16, 16 * n
-
-    @wp.kernel(enable_backward=False, module=owner)
-    def apply(a: wp.array2d(dtype=float), b: wp.array2d(dtype=float), c: wp.array2d(dtype=float)):
-        ta = wp.tile_load(a, shape=(rows, k), storage="shared")
-        tb = wp.tile_load(b, shape=(kb, nb), storage="shared")
-        tc = wp.tile_load(c, shape=(rows, n), storage="shared")
-        product(ta, tb, tc)
-        wp.tile_store(c, tc)
-
-    rng = np.random.default_rng(1)
-    a, b, c = (rng.standard_normal(s).astype(np.float32) for s in ((rows, k), (k, n), (rows, n)))
-    out = wp.array(c, dtype=float, device=device)
-    wp.launch_tiled(apply, dim=[1], inputs=[wp.array(a, dtype=float, device=device),
-                                            wp.array(k_blocks(b), dtype=float, device=device), out],
-                    block_dim=128 if device != "cpu" else 1, device=device)
-    want = c + a.astype(np.float64) @ b.astype(np.float64)
-    assert np.abs(out.numpy() - want).max() <= 1e-5 * np.abs(want).max()
-
-
-@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
-    not HAS_CUDA, reason="needs a CUDA device"))])
-def test_tensor_core_network_matches_reference(device):
-    """The whole forward with Spec.gemm = "tf32x3" (its weights packed in blocks of 16 k, the encoders' first layer
-    and the narrow products left as rows): the torch reference to 1e-5; a width not a multiple of 16 one line."""
-    model = random_model("hybrid", 2, 32, seed=22)
-    top = tool_topology(box((3, 3, 2)), 2, seed=22)
-    z, u_now, u_next = random_inputs(top, 22)
-    assert_matches(run(Network(model, top, device=device, gemm="tf32x3"), z, u_now, u_next),
-                   reference(model, top, z, u_now, u_next), tol=TOL)
-    with pytest.raises(ValueError, match="multiple of 16"):
-        Network(random_model("vanilla", 1, 24, seed=22), top, device="cpu", gemm="tf32x3")
-
-
 def test_gemm_choice_is_its_own_module():
     """Spec.gemm picks the tile products: each choice its own Warp module with Warp's mathdx option set to match
     (part of the module's hash, so a cuBLASDx build is never loaded for the scalar one); others refused."""

@@ -2,8 +2,8 @@
 grid loads its operands into shared memory once, then runs REPS products (or REPS copies of a weight chunk into
 shared memory, every block the same weight, as the passes' blocks do) back to back; the time a product (a copy) is
 the difference between REPS and 1, per repetition. Grids of one block an SM and of two (the edge pass's at batch 1),
-products of the shapes the passes run: the fp32 products (tiles.GEMM) and variants of it (VARIANTS), and
-"tf32x3" (tensor cores, tiles.GEMM_TC).
+products of the shapes the passes run: the fp32 products (tiles.GEMM) and variants of it (VARIANTS; at 9dbfc38
+also "tf32x3", tensor cores, bench/results/warp_tensor_core_blocks_h200.json).
 
     python bench/studies/warp_product_latency.py --json OUT.json --device "..." --command "..."
 """
@@ -20,7 +20,6 @@ import provenance
 import warp as wp
 
 from warpgnn.kernels import tiles
-from warpgnn.kernels.weights import k_blocks
 
 # (rows, K, N, threads): the edge pass's two products, the node pass's first one and next-stage products (node tiles
 # of 8 on 256 threads), the decoder's (32, 144) one
@@ -54,7 +53,7 @@ def gemm_variant(unroll: int = 4, rm: int = 0, split_max: int = 4) -> str:
     return src
 
 
-VARIANTS = {"native": (None, 0), "tf32x3": (None, 0), "native-pad4": (None, 4),
+VARIANTS = {"native": (None, 0), "native-pad4": (None, 4),
             "before": (gemm_variant(2).replace(SHAPE, BEFORE), 0),
             **{f"unroll{u}": (gemm_variant(u), 0) for u in (1, 2)},
             **{f"r{rm}s{m}-u{u}": (gemm_variant(u, rm, m), 0) for rm in (1, 2, 4) for m in (2, 4, 8) for u in (2, 4)}}
@@ -62,23 +61,20 @@ VARIANTS = {"native": (None, 0), "tf32x3": (None, 0), "native-pad4": (None, 4),
 
 def product_kernel(rows: int, k: int, n: int, variant: str):
     source, pad = VARIANTS[variant]
-    kind = "tf32x3" if variant == "tf32x3" else "native"
     owner = f"product_latency_{rows}_{k}_{n}_" + "".join(c for c in variant if c.isalnum())
     if source is None:
-        product = tiles.gemm(rows, k, n, kind, owner)
+        product = tiles.gemm(rows, k, n, "native", owner)
     else:
         @wp.func_native(source)
         def product(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(k, n)),
                     acc: wp.tile(dtype=float, shape=(rows, n))): ...
-    tc = tiles.tensor_cores(kind, k, k, n)
-    br, bc = (k // tiles.TC_K, tiles.TC_K * n) if tc else (k, n)
     ka = k + pad
 
     @wp.kernel(enable_backward=False, module=owner)
     def products(a: wp.array2d(dtype=float), b: wp.array2d(dtype=float), reps: int, c: wp.array2d(dtype=float)):
         blk, _lane = wp.tid()
         ta = wp.tile_load(a, shape=(rows, ka), storage="shared")
-        tb = wp.tile_load(b, shape=(br, bc), storage="shared")
+        tb = wp.tile_load(b, shape=(k, n), storage="shared")
         acc = wp.tile_zeros(shape=(rows, n), dtype=float, storage="shared")
         i = int(0)
         while i < reps:
@@ -86,7 +82,7 @@ def product_kernel(rows: int, k: int, n: int, variant: str):
             i += 1
         wp.tile_store(c, acc, offset=(blk * rows, 0))
 
-    return products, tc
+    return products
 
 
 def copy_kernel(k: int, n: int):
@@ -125,7 +121,7 @@ def per_rep_us(launch, reps: int, device, calls: int = 20) -> float:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--reps", type=int, default=200)
-    ap.add_argument("--variants", default="native,before,tf32x3", help="products to time, comma-separated: "
+    ap.add_argument("--variants", default="native,before", help="products to time, comma-separated: "
                     + ", ".join(VARIANTS))
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
@@ -140,8 +136,8 @@ def main() -> None:
         for kind in a.variants.split(","):
             A = wp.array(rng.standard_normal((rows, k + VARIANTS[kind][1])).astype(np.float32), dtype=float,
                          device=device)
-            kernel, tc = product_kernel(rows, k, n, kind)
-            B = wp.array(k_blocks(W) if tc else W, dtype=float, device=device)
+            kernel = product_kernel(rows, k, n, kind)
+            B = wp.array(W, dtype=float, device=device)
             for per_sm in (1, 2):
                 blocks = per_sm * sms
                 C = wp.zeros((blocks * rows, n), dtype=float, device=device)
