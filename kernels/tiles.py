@@ -160,7 +160,7 @@ GEMM = r"""
     constexpr int CN = N % 4 == 0 ? 4 : 1;  // columns a thread
     constexpr int KV = K % 4 == 0 ? 4 : 1;  // k a load of a
     constexpr int NC = N / CN;
-    // GEMM_SHAPE
+    // GEMM_SHAPE (to GEMM_SHAPE_END: what bench/studies/warp_product_latency.py substitutes to time other shapes)
     // items of 4 rows where the tile allows (fewest loads a multiply-add), K split in up to 4 parts where the items
     // leave threads idle (node tiles of 8: (1, 4) items, K in two parts, had a thread load 5 vectors for 16 multiply-
     // adds; (4, 4) items and K in four parts, 8 for 64: the node pass's first product 2.08 -> 1.08 us a block on 256

@@ -22,8 +22,10 @@ import warp as wp
 from warpgnn.kernels import tiles
 
 # (rows, K, N, threads): the edge pass's two products, the node pass's first one and next-stage products (node tiles
-# of 8 on 256 threads), the decoder's (32, 144) one
-SHAPES = ((32, 64, 64, 128), (8, 192, 64, 256), (8, 64, 192, 256), (32, 64, 144, 128))
+# of 8 on 256 threads), the decoder's (32, 144) one whole and in a K chunk of 16 (batch 64), a K chunk of the node
+# pass's next-stage products on tiles of 32 (batch 64)
+SHAPES = ((32, 64, 64, 128), (8, 192, 64, 256), (8, 64, 192, 256), (32, 64, 144, 128), (32, 16, 144, 128),
+          (32, 32, 192, 128))
 
 
 # variants of the fp32 product (tiles.GEMM): its K loop unrolled otherwise, its A tile's rows padded by 4 floats
