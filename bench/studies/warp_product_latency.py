@@ -34,7 +34,7 @@ SHAPES = ((32, 64, 64, 128), (8, 192, 64, 256), (8, 64, 192, 256), (32, 64, 144,
 # in part order), and "before": the product of bf5c99f (RM by a cost: 1 on node tiles of 8; K in two parts where the
 # items leave half the threads idle; unrolled by 2)
 K_LOOP = "#pragma unroll 4\n        for (int k = k0; k < k0 + KP; k += KV) {"
-SHAPE = tiles.GEMM[tiles.GEMM.index("    // GEMM_SHAPE\n"):tiles.GEMM.index("    // GEMM_SHAPE_END\n")]
+SHAPE = tiles.GEMM[tiles.GEMM.index("    // GEMM_SHAPE "):tiles.GEMM.index("    // GEMM_SHAPE_END\n")]
 assert K_LOOP in tiles.GEMM
 BEFORE = """\
     constexpr int cost4 = M % 4 ? 1 << 30 : (M / 4 * NC + BD - 1) / BD * (5 * CN + 1);
