@@ -171,10 +171,11 @@ WIDE = 256  # threads a block of the kernels threads_for names
 def threads_for(k_chunk: int, latent: int, cuda: bool) -> tuple:
     """Spec.threads of a Network on CUDA (``cuda``) with ``k_chunk`` (k_chunk_for): with whole weights (small
     graphs), the node pass on WIDE threads: its block holds an SM alone (137 KiB at F = 64), and 256 threads give its
-    products two warps a scheduler instead of one, each summing half of K (tiles.GEMM), and its CSR sums two threads
-    a row vector (tiles.SEGMENT_SUMS): 141.8 -> 138.3 us a 5-pass step, 278.4 -> 269.8 at 12 passes on an H200
-    (bench/results/warp_wide_blocks_h200.json). Else (): with K chunks (batch 64, F = 128) each thread's half of a
-    32-row chunk is 16 k with a barrier every chunk (F = 128: 705.5 -> 712.6 us at 12 passes on 256 threads)."""
+    products more warps a scheduler, each summing a part of K (tiles.GEMM: two parts when measured, up to four
+    since), and its CSR sums two threads a row vector (tiles.SEGMENT_SUMS): 141.8 -> 138.3 us a 5-pass step, 278.4 ->
+    269.8 at 12 passes on an H200 (bench/results/warp_wide_blocks_h200.json). Else (): with K chunks (batch 64,
+    F = 128) each thread's half of a 32-row chunk is 16 k with a barrier every chunk (F = 128: 705.5 -> 712.6 us at 12
+    passes on 256 threads)."""
     return (("node_pass", WIDE),) if cuda and k_chunk == latent else ()
 
 
