@@ -31,3 +31,21 @@ def test_variant_multiplies(monkeypatch, variant):
     got = out.numpy()
     for block in (got[:rows], got[rows:]):
         assert np.abs(block - want).max() <= 1e-5 * np.abs(want).max()
+
+
+@pytest.mark.parametrize("variant", study.WGMMA_VARIANTS)
+def test_wgmma_packing_multiplies(monkeypatch, variant):
+    """The tensor-core variant's packed weight (pack_wgmma: tf32 hi and lo parts, core matrices, k permuted in blocks
+    of 16), read back by its CPU path: acc += a @ b to the split's accuracy."""
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    rows, k, n, reps = 8, 32, 24, 2
+    kernel = study.product_kernel(rows, k, n, variant)
+    rng = np.random.default_rng(1)
+    a = rng.standard_normal((rows, k)).astype(np.float32)
+    b = rng.standard_normal((k, n)).astype(np.float32)
+    out = wp.zeros((rows, n), dtype=float, device="cpu")
+    wp.launch_tiled(kernel, dim=[1], inputs=[wp.array(a, dtype=float, device="cpu"),
+                                             wp.array(study.pack_wgmma(b), dtype=float, device="cpu"), reps, out],
+                    block_dim=64, device="cpu")
+    want = reps * (a.astype(np.float64) @ b.astype(np.float64))
+    assert np.abs(out.numpy() - want).max() <= 1e-5 * np.abs(want).max()
