@@ -65,12 +65,8 @@ VARIANTS = {"native": (None, 0), "native-pad4": (None, 4),
             **{f"r{rm}s{m}-u{u}": (gemm_variant(u, rm, m), 0) for rm in (1, 2, 4) for m in (2, 4, 8) for u in (2, 4)}}
 
 
-# "wgmma3": Hopper's warpgroup tensor-core products (wgmma, sm_90a) in fp32 data: a in registers (a warp 16 rows of
-# a 64-row product, rows past the tile zero), split into hi = tf32(x) and lo = tf32(x - hi), the weight packed on the
-# host (pack_wgmma: both parts, no-swizzle core matrices of 8 columns x 4 k) and read by wgmma from shared memory;
-# hi hi + hi lo + lo hi, ~fp32's accuracy (3xTF32). The tile's k permuted within blocks of 16 (a lane's four values of
-# two k steps one 16-byte load), the weight's alike. Elsewhere one thread an output element on the packed weight.
-WGMMA_TC = r"""
+# the operands' shapes, strides and pointers: b the packed weight (pack_wgmma), (2 K, N) floats
+WGMMA_HEAD = r"""
     using LA = typename tile_a::Layout;
     using LB = typename tile_b::Layout;
     using LC = typename tile_acc::Layout;
@@ -80,7 +76,13 @@ WGMMA_TC = r"""
     const wp::float32* __restrict__ pa = a.data.ptr;
     const wp::float32* __restrict__ pb = b.data.ptr;
     wp::float32* __restrict__ pc = acc.data.ptr;
-#if defined(__CUDA_ARCH__) && defined(__CUDA_ARCH_FEAT_SM90_ALL)
+"""
+# "wgmma3": Hopper's warpgroup tensor-core products (wgmma, sm_90a) in fp32 data: a in registers (a warp 16 rows of
+# a 64-row product, rows past the tile zero), split into hi = tf32(x) and lo = tf32(x - hi), the weight packed on the
+# host (pack_wgmma: both parts, no-swizzle core matrices of 8 columns x 4 k) and read by wgmma from shared memory;
+# hi hi + hi lo + lo hi, ~fp32's accuracy (3xTF32). The tile's k permuted within blocks of 16 (a lane's four values of
+# two k steps one 16-byte load), the weight's alike. Elsewhere one thread an output element on the packed weight.
+WGMMA_TC = WGMMA_HEAD + r"""#if defined(__CUDA_ARCH__) && defined(__CUDA_ARCH_FEAT_SM90_ALL)
     if constexpr (WP_TILE_BLOCK_DIM == 128 && M <= 64 && K % 16 == 0 && N % 8 == 0 && SA % 4 == 0 && SC % 2 == 0) {
         const int warp = threadIdx.x / 32, lane = threadIdx.x % 32, g = lane / 4, q = lane % 4;
         const int r0 = 16 * warp + g, r1 = r0 + 8;
@@ -155,17 +157,7 @@ WGMMA_TC = r"""
 # hi parts (rows 0-31), warps 2-3 its lo parts (rows 32-63 of the instruction), so each k step is two wgmmas (by the
 # weight's hi and lo parts) instead of three, lo lo included; the two halves' sums added into acc after (warps 2-3
 # first, then warps 0-1). ACC2: the weight's two parts into two accumulators (two chains of wgmmas instead of one).
-WGMMA_STACKED = r"""
-    using LA = typename tile_a::Layout;
-    using LB = typename tile_b::Layout;
-    using LC = typename tile_acc::Layout;
-    constexpr int M = LC::Shape::dim(0), N = LC::Shape::dim(1), K = LA::Shape::dim(1);
-    constexpr int SA = LA::Stride::dim(0), SC = LC::Stride::dim(0);
-    static_assert(LB::Shape::dim(0) == 2 * K && LB::Shape::dim(1) == N && LB::Stride::dim(0) == N, "packed weight");
-    const wp::float32* __restrict__ pa = a.data.ptr;
-    const wp::float32* __restrict__ pb = b.data.ptr;
-    wp::float32* __restrict__ pc = acc.data.ptr;
-#if defined(__CUDA_ARCH__) && defined(__CUDA_ARCH_FEAT_SM90_ALL)
+WGMMA_STACKED = WGMMA_HEAD + r"""#if defined(__CUDA_ARCH__) && defined(__CUDA_ARCH_FEAT_SM90_ALL)
     if constexpr (WP_TILE_BLOCK_DIM == 128 && M <= 32 && K % 16 == 0 && N % 8 == 0 && SA % 4 == 0 && SC % 2 == 0) {
         const int warp = threadIdx.x / 32, lane = threadIdx.x % 32, g = lane / 4, q = lane % 4;
         const bool low = warp >= 2;  // the lo parts' warps
