@@ -392,14 +392,14 @@ def main() -> None:
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
-    if any(v in WGMMA_VARIANTS for v in a.variants.split(",")):
+    tensor = any(v in WGMMA_VARIANTS for v in a.variants.split(","))
+    if tensor:
         wp.config.cuda_arch_suffix = "a"  # wgmma: sm_90a
     wp.init()
     device = wp.get_device("cuda:0")
     sms = device.sm_count
     rng = np.random.default_rng(0)
     records = []
-    tensor = any(v in WGMMA_VARIANTS for v in a.variants.split(","))
     for rows, k, n, threads in SHAPES + EXTRA_SHAPES * tensor:
         W = rng.standard_normal((k, n)).astype(np.float32)
         for kind in a.variants.split(","):
