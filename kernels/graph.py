@@ -36,6 +36,11 @@ class Layout:
     n_act_edges: int  # actuator edges (0 without actuator graphs)
     tile_rows: int
     self_loops: bool  # the hybrid decoder's self-loop rows
+    edge_rows: int = 0  # the edge pass's tiles (Spec.edge_rows; 0: tile_rows): the two edge blocks padded to them
+
+    @property
+    def edge_tile(self) -> int:
+        return self.edge_rows or self.tile_rows
 
     @property
     def nodes_pad(self) -> int:
@@ -43,11 +48,11 @@ class Layout:
 
     @property
     def edges_pad(self) -> int:
-        return _pad(self.n_edges, self.tile_rows)
+        return _pad(self.n_edges, self.edge_tile)
 
     @property
     def act_pad(self) -> int:
-        return _pad(self.n_act_edges, self.tile_rows)
+        return _pad(self.n_act_edges, self.edge_tile)
 
     @property
     def tools_pad(self) -> int:
@@ -107,7 +112,8 @@ class Graph:
             raise AttributeError(name) from None
 
 
-def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = True, device=None) -> Graph:
+def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = True, device=None,
+          edge_rows: int = 0) -> Graph:
     """The kernels' view of a ``warpgnn.graphs.Topology`` (one simulation or a stacked batch) on the Warp ``device``,
     computed by torch where the topology lives and never copied to the host: a copy from the device would wait for
     the GPU's work in flight (eval builds a chunk's Network while the one before rolls out). A topology on the CPU
@@ -126,7 +132,7 @@ def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = 
     act_tool, act_node = t_(top.act_senders), t_(top.act_receivers)
     if not actuator_graphs:
         act_tool, act_node = act_tool[:0], act_node[:0]
-    lay = Layout(n, len(senders), k if actuator_graphs else 0, len(act_tool), tile_rows, self_loops)
+    lay = Layout(n, len(senders), k if actuator_graphs else 0, len(act_tool), tile_rows, self_loops, edge_rows)
 
     order, mesh_off = _csr(receivers, n)
     mesh_recv, mesh_send = receivers[order], senders[order]

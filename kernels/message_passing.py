@@ -42,8 +42,10 @@ MANY_BLOCKS_REGISTERS = {"edge_pass": 96, "encode": 128}
 
 
 def _options(spec: Spec, kernel: str) -> dict:
-    """Kernel options of ``kernel`` (MANY_BLOCKS_REGISTERS)."""
-    capped = spec.many_blocks and kernel in MANY_BLOCKS_REGISTERS
+    """Kernel options of ``kernel`` (MANY_BLOCKS_REGISTERS; not the tensor-core edge pass, whose 64-row blocks are
+    two an SM by their shared memory)."""
+    tensor = kernel == "edge_pass" and spec.edges.gemm == "wgmma"
+    capped = spec.many_blocks and kernel in MANY_BLOCKS_REGISTERS and not tensor
     return {"cuda_max_registers": MANY_BLOCKS_REGISTERS[kernel]} if capped else {}
 
 
@@ -119,14 +121,15 @@ def encoder_kernel(spec: Spec):
 def edge_kernel(spec: Spec):
     """edge_pass, in spec.module_of("edge_pass")."""
     owner = spec.module_of("edge_pass")
-    T, F = spec.tile_rows, spec.latent
-    _fill, _activate, second_layer, _sums, _project, gather_pair, ahead_parts = helpers(spec, owner)
+    edges = spec.edges  # its tiles and products (Spec.edge_rows, edge_gemm)
+    T, F = edges.tile_rows, spec.latent
+    _fill, _activate, second_layer, _sums, _project, gather_pair, ahead_parts = helpers(edges, owner)
     w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
-    mm_ff = matmul(T, F, spec.kc, F, spec.gemm, owner)
-    buf_rows, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, owner)
+    mm_ff = matmul(T, F, edges.kc, F, edges.gemm, owner)
+    buf_rows, begin_ff, finish_ff = matmul_ahead(T, F, edges.kc, F, edges.gemm, owner)
     # whole weights in one K chunk (small graphs, spec.k_chunk_for): a launch starts its weight copies first, so they
     # are in flight while its rows' loads are; with chunks the buffers held that long would cost occupancy
-    ahead = spec.kc == F
+    ahead = edges.kc == F
     # with whole weights the edge pass holds at least EDGE_PASS_SHARED bytes of shared memory (its tiles, then a spare
     # tile), so that at most two of its blocks share an SM (sm_80: 164 KiB an SM, sm_90: 228): overlapped with the
     # node pass, its blocks (56 KiB each) were otherwise packed three to an SM beside the node pass's and ran their
@@ -282,12 +285,15 @@ def launches(net) -> list:
                 w.tool_proj, w.eps, lay.mesh_row, lay.self_row, lay.act_row,
                 lay.tool_row, lay.nodes_pad, lay.tools_pad, pass_chunks, first_chunks, lay.tiles(lay.rows),
                 later_tools, net.lat, net.products])]
-    mesh_tiles = lay.tiles(lay.edges_pad)
-    edge_tiles = mesh_tiles + lay.tiles(lay.act_pad)
+    mesh_tiles = lay.edges_pad // lay.edge_tile
+    edge_tiles = mesh_tiles + lay.act_pad // lay.edge_tile
+    # the tensor-core products read their weights in tf32 parts (weights.tensor_core_layout)
+    ew_e, ew_w2 = ((w.tensor_core("ew_e"), w.tensor_core("ew_w2")) if net.spec.edges.gemm == "wgmma"
+                   else (w.ew_e, w.ew_w2))
     for p in range(w.passes):
         out.append(wp.launch_tiled(
             edge_pass, dim=[edge_tiles], block_dim=net.block_dim_of("edge_pass"), device=dev, record_cmd=True,
-            inputs=[net.lat, net.graph.row_recv, net.graph.row_send, net.product_rows, w.ew_e, w.ew_b1, w.ew_w2,
+            inputs=[net.lat, net.graph.row_recv, net.graph.row_send, net.product_rows, ew_e, w.ew_b1, ew_w2,
                     w.ew_b2, w.ew_g, w.ew_be, w.eps, p, lay.mesh_row, mesh_tiles, lay.act_row, lay.tools_pad]))
         last = p == w.passes - 1
         decode = 1 if last and w.kind == "hybrid" else 0  # then (dE, dS) too, from the third block of proj

@@ -38,6 +38,17 @@ def build_kernels(spec: Spec) -> None:
         wp.get_module(module).options["enable_mathdx_gemm"] = spec.gemm == "mathdx"  # part of the module's hash
 
 
+def load_sm90a(spec: Spec, device, block_dim: int) -> None:
+    """Build (or find in Warp's cache) and load ``spec``'s modules for sm_90a, the wgmma products' target: Warp
+    builds for the device's plain architecture unless its (process-wide) cuda_arch_suffix says otherwise, so it is
+    set around these loads only (shipped.arch_suffix). A launch then finds each module loaded."""
+    if device.arch != 90:
+        raise ValueError(f"wgmma products run on sm_90 GPUs (H100, H200), not sm_{device.arch}")
+    with shipped.arch_suffix(spec):
+        for module, dim in shipped.modules_of(spec, block_dim):
+            module.load(device, dim)
+
+
 def default_block_dim(device) -> int:
     """Threads a block of the tile kernels: shipped.BLOCK_DIM (128) on CUDA (every launch the same, so one build a
     module, the one kernels/aot ships), one on the CPU (which runs one unless wp.config.enable_cpu_blocks)."""
@@ -60,7 +71,7 @@ def _as_warp(x, device):
 class Network:
     def __init__(self, model, topology, device=None, tile_rows: int = Spec.tile_rows, block_dim: int | None = None,
                  k_chunk: int | None = None, weights=None, node_rows: int | None = None, gemm: str = Spec.gemm,
-                 threads: dict | None = None):
+                 threads: dict | None = None, edge_rows: int = 0, edge_gemm: str = ""):
         """``model``: a warpgnn TIGNN (its config and weights are read once); ``topology``: a
         warpgnn.graphs.Topology, one simulation or a stacked batch. ``tile_rows``, ``node_rows``, ``k_chunk``,
         ``gemm``: the kernels' Spec (node_rows and k_chunk None: by the graph's size, spec.node_rows_for and
@@ -78,11 +89,15 @@ class Network:
             tiles_per_sm = -(-topology.n_nodes // node_rows) / self.device.sm_count if self.device.is_cuda else 0
             k_chunk = k_chunk_for(node_rows, w.latent, max_shared_of(self.device), tiles_per_sm)
         threads = threads_for(k_chunk, w.latent, self.device.is_cuda) if threads is None else threads
-        self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm, tuple(dict(threads).items()))
+        self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm, edge_rows, edge_gemm,
+                         tuple(dict(threads).items()))
         build_kernels(self.spec)
         self.block_dim = block_dim or default_block_dim(self.device)
         self.shipped_module = shipped.load(self.spec, self.device, self.block_dim)  # else Warp compiles it
-        self.graph = build(topology, tile_rows, w.actuator_graphs, w.kind == "hybrid", self.device)
+        if self.spec.sm90a and self.device.is_cuda and not self.shipped_module:
+            load_sm90a(self.spec, self.device, self.block_dim)
+        self.graph = build(topology, tile_rows, w.actuator_graphs, w.kind == "hybrid", self.device,
+                           self.spec.edge_tile)
         self.layout = lay = self.graph.layout
         n, k, F = lay.n_nodes, topology.n_tools, w.latent
 

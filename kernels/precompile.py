@@ -49,17 +49,24 @@ def compile_modules(latents, device=None, **shape) -> float:
     if not device.is_cuda and shape.get("threads") is None:  # as a Network there: one block size
         shape["threads"] = ()
     t0 = time.perf_counter()
-    for m, dim in _modules(latents, block_dim, max_shared_of(device), **shape):
-        wp.load_module(m, device=device, block_dim=dim)
+    with shipped.arch_suffix(Spec(64, **_spec_shape(shape))):
+        for m, dim in _modules(latents, block_dim, max_shared_of(device), **shape):
+            wp.load_module(m, device=device, block_dim=dim)
     return time.perf_counter() - t0
 
 
 def compile_ahead(latents, arch: int, out, block_dim: int = shipped.BLOCK_DIM, **shape) -> float:
     """Build the modules for GPU architecture ``arch`` into the folder ``out`` (cubins) without a GPU; seconds."""
     t0 = time.perf_counter()
-    for m, _dim in _modules(latents, block_dim, SHARED_OF_ARCH.get(arch, 0), **shape):
-        wp.compile_aot_module(m, arch=arch, module_dir=str(out), use_ptx=False)
+    with shipped.arch_suffix(Spec(64, **_spec_shape(shape))):  # sm_90a where the edge products are wgmma
+        for m, _dim in _modules(latents, block_dim, SHARED_OF_ARCH.get(arch, 0), **shape):
+            wp.compile_aot_module(m, arch=arch, module_dir=str(out), use_ptx=False)
     return time.perf_counter() - t0
+
+
+def _spec_shape(shape: dict) -> dict:
+    """The parts of ``shape`` that decide a Spec's target architecture (Spec.sm90a)."""
+    return {k: shape[k] for k in ("edge_rows", "edge_gemm") if k in shape}
 
 
 def load(folder, latents, device, block_dim: int = shipped.BLOCK_DIM, **shape) -> float:
@@ -67,8 +74,9 @@ def load(folder, latents, device, block_dim: int = shipped.BLOCK_DIM, **shape) -
     Seconds."""
     device = wp.get_device(device)
     t0 = time.perf_counter()
-    for m, _dim in _modules(latents, block_dim, max_shared_of(device), **shape):
-        wp.load_aot_module(m, device=device, arch=device.arch, module_dir=str(folder), use_ptx=False)
+    with shipped.arch_suffix(Spec(64, **_spec_shape(shape))):
+        for m, _dim in _modules(latents, block_dim, max_shared_of(device), **shape):
+            wp.load_aot_module(m, device=device, arch=device.arch, module_dir=str(folder), use_ptx=False)
     return time.perf_counter() - t0
 
 
@@ -110,6 +118,8 @@ def main(argv=None) -> None:
     parser.add_argument("--block-dim", type=int, default=shipped.BLOCK_DIM,
                         help="threads a block, with --arch (default %(default)s; not --ship)")
     parser.add_argument("--gemm", default=Spec.gemm, choices=GEMMS, help="Spec.gemm (not --ship)")
+    parser.add_argument("--edge-rows", type=int, default=0, help="Spec.edge_rows (not --ship)")
+    parser.add_argument("--edge-gemm", default="", help="Spec.edge_gemm, e.g. wgmma (sm_90a; not --ship)")
     parser.add_argument("--threads", default=None,
                         help="Spec.threads as KERNEL=N,... (default: a Network's pick on a GPU; 'none': every "
                              "kernel on --block-dim; not --ship)")
@@ -117,7 +127,8 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     latents = sorted({int(x) for x in args.latent.split(",") if x.strip()})
     shape = {"tile_rows": args.tile_rows, "node_rows": args.node_rows, "k_chunk": args.k_chunk, "gemm": args.gemm,
-             "threads": None if args.threads is None else parse_threads(args.threads)}
+             "threads": None if args.threads is None else parse_threads(args.threads),
+             "edge_rows": args.edge_rows, "edge_gemm": args.edge_gemm}
     if args.ship:
         ship()
     elif args.arch is not None:

@@ -13,6 +13,7 @@ and compiles as before, and tests/test_shipped_modules.py fails until ``python -
 
 from __future__ import annotations
 
+import contextlib
 import lzma
 import shutil
 import tempfile
@@ -39,6 +40,19 @@ def specs() -> list[Spec]:
     shapes += [(F, NODE_ROWS[0], k_chunk_for(NODE_ROWS[0], F, max_shared=0)) for F in LATENTS]
     out = [Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, cuda=True)) for F, n, k in shapes]
     return list({s.module: s for s in out}.values())
+
+
+@contextlib.contextmanager
+def arch_suffix(spec: Spec):
+    """Warp's (process-wide) cuda_arch_suffix "a" while ``spec``'s modules build or load, where its products need
+    sm_90a (Spec.sm90a: wgmma); as it was after."""
+    before = wp.config.cuda_arch_suffix
+    if spec.sm90a:
+        wp.config.cuda_arch_suffix = "a"
+    try:
+        yield
+    finally:
+        wp.config.cuda_arch_suffix = before
 
 
 def modules_of(spec: Spec, block_dim: int = BLOCK_DIM) -> list:

@@ -19,7 +19,7 @@ N_LM = N_L + N_M  # delta_e's outputs per edge and self-loop
 N_GRAD = 2 * STATE  # delta_v's outputs per node: dE, dS
 FEATURE_WIDTH = 24  # widest encoder input (18: the single-graph node features) padded to a multiple of 8
 STAT_WIDTH = 9  # widest standardised raw feature set (the node's v, sigma)
-GEMMS = ("native", "scalar", "mathdx", "fp16")  # the first is the default
+GEMMS = ("native", "scalar", "mathdx", "fp16", "wgmma")  # the first is the default
 TILE_KERNELS = ("encode", "edge_pass", "node_pass", "hybrid_fields", "vanilla_tail")  # Spec.threads may name them
 
 
@@ -46,14 +46,28 @@ class Spec:
     # slower than "native" on an H200, warp_fp16_h200.json). The CPU runs "mathdx" as "scalar" and "fp16" with the
     # same rounding
     gemm: str = GEMMS[0]
+    # the edge pass's tiles and products, where they differ from the others' (0, "": tile_rows, gemm): "wgmma" takes
+    # tiles of 64 rows (a multiple of tile_rows; the layout pads the edge blocks to them) and runs both products on
+    # Hopper's warpgroup tensor cores in fp32 data (tiles.GEMM_WGMMA: sm_90a modules, weights packed in tf32 parts)
+    edge_rows: int = 0
+    edge_gemm: str = ""
     # ((kernel, threads a block), ...): tile kernels whose CUDA launches take another block than the others' (names
     # of TILE_KERNELS). Each lives in a module of its block size (module_of): Warp builds a module for one. A Network
     # picks them (threads_for)
     threads: tuple = ()
 
     def __post_init__(self):
-        if self.gemm not in GEMMS:
-            raise ValueError(f"gemm {self.gemm!r}: expected one of {', '.join(GEMMS)}")
+        for gemm in (self.gemm, self.edge_gemm or self.gemm):
+            if gemm not in GEMMS:
+                raise ValueError(f"gemm {gemm!r}: expected one of {', '.join(GEMMS)}")
+        if self.edge_tile % self.tile_rows:
+            raise ValueError(f"edge_rows {self.edge_tile} must be a multiple of tile_rows {self.tile_rows}")
+        # wgmma: the edge pass's products only (edge_gemm; Spec.edges is then a spec of gemm "wgmma" and 64-row tiles)
+        edge_only = self.edge_gemm == "wgmma" or (self.gemm == "wgmma" and self.node_rows == 0 and not self.edge_gemm)
+        if "wgmma" in (self.gemm, self.edge_gemm) and (not edge_only or self.edge_tile != 64 or self.latent % 16
+                                                       or self.kc % 16):
+            raise ValueError("wgmma products: the edge pass's only (edge_gemm), on edge tiles of 64 rows, F and its "
+                             "K chunk multiples of 16")
         threads = tuple(sorted((str(k), int(n)) for k, n in dict(self.threads).items() if n))
         unknown = sorted({k for k, _ in threads} - set(TILE_KERNELS))
         if unknown:
@@ -83,6 +97,20 @@ class Spec:
         return n
 
     @property
+    def edge_tile(self) -> int:
+        return self.edge_rows or self.tile_rows
+
+    @property
+    def edges(self) -> "Spec":
+        """The tile shape and products of the edge pass (its tile helpers; the kernel lives in this spec's modules)."""
+        return Spec(self.latent, self.edge_tile, 0, self.k_chunk, self.edge_gemm or self.gemm)
+
+    @property
+    def sm90a(self) -> bool:
+        """Whether the CUDA modules must be built for sm_90a (wgmma: Hopper only, Warp's cuda_arch_suffix "a")."""
+        return self.edge_gemm == "wgmma"
+
+    @property
     def nodes(self) -> "Spec":
         """The tile shape of the node launches (their tile helpers; the kernels live in this spec's modules)."""
         return Spec(self.latent, self.node_tile, 0, self.k_chunk, self.gemm)
@@ -91,6 +119,8 @@ class Spec:
     def module(self) -> str:
         nodes = f"_N{self.node_tile}" if self.node_tile != self.tile_rows else ""
         gemm = "" if self.gemm == GEMMS[0] else f"_{self.gemm}"
+        if self.edge_tile != self.tile_rows or (self.edge_gemm or self.gemm) != self.gemm:
+            gemm += f"_E{self.edge_tile}{self.edge_gemm}"
         # kernels moved to a module of another block size (threads) leave this one: its name says which, so that two
         # specs differing only there never share (and mix the kernels of) one Warp module
         moved = "".join(f"_{k}{n}" for k, n in self.threads)

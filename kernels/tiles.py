@@ -321,10 +321,133 @@ GEMM_F16 = r"""
 assert "half_round(av" in GEMM_F16
 
 
+# Spec.edge_gemm = "wgmma": acc (64, N) += a (64, K) @ W on Hopper's warpgroup tensor cores (wgmma, sm_90a) in fp32
+# data, b the weight's chunk in weights.tensor_core_layout (its tf32 hi and lo parts, (2 K, N) floats) staged in shared
+# memory. The four warps each hold 16 rows of a in registers, split into hi = tf32(x) and lo = tf32(x - hi); three
+# products a k step (lo hi + hi lo + hi hi, ~fp32's accuracy: 3xTF32) into an accumulator started at zero, added into
+# acc by 16-byte read-modify-writes (pairs of lanes swap halves of two 8-column blocks by shuffles). Measured alone on
+# an H200: a (64, 64) x (64, 64) product 3.28 -> 1.29 us at one block an SM, 4.39 -> 1.58 at two, against GEMM on the
+# same tile; on 32-row tiles (half of each instruction padding) little faster
+# (bench/studies/warp_product_latency.py, warp_wgmma_products_h200.json). Off CUDA one thread an output element over
+# the packed parts (hi + lo), so Warp's CPU device checks the layout; a CUDA build without sm_90a is refused.
+WGMMA_N = (64, 128, 144)  # the instruction's widths built (F = 64, F = 128, the decoder's 144)
+
+
+def _wgmma_source() -> str:
+    def instr(n: int) -> str:
+        outs = ", ".join(f"%{i}" for i in range(n // 2))
+        cons = ", ".join(f'"+f"(d[{i}])' for i in range(n // 2))
+        m = n // 2
+        return (f'asm volatile("wgmma.mma_async.sync.aligned.m64n{n}k8.f32.tf32.tf32 {{{outs}}}, '
+                f'{{%{m}, %{m + 1}, %{m + 2}, %{m + 3}}}, %{m + 4}, 1, 1, 1;\\n" : {cons} : "r"(x[0]), "r"(x[1]), '
+                f'"r"(x[2]), "r"(x[3]), "l"(desc));')
+    dispatch = "\n".join(f"            {'' if i == 0 else 'else '}if constexpr (N == {n}) {{ {instr(n)} }}"
+                         for i, n in enumerate(WGMMA_N))
+    return r"""
+    using LA = typename tile_a::Layout;
+    using LB = typename tile_b::Layout;
+    using LC = typename tile_acc::Layout;
+    constexpr int M = LC::Shape::dim(0), N = LC::Shape::dim(1), K = LA::Shape::dim(1);
+    constexpr int SA = LA::Stride::dim(0), SC = LC::Stride::dim(0);
+    static_assert(LB::Shape::dim(0) == 2 * K && LB::Shape::dim(1) == N && LB::Stride::dim(0) == N && K % 16 == 0,
+                  "a weight chunk in tensor-core layout");
+    const wp::float32* __restrict__ pa = a.data.ptr;
+    const wp::float32* __restrict__ pb = b.data.ptr;
+    wp::float32* __restrict__ pc = acc.data.ptr;
+#if defined(__CUDA_ARCH__)
+#if !defined(__CUDA_ARCH_FEAT_SM90_ALL)
+    static_assert(M < 0, "wgmma products need an sm_90a build (Spec.sm90a)");
+#else
+    static_assert(WP_TILE_BLOCK_DIM == 128 && M == 64 && N % 16 == 0 && SA % 4 == 0 && SC % 4 == 0, "wgmma shape");
+    static_assert(""" + " || ".join(f"N == {n}" for n in WGMMA_N) + r""", "a width of tiles.WGMMA_N");
+    const int warp = threadIdx.x / 32, lane = threadIdx.x % 32, q = lane % 4;
+    const int r0 = 16 * warp + lane / 4, r1 = r0 + 8;
+    wp::float32 d[N / 2];
+#pragma unroll
+    for (int i = 0; i < N / 2; ++i)
+        d[i] = 0.f;
+    unsigned ah[K / 8][4], al[K / 8][4];
+    auto split = [](wp::float32 x, unsigned& hi, unsigned& lo) {
+        asm("cvt.rna.tf32.f32 %0, %1;\n" : "=r"(hi) : "f"(x));
+        const wp::float32 rest = x - __uint_as_float(hi);
+        asm("cvt.rna.tf32.f32 %0, %1;\n" : "=r"(lo) : "f"(rest));
+    };
+#pragma unroll
+    for (int s = 0; s < K / 16; ++s) {  // k 16 s + 4 q .. + 3 of rows r0, r1: steps (2 s, 2 s + 1) x columns (q, q + 4)
+        const float4 u = *reinterpret_cast<const float4*>(pa + r0 * SA + 16 * s + 4 * q);
+        const float4 v = *reinterpret_cast<const float4*>(pa + r1 * SA + 16 * s + 4 * q);
+        split(u.x, ah[2 * s][0], al[2 * s][0]); split(v.x, ah[2 * s][1], al[2 * s][1]);
+        split(u.y, ah[2 * s][2], al[2 * s][2]); split(v.y, ah[2 * s][3], al[2 * s][3]);
+        split(u.z, ah[2 * s + 1][0], al[2 * s + 1][0]); split(v.z, ah[2 * s + 1][1], al[2 * s + 1][1]);
+        split(u.w, ah[2 * s + 1][2], al[2 * s + 1][2]); split(v.w, ah[2 * s + 1][3], al[2 * s + 1][3]);
+    }
+    // b was written by the block's generic-proxy copies: visible to wgmma's async proxy after a fence and a barrier
+    asm volatile("fence.proxy.async.shared::cta;\n" ::: "memory");
+    WP_TILE_SYNC();
+    const unsigned long long base = static_cast<unsigned long long>(__cvta_generic_to_shared(pb));
+    // no swizzle; LBO 128 bytes (a step's two k halves), SBO 256 bytes (8-column groups)
+    const unsigned long long desc0 = ((base & 0x3FFFF) >> 4) | (8ull << 16) | (16ull << 32);
+    auto mma = [&](const unsigned (&x)[4], unsigned long long desc) {
+""" + dispatch + r"""
+    };
+    asm volatile("wgmma.fence.sync.aligned;\n" ::: "memory");
+#pragma unroll
+    for (int j = 0; j < K / 8; ++j) {  // step j's hi part: 16-k block j / 2 (128 N bytes a block), half j % 2 (32 N)
+        const unsigned long long dh = desc0 + (((j / 2) * 128 * N + (j % 2) * 32 * N) >> 4), dl = dh + ((64 * N) >> 4);
+        mma(al[j], dh);
+        mma(ah[j], dl);
+        mma(ah[j], dh);
+    }
+    asm volatile("wgmma.commit_group.sync.aligned;\n" ::: "memory");
+    asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory");
+    const bool odd = q & 1;
+#pragma unroll
+    for (int j = 0; j < N / 8; j += 2) {
+#pragma unroll
+        for (int h = 0; h < 2; ++h) {  // rows r0, r1: lane pairs swap so each holds 4 consecutive columns of a row
+            const int r = h ? r1 : r0;
+            const wp::float32 s0 = odd ? d[4 * j + 2 * h] : d[4 * j + 4 + 2 * h];
+            const wp::float32 s1 = odd ? d[4 * j + 2 * h + 1] : d[4 * j + 5 + 2 * h];
+            const wp::float32 t0 = __shfl_xor_sync(0xffffffffu, s0, 1), t1 = __shfl_xor_sync(0xffffffffu, s1, 1);
+            const float4 v = odd ? make_float4(t0, t1, d[4 * j + 4 + 2 * h], d[4 * j + 5 + 2 * h])
+                                 : make_float4(d[4 * j + 2 * h], d[4 * j + 2 * h + 1], t0, t1);
+            float4* o = reinterpret_cast<float4*>(pc + r * SC + (odd ? 8 * j + 6 + 2 * q : 8 * j + 2 * q));
+            float4 w = *o;
+            w.x += v.x; w.y += v.y; w.z += v.z; w.w += v.w;
+            *o = w;
+        }
+    }
+#endif
+#else
+    for (int i = WP_TILE_THREAD_IDX; i < M * N; i += WP_TILE_BLOCK_DIM) {  // an output element a thread
+        const int r = i / N, c = i - r * N;
+        wp::float32 s = wp::float32(0);
+        for (int k = 0; k < K; ++k) {  // W[k, c]: 16-k block k / 16, step (k % 4) / 2, half k % 2, lane (k % 16) / 4
+            const int off = (k / 16) * 32 * N + ((k % 4) / 2) * 8 * N + ((c / 8) * 2 + k % 2) * 32 + (c % 8) * 4
+                            + (k % 16) / 4;
+            s = wp::muladd(pa[r * SA + k], pb[off] + pb[off + 16 * N], s);
+        }
+        pc[r * SC + c] += s;
+    }
+#endif
+    WP_TILE_SYNC();
+"""
+
+
+GEMM_WGMMA = _wgmma_source()
+
+
 @functools.cache
 def gemm(rows: int, k: int, n: int, kind: str, owner: str):
-    """acc (rows, n) += a (rows, k) @ b (k, n), shared tiles: GEMM above ("native"), GEMM_F16 ("fp16") or Warp's
-    wp.tile_matmul ("scalar", "mathdx"): Spec.gemm."""
+    """acc (rows, n) += a (rows, k) @ b (k, n), shared tiles: GEMM above ("native"), GEMM_F16 ("fp16"), GEMM_WGMMA
+    ("wgmma": b (2 k, n), the weight in tensor-core layout) or Warp's wp.tile_matmul ("scalar", "mathdx"):
+    Spec.gemm."""
+    if kind == "wgmma":
+        @wp.func_native(GEMM_WGMMA)
+        def tensor(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(2 * k, n)),
+                   acc: wp.tile(dtype=float, shape=(rows, n))): ...
+
+        return tensor
     if kind == "fp16":
         @wp.func_native(GEMM_F16)
         def half(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(k, n)),
@@ -368,24 +491,28 @@ def matmul_ahead(rows: int, k: int, kc: int, n: int, kind: str, owner: str, a_st
     if k % kc:
         raise ValueError(f"a K chunk of {kc} rows must divide K = {k}")
     chunks = k // kc
-    buf_rows = kc * min(chunks, 2)
-    stage_copy, staged = stage(kc, n, owner)
+    # "wgmma" reads W in tensor-core layout (weights.tensor_core_layout): 2 rows a k, so a chunk is 2 kc rows at
+    # 2 row0 + 2 c kc, and col0 must be 0 with n W's whole width (its columns are not contiguous there)
+    pk = 2 if kind == "wgmma" else 1
+    ck = pk * kc  # a chunk's rows in W's layout
+    buf_rows = ck * min(chunks, 2)
+    stage_copy, staged = stage(ck, n, owner)
     product = gemm(rows, kc, n, kind, owner)
 
     @wp.func
     def begin(buf: wp.tile(dtype=float, shape=(buf_rows, n)), w: wp.array2d(dtype=float), row0: int, col0: int):
-        stage_copy(wp.tile_view(buf, offset=(0, 0), shape=(kc, n)), w, row0, col0)
+        stage_copy(wp.tile_view(buf, offset=(0, 0), shape=(ck, n)), w, pk * row0, col0)
 
     @wp.func
     def finish(a: a_tile, w: wp.array2d(dtype=float), row0: int, col0: int,
                buf: wp.tile(dtype=float, shape=(buf_rows, n)), acc: wp.tile(dtype=float, shape=(rows, n))):
         c = int(0)
         while c < chunks:  # a while loop: Warp does not unroll it
-            b = wp.tile_view(buf, offset=((c % 2) * kc, 0), shape=(kc, n))
+            b = wp.tile_view(buf, offset=((c % 2) * ck, 0), shape=(ck, n))
             staged(b)  # chunk c is in; every thread is done with chunk c - 1's buffer
             if c + 1 < chunks:
-                stage_copy(wp.tile_view(buf, offset=(((c + 1) % 2) * kc, 0), shape=(kc, n)), w,
-                           row0 + (c + 1) * kc, col0)
+                stage_copy(wp.tile_view(buf, offset=(((c + 1) % 2) * ck, 0), shape=(ck, n)), w,
+                           pk * (row0 + (c + 1) * kc), col0)
             product(wp.tile_view(a, offset=(0, c * kc), shape=(rows, kc)), b, acc)
             c += 1
 

@@ -36,6 +36,37 @@ class Weights:
         except KeyError:
             raise AttributeError(name) from None
 
+    def tensor_core(self, name: str):
+        """Weight ``name`` in tensor_core_layout (the wgmma products'), packed on first use and kept."""
+        key = f"{name}_tf32"
+        if key not in self.arrays:
+            w = self.arrays[name]
+            self.arrays[key] = wp.array(tensor_core_layout(w.numpy()), dtype=float, device=w.device)
+        return self.arrays[key]
+
+
+def tf32(x: np.ndarray) -> np.ndarray:
+    """x rounded to tf32 (10 mantissa bits), to nearest with ties away from zero (PTX cvt.rna.tf32.f32)."""
+    bits = np.ascontiguousarray(x, np.float32).view(np.uint32)
+    return ((bits + np.uint32(0x1000)) & np.uint32(0xFFFFE000)).view(np.float32)
+
+
+def tensor_core_layout(w: np.ndarray) -> np.ndarray:
+    """A (K, N) weight (or weights stacked by rows), K a multiple of 16, as tiles.GEMM_WGMMA reads it: (2 K, N)
+    floats, each 16 rows of k as 32 rows: their tf32 hi parts, then their lo parts (w - hi rounded again), each in
+    wgmma's no-swizzle core matrices [k step j of 2][8-column group][k half h][column][4 k], logical k 8 j + 4 h + t
+    holding row 4 t + 2 j + h. So any K chunk of 16 rows' multiple is contiguous, and a lane's A values of two k
+    steps are one 16-byte load of the tile's row (k 4 t .. 4 t + 3 hold steps (0, 0), (0, 1), (1, 0), (1, 1))."""
+    K, N = w.shape
+    if K % 16 or N % 8:
+        raise ValueError(f"a ({K}, {N}) weight: tensor-core layout needs K % 16 == 0 and N % 8 == 0")
+    b, j, nb, h, r, t = np.meshgrid(np.arange(K // 16), np.arange(2), np.arange(N // 8), np.arange(2), np.arange(8),
+                                    np.arange(4), indexing="ij")
+    vals = np.asarray(w, np.float32)[16 * b + 4 * t + 2 * j + h, 8 * nb + r].reshape(K // 16, 16 * N)
+    hi = tf32(vals)
+    lo = tf32(vals - hi)
+    return np.concatenate([hi, lo], axis=1).reshape(2 * K, N)
+
 
 def _t(w) -> np.ndarray:
     """torch Linear weight (out, in) -> (in, out) float32."""

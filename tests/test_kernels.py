@@ -343,13 +343,75 @@ def test_gemm_choice_is_its_own_module():
     from warpgnn.kernels.network import build_kernels
     from warpgnn.kernels.spec import GEMMS, Spec
 
-    specs = {g: Spec(16, gemm=g) for g in GEMMS}
-    assert len({s.module for s in specs.values()}) == len(GEMMS)
+    whole = [g for g in GEMMS if g != "wgmma"]  # wgmma: the edge pass's products only (Spec.edge_gemm, below)
+    specs = {g: Spec(16, gemm=g) for g in whole}
+    assert len({s.module for s in specs.values()}) == len(whole)
     for g, spec in specs.items():
         build_kernels(spec)
         assert wp.get_module(spec.module).options["enable_mathdx_gemm"] == (g == "mathdx")
     with pytest.raises(ValueError, match="gemm 'tf32'"):
         Spec(16, gemm="tf32")
+    for bad in ({"gemm": "wgmma"}, {"edge_gemm": "wgmma"}, {"edge_rows": 64, "edge_gemm": "wgmma", "k_chunk": 8},
+                {"edge_rows": 48}):
+        with pytest.raises(ValueError, match="wgmma|edge_rows"):
+            Spec(16, **bad)
+    assert Spec(16, edge_rows=64, edge_gemm="wgmma").module != Spec(16).module
+
+
+def _tensor_core_products(device):
+    """(64, 32) @ (32, 64) + acc through tiles.GEMM_WGMMA, the weight in weights.tensor_core_layout, on ``device``."""
+    from warpgnn.kernels import tiles
+    from warpgnn.kernels.weights import tensor_core_layout
+
+    rows, k, k2, n = 64, 32, 64, 64  # k2: the packed weight's rows
+    owner = "test_tensor_core_products"
+    product = tiles.gemm(rows, k, n, "wgmma", owner)
+
+    @wp.kernel(enable_backward=False, module=owner)
+    def apply(a: wp.array2d(dtype=float), b: wp.array2d(dtype=float), c: wp.array2d(dtype=float)):
+        ta = wp.tile_load(a, shape=(rows, k), storage="shared")
+        tb = wp.tile_load(b, shape=(k2, n), storage="shared")
+        tc = wp.tile_load(c, shape=(rows, n), storage="shared")
+        product(ta, tb, tc)
+        wp.tile_store(c, tc)
+
+    rng = np.random.default_rng(1)
+    a, b, c = (rng.standard_normal(s).astype(np.float32) for s in ((rows, k), (k, n), (rows, n)))
+    out = wp.array(c, dtype=float, device=device)
+    from warpgnn.kernels.shipped import arch_suffix
+    from warpgnn.kernels.spec import Spec
+    with arch_suffix(Spec(16, edge_rows=64, edge_gemm="wgmma")):  # sm_90a on CUDA
+        wp.load_module(owner, device=device, block_dim=128 if device != "cpu" else 1)
+    wp.launch_tiled(apply, dim=[1], inputs=[wp.array(a, dtype=float, device=device),
+                                            wp.array(tensor_core_layout(b), dtype=float, device=device), out],
+                    block_dim=128 if device != "cpu" else 1, device=device)
+    return out.numpy(), c + a.astype(np.float64) @ b.astype(np.float64)
+
+
+SM90 = HAS_CUDA and wp.get_device("cuda:0").arch == 90
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
+    not SM90, reason="wgmma needs an sm_90 GPU (H100, H200)"))])
+def test_tensor_core_products_against_numpy(device):
+    """Spec.edge_gemm = "wgmma" (tiles.GEMM_WGMMA): acc += a @ W with W in tf32 hi and lo parts in wgmma's core-matrix
+    layout (weights.tensor_core_layout): fp32's answer (3xTF32 on Hopper's tensor cores; off CUDA the layout read
+    element by element), so the packing and its reading agree."""
+    got, expected = _tensor_core_products(device)
+    assert np.abs(got - expected).max() <= 1e-5 * np.abs(expected).max()
+
+
+@pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
+def test_tensor_core_edge_pass(monkeypatch, kind):
+    """The edge pass on 64-row tiles with wgmma products (Spec.edge_rows, edge_gemm; the edge blocks padded to 64 rows
+    while the other launches take 32) and its weights in tensor-core layout, K in chunks of 16, 5 threads a block
+    (CPU fibers): the reference's answer."""
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    net, _ = check(random_model(kind, 2, 32, seed=9), tool_topology(box((5, 4, 3)), 3, seed=9), seed=9,
+                   edge_rows=64, edge_gemm="wgmma", k_chunk=16, block_dim=5)
+    lay = net.layout
+    assert lay.edges_pad % 64 == 0 and lay.act_pad % 64 == 0 and lay.nodes_pad % 32 == 0
+    assert net.spec.sm90a and net.spec.edges.tile_rows == 64
 
 
 # ----------------------------------------------------------------------------- the shipped network
@@ -404,6 +466,22 @@ def test_cuda_graph_step_equals_eager(kind):
     top = tool_topology(box((5, 4, 3)), 3, seed=13)
     z, u_now, u_next = random_inputs(top, 13)
     net = Network(model, top, device="cuda:0")
+    eager = run(net, z, u_now, u_next)
+    assert_matches(eager, reference(model, top, z, u_now, u_next))
+    net.capture()
+    replay = run(net, z, u_now, u_next)
+    for k, v in eager.items():
+        assert np.array_equal(replay[k], v), k
+
+
+@pytest.mark.skipif(not SM90, reason="wgmma needs an sm_90 GPU (H100, H200)")
+def test_tensor_core_edge_pass_on_hopper():
+    """The wgmma edge pass on an H100 / H200 (sm_90a module built on first use, Network.__init__): the reference's
+    answer, its captured replay equal to the launches one by one."""
+    model = random_model("hybrid", 2, 64, seed=17)
+    top = tool_topology(box((5, 4, 3)), 3, seed=17)
+    z, u_now, u_next = random_inputs(top, 17)
+    net = Network(model, top, device="cuda:0", edge_rows=64, edge_gemm="wgmma", k_chunk=32)
     eager = run(net, z, u_now, u_next)
     assert_matches(eager, reference(model, top, z, u_now, u_next))
     net.capture()

@@ -15,6 +15,7 @@ shape T:N:B, a folder F{latent}_T{T}_N{N}_B{B} of `python -m warpgnn.kernels.pre
 
 import argparse
 import json
+import re
 import subprocess
 import sys
 import tempfile
@@ -45,18 +46,22 @@ def kernel_means(net: Network, calls: int) -> dict:
 
 
 def shape_args(shape: str) -> dict:
-    """"T:N:B[:K[:GEMM]]" -> Network's tile_rows, node_rows (0: by graph size), block_dim, k_chunk (absent: by graph
-    size; 0: Spec's), gemm (Spec.gemm)."""
+    """"T:N:B[:K[:GEMM[:E]]]" -> Network's tile_rows, node_rows (0: by graph size), block_dim, k_chunk (absent: by
+    graph size; 0: Spec's), gemm (Spec.gemm), and the edge pass's tiles and products as E = rows then products
+    (Spec.edge_rows, edge_gemm; e.g. 64wgmma)."""
     T, N, B, *rest = shape.split(":")
+    edge = re.fullmatch(r"(\d*)(\w*)", rest[2] if len(rest) > 2 else "")
     return {"tile_rows": int(T), "node_rows": int(N), "block_dim": int(B), "k_chunk": int(rest[0]) if rest else None,
-            "gemm": rest[1] if len(rest) > 1 else Spec.gemm}
+            "gemm": rest[1] if len(rest) > 1 and rest[1] else Spec.gemm, "edge_rows": int(edge[1] or 0),
+            "edge_gemm": edge[2]}
 
 
 def aot_folder(root, latent: int, shape: dict) -> Path:
-    """Where `precompile --arch 90 --out` put a shape's module: ROOT/F{F}_T{T}_N{N}_B{B}[_K{K}][_{GEMM}]."""
+    """Where `precompile --arch 90 --out` put a shape's module: ROOT/F{F}_T{T}_N{N}_B{B}[_K{K}][_{GEMM}][_E{E}]."""
     k = f"_K{shape['k_chunk']}" if shape["k_chunk"] else ""
     g = f"_{shape['gemm']}" if shape["gemm"] != Spec.gemm else ""
-    return Path(root) / f"F{latent}_T{shape['tile_rows']}_N{shape['node_rows']}_B{shape['block_dim']}{k}{g}"
+    e = f"_E{shape['edge_rows'] or ''}{shape['edge_gemm']}" if shape["edge_rows"] or shape["edge_gemm"] else ""
+    return Path(root) / f"F{latent}_T{shape['tile_rows']}_N{shape['node_rows']}_B{shape['block_dim']}{k}{g}{e}"
 
 
 def _without(argv: list, flags: tuple) -> list:
@@ -89,8 +94,8 @@ def main():
     ap.add_argument("--aot", default=None)
     ap.add_argument("--calls", type=int, default=10)
     ap.add_argument("--shapes", default=f"{Spec.tile_rows}:{Spec.node_rows}:{shipped.BLOCK_DIM}",
-                    help="tile_rows:node_rows:block_dim[:k_chunk[:gemm]], comma-separated (default: the shipped shape, "
-                    "%(default)s)")
+                    help="tile_rows:node_rows:block_dim[:k_chunk[:gemm[:edge]]], comma-separated (default: the "
+                    "shipped shape, %(default)s)")
     ap.add_argument("--threads", default=None,
                     help="Spec.threads as KERNEL=N,... ('none': every kernel on the shape's block; default: a "
                     "Network's pick, spec.threads_for)")
@@ -115,7 +120,8 @@ def main():
     for shape in shapes:
         sh = shape_args(shape)
         T, N, B, K, G = sh["tile_rows"], sh["node_rows"], sh["block_dim"], sh["k_chunk"], sh["gemm"]
-        tiles = {"tile_rows": T, "node_rows": N, "k_chunk": K, "gemm": G}
+        tiles = {"tile_rows": T, "node_rows": N, "k_chunk": K, "gemm": G, "edge_rows": sh["edge_rows"],
+                 "edge_gemm": sh["edge_gemm"]}
         threads = None if a.threads is None else dict(precompile.parse_threads(a.threads))
         if a.aot:
             if not N or K is None:
@@ -135,10 +141,12 @@ def main():
             alone = sum(v["mean_us"] * v["per_forward"] for v in kernels.values())
             cases.append({"model": kind, "passes": int(passes), "batch": int(batch), "latent": a.latent,
                           "tile_rows": T, "node_rows": N_used, "block_dim": B, "k_chunk": K_used, "gemm": G,
+                          "edge_rows": net.spec.edge_tile, "edge_gemm": net.spec.edges.gemm,
                           "threads": dict(net.spec.threads),
                           "step_ms": median, "step_p10_ms": p10, "step_p90_ms": p90, "launches": net.n_launches,
                           "kernels_alone_us": alone, "kernels": kernels})
-            print(f"T{T} N{N_used} B{B} K{K_used} {G} {dict(net.spec.threads)}", kind, passes, batch,
+            print(f"T{T} N{N_used} B{B} K{K_used} {G} E{net.spec.edge_tile}{net.spec.edges.gemm} "
+                  f"{dict(net.spec.threads)}", kind, passes, batch,
                   f"step {median * 1e3:.1f} us (its kernels alone {alone:.1f})",
                   {k: round(v["mean_us"], 1) for k, v in kernels.items()}, flush=True)
     Path(a.json).write_text(json.dumps(provenance.record(a) | {"cases": cases}, indent=1) + "\n")

@@ -22,6 +22,7 @@ import provenance
 import warp as wp
 
 from warpgnn.kernels import tiles
+from warpgnn.kernels.weights import tf32
 
 # (rows, K, N, threads): the edge pass's two products, the node pass's first one and next-stage products (node tiles
 # of 8 on 256 threads), the decoder's (32, 144) one whole and in a K chunk of 16 (batch 64), a K chunk of the node
@@ -291,12 +292,6 @@ def wgmma_source(n: int, variant: str = "wgmma3") -> str:
         fallback = WGMMA_TC[WGMMA_TC.index("#endif\n") + len("#endif\n"):]
         body = f"#define ACC2 {int(variant == 'wgmma2e')}\n" + WGMMA_STACKED + fallback + "#undef ACC2\n"
     return macro + body + "#undef WGMMA\n"
-
-def tf32(x: np.ndarray) -> np.ndarray:
-    """x rounded to tf32 (10 mantissa bits), to nearest with ties away from zero (cvt.rna.tf32.f32)."""
-    bits = np.ascontiguousarray(x, np.float32).view(np.uint32)
-    return ((bits + np.uint32(0x1000)) & np.uint32(0xFFFFE000)).view(np.float32)
-
 
 def pack_wgmma(w: np.ndarray) -> np.ndarray:
     """A (K, N) weight as WGMMA_TC reads it: (2 K, N) floats, the tf32 hi part then the lo part, each in core matrices
