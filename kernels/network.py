@@ -20,7 +20,18 @@ import warp as wp
 from . import decoders, features, generic_tail, integrate, message_passing, shipped
 from .graph import build
 from .pdl import overlap_launches
-from .spec import FEATURE_WIDTH, N_GRAD, NODE_ROWS, STATE, Spec, k_chunk_for, max_shared_of, node_rows_for, threads_for
+from .spec import (
+    FEATURE_WIDTH,
+    N_GRAD,
+    NODE_ROWS,
+    STATE,
+    Spec,
+    edge_products_for,
+    k_chunk_for,
+    max_shared_of,
+    node_rows_for,
+    threads_for,
+)
 from .tiles import row_view
 from .weights import pack
 
@@ -71,11 +82,12 @@ def _as_warp(x, device):
 class Network:
     def __init__(self, model, topology, device=None, tile_rows: int = Spec.tile_rows, block_dim: int | None = None,
                  k_chunk: int | None = None, weights=None, node_rows: int | None = None, gemm: str = Spec.gemm,
-                 threads: dict | None = None, edge_rows: int = 0, edge_gemm: str = ""):
+                 threads: dict | None = None, edge_rows: int | None = None, edge_gemm: str | None = None):
         """``model``: a warpgnn TIGNN (its config and weights are read once); ``topology``: a
         warpgnn.graphs.Topology, one simulation or a stacked batch. ``tile_rows``, ``node_rows``, ``k_chunk``,
-        ``gemm``: the kernels' Spec (node_rows and k_chunk None: by the graph's size, spec.node_rows_for and
-        spec.k_chunk_for, the shapes kernels/aot ships). ``block_dim``: threads a block
+        ``gemm``, ``edge_rows``, ``edge_gemm``: the kernels' Spec (node_rows and k_chunk None: by the graph's size,
+        spec.node_rows_for and spec.k_chunk_for; edge_rows and edge_gemm None: by the GPU, spec.edge_products_for;
+        the shapes kernels/aot ships). ``block_dim``: threads a block
         of the tile kernels (default_block_dim); ``threads``: {kernel name: threads a block} of those whose CUDA
         launches take another (Spec.threads; None: by the K chunk, spec.threads_for). ``weights``: the
         model already packed on ``device`` (weights.pack), so Networks of many topologies share one copy."""
@@ -88,9 +100,13 @@ class Network:
         if k_chunk is None:
             tiles_per_sm = -(-topology.n_nodes // node_rows) / self.device.sm_count if self.device.is_cuda else 0
             k_chunk = k_chunk_for(node_rows, w.latent, max_shared_of(self.device), tiles_per_sm)
-        threads = threads_for(k_chunk, w.latent, self.device.is_cuda) if threads is None else threads
-        self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm, edge_rows, edge_gemm,
-                         tuple(dict(threads).items()))
+        arch = self.device.arch if self.device.is_cuda else None
+        if edge_rows is None and edge_gemm is None:  # by the GPU and the K chunk (spec.edge_products_for)
+            edge = edge_products_for(k_chunk, w.latent, arch)
+        else:
+            edge = {"edge_rows": edge_rows or 0, "edge_gemm": edge_gemm or ""}
+        threads = threads_for(k_chunk, w.latent, self.device.is_cuda, arch) if threads is None else threads
+        self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm, threads=tuple(dict(threads).items()), **edge)
         build_kernels(self.spec)
         self.block_dim = block_dim or default_block_dim(self.device)
         self.shipped_module = shipped.load(self.spec, self.device, self.block_dim)  # else Warp compiles it

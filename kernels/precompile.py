@@ -24,22 +24,27 @@ import warp as wp
 
 from . import shipped
 from .network import build_kernels, default_block_dim
-from .spec import GEMMS, SHARED_OF_ARCH, Spec, k_chunk_for, max_shared_of, threads_for
+from .spec import GEMMS, SHARED_OF_ARCH, Spec, edge_products_for, k_chunk_for, max_shared_of, threads_for
 
 
-def _modules(latents, block_dim: int, max_shared: int | None, **shape) -> list:
-    """[(module, block_dim)] of each width's Spec. ``shape``: Spec's tile_rows, node_rows, k_chunk, threads
-    (its defaults where absent; k_chunk None: the one a Network with those node tiles picks on a GPU allowing a
-    block ``max_shared`` bytes, spec.k_chunk_for; threads None: a Network's on a GPU, spec.threads_for)."""
+def _specs(latents, max_shared: int | None, arch: int | None, **shape) -> list[Spec]:
+    """The Spec of each width, its kernels built. ``shape``: Spec's tile_rows, node_rows, k_chunk, threads, edge_rows,
+    edge_gemm (its defaults where absent; k_chunk None: the one a Network with those node tiles picks on a GPU allowing
+    a block ``max_shared`` bytes, spec.k_chunk_for; threads and the edge products None: a Network's on a GPU of
+    compute capability ``arch``, spec.threads_for and spec.edge_products_for)."""
     k_chunk, threads = shape.pop("k_chunk", None), shape.pop("threads", None)
+    edge_rows, edge_gemm = shape.pop("edge_rows", None), shape.pop("edge_gemm", None)
     node_rows = shape.get("node_rows", Spec.node_rows)
     specs = []
     for F in latents:
         k = k_chunk_for(node_rows, F, max_shared) if k_chunk is None else k_chunk
-        specs.append(Spec(F, k_chunk=k, threads=threads_for(k, F, True) if threads is None else threads, **shape))
+        edge = (edge_products_for(k, F, arch) if edge_rows is None and edge_gemm is None
+                else {"edge_rows": edge_rows or 0, "edge_gemm": edge_gemm or ""})
+        specs.append(Spec(F, k_chunk=k, threads=threads_for(k, F, True, arch) if threads is None else threads,
+                          **edge, **shape))
     for spec in specs:
         build_kernels(spec)
-    return [pair for s in specs for pair in shipped.modules_of(s, block_dim)]
+    return specs
 
 
 def compile_modules(latents, device=None, **shape) -> float:
@@ -49,24 +54,21 @@ def compile_modules(latents, device=None, **shape) -> float:
     if not device.is_cuda and shape.get("threads") is None:  # as a Network there: one block size
         shape["threads"] = ()
     t0 = time.perf_counter()
-    with shipped.arch_suffix(Spec(64, **_spec_shape(shape))):
-        for m, dim in _modules(latents, block_dim, max_shared_of(device), **shape):
-            wp.load_module(m, device=device, block_dim=dim)
+    for spec in _specs(latents, max_shared_of(device), device.arch if device.is_cuda else None, **shape):
+        with shipped.arch_suffix(spec):  # sm_90a where the edge products are wgmma
+            for m, dim in shipped.modules_of(spec, block_dim):
+                wp.load_module(m, device=device, block_dim=dim)
     return time.perf_counter() - t0
 
 
 def compile_ahead(latents, arch: int, out, block_dim: int = shipped.BLOCK_DIM, **shape) -> float:
     """Build the modules for GPU architecture ``arch`` into the folder ``out`` (cubins) without a GPU; seconds."""
     t0 = time.perf_counter()
-    with shipped.arch_suffix(Spec(64, **_spec_shape(shape))):  # sm_90a where the edge products are wgmma
-        for m, _dim in _modules(latents, block_dim, SHARED_OF_ARCH.get(arch, 0), **shape):
-            wp.compile_aot_module(m, arch=arch, module_dir=str(out), use_ptx=False)
+    for spec in _specs(latents, SHARED_OF_ARCH.get(arch, 0), arch, **shape):
+        with shipped.arch_suffix(spec):
+            for m, _dim in shipped.modules_of(spec, block_dim):
+                wp.compile_aot_module(m, arch=arch, module_dir=str(out), use_ptx=False)
     return time.perf_counter() - t0
-
-
-def _spec_shape(shape: dict) -> dict:
-    """The parts of ``shape`` that decide a Spec's target architecture (Spec.sm90a)."""
-    return {k: shape[k] for k in ("edge_rows", "edge_gemm") if k in shape}
 
 
 def load(folder, latents, device, block_dim: int = shipped.BLOCK_DIM, **shape) -> float:
@@ -74,9 +76,10 @@ def load(folder, latents, device, block_dim: int = shipped.BLOCK_DIM, **shape) -
     Seconds."""
     device = wp.get_device(device)
     t0 = time.perf_counter()
-    with shipped.arch_suffix(Spec(64, **_spec_shape(shape))):
-        for m, _dim in _modules(latents, block_dim, max_shared_of(device), **shape):
-            wp.load_aot_module(m, device=device, arch=device.arch, module_dir=str(folder), use_ptx=False)
+    for spec in _specs(latents, max_shared_of(device), device.arch, **shape):
+        with shipped.arch_suffix(spec):
+            for m, _dim in shipped.modules_of(spec, block_dim):
+                wp.load_aot_module(m, device=device, arch=device.arch, module_dir=str(folder), use_ptx=False)
     return time.perf_counter() - t0
 
 
@@ -84,11 +87,11 @@ def ship(log=print) -> None:
     """Rebuild kernels/aot: shipped.specs() for shipped.ARCHS, xz-compressed; older builds removed."""
     shipped.FOLDER.mkdir(exist_ok=True)
     keep = set()
-    for spec in shipped.specs():
-        for arch in shipped.ARCHS:
+    for arch in shipped.ARCHS:
+        for spec in shipped.specs(arch):
             with tempfile.TemporaryDirectory() as tmp:
                 seconds = compile_ahead([spec.latent], arch, tmp, node_rows=spec.node_rows, k_chunk=spec.k_chunk,
-                                        threads=spec.threads)
+                                        threads=spec.threads, edge_rows=spec.edge_rows, edge_gemm=spec.edge_gemm)
                 for cubin, meta in shipped.files(spec, arch):
                     cubin.write_bytes(lzma.compress((Path(tmp) / cubin.stem).read_bytes(), preset=6))
                     shutil.copy(Path(tmp) / meta.name, meta)
@@ -118,8 +121,10 @@ def main(argv=None) -> None:
     parser.add_argument("--block-dim", type=int, default=shipped.BLOCK_DIM,
                         help="threads a block, with --arch (default %(default)s; not --ship)")
     parser.add_argument("--gemm", default=Spec.gemm, choices=GEMMS, help="Spec.gemm (not --ship)")
-    parser.add_argument("--edge-rows", type=int, default=0, help="Spec.edge_rows (not --ship)")
-    parser.add_argument("--edge-gemm", default="", help="Spec.edge_gemm, e.g. wgmma (sm_90a; not --ship)")
+    parser.add_argument("--edge-rows", type=int, default=None,
+                        help="Spec.edge_rows (default: a Network's pick, spec.edge_products_for; not --ship)")
+    parser.add_argument("--edge-gemm", default=None,
+                        help="Spec.edge_gemm, e.g. wgmma (sm_90a; default: a Network's pick; not --ship)")
     parser.add_argument("--threads", default=None,
                         help="Spec.threads as KERNEL=N,... (default: a Network's pick on a GPU; 'none': every "
                              "kernel on --block-dim; not --ship)")

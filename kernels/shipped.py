@@ -3,7 +3,8 @@
 Warp compiles a module on its first launch: the F = 64 module builds in ~15-30 s on a 2-core CPU with the
 default products (Spec.gemm; with cuBLASDx products, one per product shape, it took 149 s on an H100 and 287 s
 here). The shipped network's width is shipped built for sm_80 (A100, and by binary
-compatibility sm_86/sm_89) and sm_90 (H100, H200), in each shape a Network picks on them (specs()), as
+compatibility sm_86/sm_89) and sm_90 (H100, H200; sm_90a where the edge pass takes wgmma), in each shape a Network
+picks on them (specs(arch)), as
 xz-compressed cubins of 0.02-0.06 MB (one a module: Spec.modules); loading the sm_90 one
 took 3 ms on an H200 (bench/results/warp_gemm_h200.json's run; the cuBLASDx module took 0.6 s). A file is named
 by Warp's module identifier, which holds a hash of the kernels' code and options: a changed kernel finds no file
@@ -22,7 +23,7 @@ from pathlib import Path
 
 import warp as wp
 
-from .spec import NODE_ROWS, Spec, k_chunk_for, node_rows_allowed, threads_for
+from .spec import NODE_ROWS, Spec, edge_products_for, k_chunk_for, node_rows_allowed, threads_for
 
 FOLDER = Path(__file__).resolve().parent / "aot"
 LATENTS = (64,)  # the shipped network's width, with each of spec.NODE_ROWS (a Network picks by graph size)
@@ -32,13 +33,15 @@ BLOCK_DIM = 128  # network.default_block_dim on CUDA: the variant every launch u
 _loaded: set = set()
 
 
-def specs() -> list[Spec]:
-    """The shipped specs: each latent width of LATENTS with each node tile size of NODE_ROWS and its K chunk, and
-    the small graphs' tiles with the K chunk of GPUs allowing a block less shared memory (sm_86/sm_89, which run
-    the sm_80 build: spec.k_chunk_for)."""
+def specs(arch: int) -> list[Spec]:
+    """The specs shipped for ``arch``: each latent width of LATENTS with each node tile size of NODE_ROWS and its K
+    chunk, and the small graphs' tiles with the K chunk of GPUs allowing a block less shared memory (sm_86/sm_89, which
+    run the sm_80 build: spec.k_chunk_for), each with the edge products a Network picks there (edge_products_for:
+    wgmma on sm_90 with whole weights, an sm_90a build)."""
     shapes = [(F, n, k_chunk_for(n, F)) for F in LATENTS for n in node_rows_allowed(F)]
     shapes += [(F, NODE_ROWS[0], k_chunk_for(NODE_ROWS[0], F, max_shared=0)) for F in LATENTS]
-    out = [Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, cuda=True)) for F, n, k in shapes]
+    out = [Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, arch), **edge_products_for(k, F, arch))
+           for F, n, k in shapes]
     return list({s.module: s for s in out}.values())
 
 
@@ -69,7 +72,8 @@ def modules_of(spec: Spec, block_dim: int = BLOCK_DIM) -> list:
 def files(spec: Spec, arch: int, block_dim: int = BLOCK_DIM) -> list[tuple[Path, Path]]:
     """The shipped (cubin.xz, meta) of each of ``spec``'s modules for ``arch``, present or not."""
     idents = [module.get_module_identifier(dim) for module, dim in modules_of(spec, block_dim)]
-    return [(FOLDER / f"{ident}.sm{arch}.cubin.xz", FOLDER / f"{ident}.meta") for ident in idents]
+    target = f"sm{arch}{'a' if spec.sm90a else ''}"  # Warp's file name for the build (arch_suffix)
+    return [(FOLDER / f"{ident}.{target}.cubin.xz", FOLDER / f"{ident}.meta") for ident in idents]
 
 
 def shipped_arch(device_arch: int) -> int | None:
@@ -93,9 +97,10 @@ def load(spec: Spec, device, block_dim: int = BLOCK_DIM) -> bool:
     for (cubin, meta), (module, _dim) in zip(pairs, modules_of(spec, block_dim)):
         try:
             with tempfile.TemporaryDirectory() as tmp:
-                (Path(tmp) / cubin.stem).write_bytes(lzma.decompress(cubin.read_bytes()))  # NAME.smXX.cubin
+                (Path(tmp) / cubin.stem).write_bytes(lzma.decompress(cubin.read_bytes()))  # NAME.smXX[a].cubin
                 shutil.copy(meta, tmp)
-                wp.load_aot_module(module, device=device, arch=arch, module_dir=tmp, use_ptx=False)
+                with arch_suffix(spec):
+                    wp.load_aot_module(module, device=device, arch=arch, module_dir=tmp, use_ptx=False)
         except Exception as exc:  # noqa: BLE001 - a damaged file or a driver that refuses it: compile as without one
             warnings.warn(f"{cubin.name} not loaded ({type(exc).__name__}: {exc}); Warp compiles the module instead",
                           stacklevel=2)

@@ -198,15 +198,28 @@ def k_chunk_for(node_rows: int, latent: int, max_shared: int | None = None, node
 WIDE = 256  # threads a block of the kernels threads_for names
 
 
-def threads_for(k_chunk: int, latent: int, cuda: bool) -> tuple:
+def edge_products_for(k_chunk: int, latent: int, arch: int | None) -> dict:
+    """Spec's edge_rows and edge_gemm for a Network on a GPU of compute capability ``arch`` (None: not a GPU): on
+    sm_90 (H100, H200) with whole F = 64 weights (small graphs: k_chunk_for), the edge pass on tiles of 64 rows with
+    wgmma products (tiles.GEMM_WGMMA) on two warpgroups (threads_for): an H200's hybrid steps 62.2 / 130.3 / 249.9 ->
+    61.1 / 126.5 / 241.0 us at 1 / 5 / 12 passes, its edge pass 12.5 -> 11.6 us (bench/results/
+    warp_wgmma_edge_pass_h200.json); on 128 threads it had been slower (130.4 -> 137.3 us at 5 passes), as at batch 64
+    (K chunks: 366 -> 382 us a launch). Else {} (the edge pass as the others)."""
+    return {"edge_rows": 64, "edge_gemm": "wgmma"} if arch == 90 and k_chunk == latent == 64 else {}
+
+
+def threads_for(k_chunk: int, latent: int, cuda: bool, arch: int | None = None) -> tuple:
     """Spec.threads of a Network on CUDA (``cuda``) with ``k_chunk`` (k_chunk_for): with whole weights (small
     graphs), the node pass on WIDE threads: its block holds an SM alone (137 KiB at F = 64), and 256 threads give its
     products more warps a scheduler, each summing a part of K (tiles.GEMM: two parts when measured, up to four
     since), and its CSR sums two threads a row vector (tiles.SEGMENT_SUMS): 141.8 -> 138.3 us a 5-pass step, 278.4 ->
     269.8 at 12 passes on an H200 (bench/results/warp_wide_blocks_h200.json). Else (): with K chunks (batch 64,
     F = 128) each thread's half of a 32-row chunk is 16 k with a barrier every chunk (F = 128: 705.5 -> 712.6 us at 12
-    passes on 256 threads)."""
-    return (("node_pass", WIDE),) if cuda and k_chunk == latent else ()
+    passes on 256 threads). With wgmma edge products (edge_products_for, on sm_90: ``arch``) the edge pass too, its
+    64-row tiles' products on two warpgroups and its other steps with a thread for as many rows as on 32-row tiles."""
+    wide = ("node_pass", WIDE) if cuda and k_chunk == latent else None
+    edge = ("edge_pass", WIDE) if cuda and edge_products_for(k_chunk, latent, arch) else None
+    return tuple(x for x in (edge, wide) if x)
 
 
 def check_config(config) -> None:

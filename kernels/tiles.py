@@ -323,14 +323,15 @@ assert "half_round(av" in GEMM_F16
 
 # Spec.edge_gemm = "wgmma": acc (64, N) += a (64, K) @ W on Hopper's warpgroup tensor cores (wgmma, sm_90a) in fp32
 # data, b the weight's chunk in weights.tensor_core_layout (its tf32 hi and lo parts, (2 K, N) floats) staged in shared
-# memory. The four warps each hold 16 rows of a in registers, split into hi = tf32(x) and lo = tf32(x - hi); three
-# products a k step (lo hi + hi lo + hi hi, ~fp32's accuracy: 3xTF32) into an accumulator started at zero, added into
-# acc by 16-byte read-modify-writes (pairs of lanes swap halves of two 8-column blocks by shuffles). Measured alone on
+# memory. Each warpgroup (128 threads; a block of 256 has two, each taking half of acc's columns) holds a in registers,
+# a warp 16 rows, split into hi = tf32(x) and lo = tf32(x - hi); three products a k step (lo hi + hi lo + hi hi,
+# ~fp32's accuracy: 3xTF32) into an accumulator started at zero, added into acc by 16-byte read-modify-writes (pairs
+# of lanes swap halves of two 8-column blocks by shuffles). Measured alone on
 # an H200: a (64, 64) x (64, 64) product 3.28 -> 1.29 us at one block an SM, 4.39 -> 1.58 at two, against GEMM on the
 # same tile; on 32-row tiles (half of each instruction padding) little faster
 # (bench/studies/warp_product_latency.py, warp_wgmma_products_h200.json). Off CUDA one thread an output element over
 # the packed parts (hi + lo), so Warp's CPU device checks the layout; a CUDA build without sm_90a is refused.
-WGMMA_N = (64, 128, 144)  # the instruction's widths built (F = 64, F = 128, the decoder's 144)
+WGMMA_N = (32, 64, 128, 144)  # a warpgroup's widths built (F = 64 on one or two warpgroups, F = 128, the decoder's)
 
 
 def _wgmma_source() -> str:
@@ -341,7 +342,7 @@ def _wgmma_source() -> str:
         return (f'asm volatile("wgmma.mma_async.sync.aligned.m64n{n}k8.f32.tf32.tf32 {{{outs}}}, '
                 f'{{%{m}, %{m + 1}, %{m + 2}, %{m + 3}}}, %{m + 4}, 1, 1, 1;\\n" : {cons} : "r"(x[0]), "r"(x[1]), '
                 f'"r"(x[2]), "r"(x[3]), "l"(desc));')
-    dispatch = "\n".join(f"            {'' if i == 0 else 'else '}if constexpr (N == {n}) {{ {instr(n)} }}"
+    dispatch = "\n".join(f"            {'' if i == 0 else 'else '}if constexpr (NW == {n}) {{ {instr(n)} }}"
                          for i, n in enumerate(WGMMA_N))
     return r"""
     using LA = typename tile_a::Layout;
@@ -358,13 +359,15 @@ def _wgmma_source() -> str:
 #if !defined(__CUDA_ARCH_FEAT_SM90_ALL)
     static_assert(M < 0, "wgmma products need an sm_90a build (Spec.sm90a)");
 #else
-    static_assert(WP_TILE_BLOCK_DIM == 128 && M == 64 && N % 16 == 0 && SA % 4 == 0 && SC % 4 == 0, "wgmma shape");
-    static_assert(""" + " || ".join(f"N == {n}" for n in WGMMA_N) + r""", "a width of tiles.WGMMA_N");
-    const int warp = threadIdx.x / 32, lane = threadIdx.x % 32, q = lane % 4;
-    const int r0 = 16 * warp + lane / 4, r1 = r0 + 8;
-    wp::float32 d[N / 2];
+    constexpr int WG = WP_TILE_BLOCK_DIM / 128, NW = N / WG;  // warpgroups, the columns of each
+    static_assert((WG == 1 || WG == 2) && WP_TILE_BLOCK_DIM % 128 == 0 && M == 64 && NW % 16 == 0 && N % WG == 0
+                  && SA % 4 == 0 && SC % 4 == 0, "wgmma shape");
+    static_assert(""" + " || ".join(f"NW == {n}" for n in WGMMA_N) + r""", "a width of tiles.WGMMA_N");
+    const int group = threadIdx.x / 128, warp = threadIdx.x / 32 % 4, lane = threadIdx.x % 32, q = lane % 4;
+    const int r0 = 16 * warp + lane / 4, r1 = r0 + 8, c0 = group * NW;
+    wp::float32 d[NW / 2];
 #pragma unroll
-    for (int i = 0; i < N / 2; ++i)
+    for (int i = 0; i < NW / 2; ++i)
         d[i] = 0.f;
     unsigned ah[K / 8][4], al[K / 8][4];
     auto split = [](wp::float32 x, unsigned& hi, unsigned& lo) {
@@ -385,8 +388,8 @@ def _wgmma_source() -> str:
     asm volatile("fence.proxy.async.shared::cta;\n" ::: "memory");
     WP_TILE_SYNC();
     const unsigned long long base = static_cast<unsigned long long>(__cvta_generic_to_shared(pb));
-    // no swizzle; LBO 128 bytes (a step's two k halves), SBO 256 bytes (8-column groups)
-    const unsigned long long desc0 = ((base & 0x3FFFF) >> 4) | (8ull << 16) | (16ull << 32);
+    // no swizzle; LBO 128 bytes (a step's two k halves), SBO 256 bytes (8-column groups): the group's first column c0
+    const unsigned long long desc0 = (((base + 32 * c0) & 0x3FFFF) >> 4) | (8ull << 16) | (16ull << 32);
     auto mma = [&](const unsigned (&x)[4], unsigned long long desc) {
 """ + dispatch + r"""
     };
@@ -402,7 +405,7 @@ def _wgmma_source() -> str:
     asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory");
     const bool odd = q & 1;
 #pragma unroll
-    for (int j = 0; j < N / 8; j += 2) {
+    for (int j = 0; j < NW / 8; j += 2) {
 #pragma unroll
         for (int h = 0; h < 2; ++h) {  // rows r0, r1: lane pairs swap so each holds 4 consecutive columns of a row
             const int r = h ? r1 : r0;
@@ -411,7 +414,7 @@ def _wgmma_source() -> str:
             const wp::float32 t0 = __shfl_xor_sync(0xffffffffu, s0, 1), t1 = __shfl_xor_sync(0xffffffffu, s1, 1);
             const float4 v = odd ? make_float4(t0, t1, d[4 * j + 4 + 2 * h], d[4 * j + 5 + 2 * h])
                                  : make_float4(d[4 * j + 2 * h], d[4 * j + 2 * h + 1], t0, t1);
-            float4* o = reinterpret_cast<float4*>(pc + r * SC + (odd ? 8 * j + 6 + 2 * q : 8 * j + 2 * q));
+            float4* o = reinterpret_cast<float4*>(pc + r * SC + c0 + (odd ? 8 * j + 6 + 2 * q : 8 * j + 2 * q));
             float4 w = *o;
             w.x += v.x; w.y += v.y; w.z += v.z; w.w += v.w;
             *o = w;

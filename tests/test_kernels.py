@@ -284,6 +284,22 @@ def test_tiles_by_graph_size():
     assert Network(random_model("vanilla", 1, 16), top, device="cpu", k_chunk=8).spec.kc == 8
 
 
+def test_edge_products_and_threads_by_gpu():
+    """The edge pass on wgmma (64-row tiles, two warpgroups) only on sm_90 with whole F = 64 weights (small graphs);
+    its block then on 256 threads beside the node pass's; elsewhere as the other launches (spec.edge_products_for,
+    spec.threads_for); off a GPU never."""
+    from warpgnn.kernels.spec import edge_products_for, threads_for
+
+    assert edge_products_for(64, 64, 90) == {"edge_rows": 64, "edge_gemm": "wgmma"}
+    assert edge_products_for(32, 64, 90) == edge_products_for(64, 64, 80) == edge_products_for(64, 64, None) == {}
+    assert edge_products_for(16, 16, 90) == edge_products_for(128, 128, 90) == {}
+    assert threads_for(64, 64, True, 90) == (("edge_pass", 256), ("node_pass", 256))
+    assert threads_for(64, 64, True, 80) == threads_for(64, 64, True) == (("node_pass", 256),)
+    assert threads_for(32, 64, True, 90) == threads_for(64, 64, False, 90) == ()
+    net = Network(random_model("vanilla", 1, 64), tool_topology(box((3, 3, 2)), 2), device="cpu")
+    assert net.spec.edge_tile == 32 and net.spec.edges.gemm == "native" and not net.spec.sm90a
+
+
 def test_unsupported_configuration_refused_in_one_line():
     model = random_model("hybrid", 1, 16, hidden_layers=2)
     with pytest.raises(ValueError) as err:

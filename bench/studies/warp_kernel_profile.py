@@ -48,12 +48,13 @@ def kernel_means(net: Network, calls: int) -> dict:
 def shape_args(shape: str) -> dict:
     """"T:N:B[:K[:GEMM[:E]]]" -> Network's tile_rows, node_rows (0: by graph size), block_dim, k_chunk (absent: by
     graph size; 0: Spec's), gemm (Spec.gemm), and the edge pass's tiles and products as E = rows then products
-    (Spec.edge_rows, edge_gemm; e.g. 64wgmma)."""
+    (Spec.edge_rows, edge_gemm; e.g. 64wgmma, or 32 for the plain edge pass; absent: a Network's pick,
+    spec.edge_products_for)."""
     T, N, B, *rest = shape.split(":")
-    edge = re.fullmatch(r"(\d*)(\w*)", rest[2] if len(rest) > 2 else "")
+    edge = re.fullmatch(r"(\d*)(\w*)", rest[2]) if len(rest) > 2 else None  # absent: a Network's pick
     return {"tile_rows": int(T), "node_rows": int(N), "block_dim": int(B), "k_chunk": int(rest[0]) if rest else None,
-            "gemm": rest[1] if len(rest) > 1 and rest[1] else Spec.gemm, "edge_rows": int(edge[1] or 0),
-            "edge_gemm": edge[2]}
+            "gemm": rest[1] if len(rest) > 1 and rest[1] else Spec.gemm,
+            "edge_rows": int(edge[1] or 0) if edge else None, "edge_gemm": edge[2] if edge else None}
 
 
 def aot_folder(root, latent: int, shape: dict) -> Path:
