@@ -54,24 +54,26 @@ LM_CHUNK = 16  # K rows of the (F, 144) weight's chunks where blocks queue for t
 
 @functools.cache
 def kernels(spec: Spec):
-    """hybrid_fields, in spec.module_of("hybrid_fields")."""
+    """hybrid_fields on the edge tiles and products (spec.edges: its rows are edge rows), in
+    spec.module_of("hybrid_fields")."""
     owner = spec.module_of("hybrid_fields")
-    T, F = spec.tile_rows, spec.latent
-    _fill, activate, _second_layer, _sums, _project, gather_pair, _ahead = helpers(spec, owner)
+    edges = spec.edges
+    T, F, G = edges.tile_rows, spec.latent, edges.gemm
+    _fill, activate, _second_layer, _sums, _project, gather_pair, _ahead = helpers(edges, owner)
     # where blocks queue for the SMs its (F, 144) weight in K chunks of LM_CHUNK rows (double-buffered, 18 KiB instead
     # of 36 at 32 rows: with e in o, four blocks an SM instead of three; batch 64 723 -> 699 us)
-    mm_lm = matmul(T, F, math.gcd(spec.kc, LM_CHUNK) if spec.many_blocks else spec.kc, N_LM, spec.gemm, owner)
-    ahead = spec.kc == F  # as the edge pass: weight copies first with whole weights
+    mm_lm = matmul(T, F, math.gcd(edges.kc, LM_CHUNK) if spec.many_blocks else edges.kc, N_LM, G, owner)
+    ahead = edges.kc == F  # as the edge pass: weight copies first with whole weights
     # with K chunks e's rows live in o's tile, read by the first product only (it ends with a barrier): where blocks
     # queue for the SMs three fit an SM instead of two (78 -> 68 KiB): batch 64 879 -> 723 us (a row of 160 floats
     # instead of 144, 128-byte aligned: 750 us; bench/results/warp_occupancy_h200.json)
     shared_eo = not ahead
     eo_cols = -(-max(F, N_LM) // EO_ALIGN) * EO_ALIGN
-    mm_ff = matmul(T, F, spec.kc, F, spec.gemm, owner, eo_cols if shared_eo else 0)  # e's rows eo_cols apart
-    ff_rows, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, owner)
-    lm_rows, begin_lm, finish_lm = matmul_ahead(T, F, spec.kc, N_LM, spec.gemm, owner)
+    mm_ff = matmul(T, F, edges.kc, F, G, owner, eo_cols if shared_eo else 0)  # e's rows eo_cols apart
+    ff_rows, begin_ff, finish_ff = matmul_ahead(T, F, edges.kc, F, G, owner)
+    lm_rows, begin_lm, finish_lm = matmul_ahead(T, F, edges.kc, N_LM, G, owner)
     fill_lm, _activate_lm = row_steps(T, N_LM, owner)
-    sender_grads, port_terms = row_operators(spec, owner)
+    sender_grads, port_terms = row_operators(edges, owner)
     load_rows, loaded = stage(T, F, owner)
     stage_ids, _stage_offsets = index_steps(T, owner)
 
@@ -179,12 +181,15 @@ def launches(net) -> list:
     hybrid_fields, vanilla_tail = kernels(net.spec), vanilla_kernel(net.spec)
     lay, w, g, dev = net.layout, net.weights, net.graph, net.device
     if w.kind == "hybrid":
+        T = lay.edge_tile  # the edge tiles (spec.edges), its weights in tf32 parts for tensor-core products
+        de_e, de_w2 = ((w.tensor_core("de_e"), w.tensor_core("de_w2")) if net.spec.edges.gemm == "wgmma"
+                       else (w.de_e, w.de_w2))
         return [wp.launch_tiled(
-            hybrid_fields, dim=[lay.tiles(lay.edges_pad + lay.nodes_pad)], block_dim=net.block_dim_of("hybrid_fields"),
+            hybrid_fields, dim=[(lay.edges_pad + lay.self_pad) // T], block_dim=net.block_dim_of("hybrid_fields"),
             device=dev,
             record_cmd=True,
-            inputs=[net.lat, g.row_recv, g.row_send, net.product_rows, w.de_e, w.de_b1, w.de_w2, w.de_b2, net.grads,
-                    lay.mesh_row, lay.tiles(lay.edges_pad), net.ports, net.node_terms])]
+            inputs=[net.lat, g.row_recv, g.row_send, net.product_rows, de_e, w.de_b1, de_w2, w.de_b2, net.grads,
+                    lay.mesh_row, lay.edges_pad // T, net.ports, net.node_terms])]
     return [wp.launch_tiled(
         vanilla_tail, dim=[lay.nodes_pad // net.spec.node_tile], block_dim=net.block_dim_of("vanilla_tail"), device=dev,
         record_cmd=True,

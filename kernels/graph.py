@@ -36,7 +36,7 @@ class Layout:
     n_act_edges: int  # actuator edges (0 without actuator graphs)
     tile_rows: int
     self_loops: bool  # the hybrid decoder's self-loop rows
-    edge_rows: int = 0  # the edge pass's tiles (Spec.edge_rows; 0: tile_rows): the two edge blocks padded to them
+    edge_rows: int = 0  # the edge-row launches' tiles (Spec.edge_rows; 0: tile_rows): the edge blocks padded to them
 
     @property
     def edge_tile(self) -> int:
@@ -55,6 +55,11 @@ class Layout:
         return _pad(self.n_act_edges, self.edge_tile)
 
     @property
+    def self_pad(self) -> int:
+        """Rows of the self-loop block (the hybrid decoder reads it with the mesh edges, on the edge tiles)."""
+        return _pad(self.n_nodes, self.edge_tile) if self.self_loops else 0
+
+    @property
     def tools_pad(self) -> int:
         return _pad(self.n_tools, self.tile_rows)
 
@@ -69,7 +74,7 @@ class Layout:
 
     @property
     def act_row(self) -> int:
-        return self.self_row + (self.nodes_pad if self.self_loops else 0)
+        return self.self_row + self.self_pad
 
     @property
     def tool_row(self) -> int:

@@ -136,8 +136,8 @@ class Network:
         # the hybrid's (dE, dS) a node, port terms L dE + M dS a mesh edge and self-loop, and each node's
         # per-component shares of its degeneracy residual and entropy production (generic_tail)
         self.grads = zeros(lay.nodes_pad, N_GRAD) if hybrid else None
-        self.ports = zeros(lay.edges_pad + lay.nodes_pad, STATE) if hybrid else None
-        self.node_terms = zeros(lay.nodes_pad, 2 * STATE) if hybrid else None
+        self.ports = zeros(lay.edges_pad + lay.self_pad, STATE) if hybrid else None
+        self.node_terms = zeros(lay.self_pad, 2 * STATE) if hybrid else None
         placeholder = zeros(1, 1)  # the vanilla's node pass has no delta_v
         self.node_decoder_args = ((w.dv_b1, w.dv_w2, w.dv_b2, self.grads) if hybrid
                                   else (placeholder,) * 4)

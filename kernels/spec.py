@@ -46,9 +46,10 @@ class Spec:
     # slower than "native" on an H200, warp_fp16_h200.json). The CPU runs "mathdx" as "scalar" and "fp16" with the
     # same rounding
     gemm: str = GEMMS[0]
-    # the edge pass's tiles and products, where they differ from the others' (0, "": tile_rows, gemm): "wgmma" takes
-    # tiles of 64 rows (a multiple of tile_rows; the layout pads the edge blocks to them) and runs both products on
-    # Hopper's warpgroup tensor cores in fp32 data (tiles.GEMM_WGMMA: sm_90a modules, weights packed in tf32 parts)
+    # the edge-row launches' tiles and products (edge pass, hybrid decoder), where they differ from the others' (0, "":
+    # tile_rows, gemm): "wgmma" takes tiles of 64 rows (a multiple of tile_rows; the layout pads the edge and
+    # self-loop blocks to them) and runs their products on Hopper's warpgroup tensor cores in fp32 data
+    # (tiles.GEMM_WGMMA: sm_90a modules, weights packed in tf32 parts)
     edge_rows: int = 0
     edge_gemm: str = ""
     # ((kernel, threads a block), ...): tile kernels whose CUDA launches take another block than the others' (names
@@ -215,11 +216,12 @@ def threads_for(k_chunk: int, latent: int, cuda: bool, arch: int | None = None) 
     since), and its CSR sums two threads a row vector (tiles.SEGMENT_SUMS): 141.8 -> 138.3 us a 5-pass step, 278.4 ->
     269.8 at 12 passes on an H200 (bench/results/warp_wide_blocks_h200.json). Else (): with K chunks (batch 64,
     F = 128) each thread's half of a 32-row chunk is 16 k with a barrier every chunk (F = 128: 705.5 -> 712.6 us at 12
-    passes on 256 threads). With wgmma edge products (edge_products_for, on sm_90: ``arch``) the edge pass too, its
-    64-row tiles' products on two warpgroups and its other steps with a thread for as many rows as on 32-row tiles."""
-    wide = ("node_pass", WIDE) if cuda and k_chunk == latent else None
-    edge = ("edge_pass", WIDE) if cuda and edge_products_for(k_chunk, latent, arch) else None
-    return tuple(x for x in (edge, wide) if x)
+    passes on 256 threads). With wgmma edge products (edge_products_for, on sm_90: ``arch``) the edge-row launches
+    too (edge pass, hybrid decoder): their 64-row tiles' products on two warpgroups, their other steps with a thread
+    for as many rows as on 32-row tiles."""
+    wide = [("node_pass", WIDE)] if cuda and k_chunk == latent else []
+    edges = [("edge_pass", WIDE), ("hybrid_fields", WIDE)] if cuda and edge_products_for(k_chunk, latent, arch) else []
+    return tuple(sorted(edges + wide))
 
 
 def check_config(config) -> None:

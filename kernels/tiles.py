@@ -331,7 +331,7 @@ assert "half_round(av" in GEMM_F16
 # same tile; on 32-row tiles (half of each instruction padding) little faster
 # (bench/studies/warp_product_latency.py, warp_wgmma_products_h200.json). Off CUDA one thread an output element over
 # the packed parts (hi + lo), so Warp's CPU device checks the layout; a CUDA build without sm_90a is refused.
-WGMMA_N = (32, 64, 128, 144)  # a warpgroup's widths built (F = 64 on one or two warpgroups, F = 128, the decoder's)
+WGMMA_N = (32, 64, 72, 128, 144)  # a warpgroup's widths built (F = 64 and the decoder's 144 on one or two, F = 128)
 
 
 def _wgmma_source() -> str:
@@ -360,7 +360,7 @@ def _wgmma_source() -> str:
     static_assert(M < 0, "wgmma products need an sm_90a build (Spec.sm90a)");
 #else
     constexpr int WG = WP_TILE_BLOCK_DIM / 128, NW = N / WG;  // warpgroups, the columns of each
-    static_assert((WG == 1 || WG == 2) && WP_TILE_BLOCK_DIM % 128 == 0 && M == 64 && NW % 16 == 0 && N % WG == 0
+    static_assert((WG == 1 || WG == 2) && WP_TILE_BLOCK_DIM % 128 == 0 && M == 64 && NW % 8 == 0 && N % WG == 0
                   && SA % 4 == 0 && SC % 4 == 0, "wgmma shape");
     static_assert(""" + " || ".join(f"NW == {n}" for n in WGMMA_N) + r""", "a width of tiles.WGMMA_N");
     const int group = threadIdx.x / 128, warp = threadIdx.x / 32 % 4, lane = threadIdx.x % 32, q = lane % 4;
@@ -405,7 +405,7 @@ def _wgmma_source() -> str:
     asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory");
     const bool odd = q & 1;
 #pragma unroll
-    for (int j = 0; j < NW / 8; j += 2) {
+    for (int j = 0; j + 1 < NW / 8; j += 2) {
 #pragma unroll
         for (int h = 0; h < 2; ++h) {  // rows r0, r1: lane pairs swap so each holds 4 consecutive columns of a row
             const int r = h ? r1 : r0;
@@ -419,6 +419,15 @@ def _wgmma_source() -> str:
             w.x += v.x; w.y += v.y; w.z += v.z; w.w += v.w;
             *o = w;
         }
+    }
+    if constexpr (NW % 16 == 8) {  // an odd last 8-column block: its pairs of columns, 8-byte read-modify-writes
+        constexpr int j = NW / 8 - 1;
+        float2* o0 = reinterpret_cast<float2*>(pc + r0 * SC + c0 + 8 * j + 2 * q);
+        float2* o1 = reinterpret_cast<float2*>(pc + r1 * SC + c0 + 8 * j + 2 * q);
+        float2 w0 = *o0, w1 = *o1;
+        w0.x += d[4 * j]; w0.y += d[4 * j + 1]; w1.x += d[4 * j + 2]; w1.y += d[4 * j + 3];
+        *o0 = w0;
+        *o1 = w1;
     }
 #endif
 #else

@@ -285,15 +285,15 @@ def test_tiles_by_graph_size():
 
 
 def test_edge_products_and_threads_by_gpu():
-    """The edge pass on wgmma (64-row tiles, two warpgroups) only on sm_90 with whole F = 64 weights (small graphs);
-    its block then on 256 threads beside the node pass's; elsewhere as the other launches (spec.edge_products_for,
-    spec.threads_for); off a GPU never."""
+    """The edge-row launches (edge pass, hybrid decoder) on wgmma (64-row tiles, two warpgroups) only on sm_90 with
+    whole F = 64 weights (small graphs); their blocks then on 256 threads, as the node pass's; elsewhere as the other
+    launches (spec.edge_products_for, spec.threads_for); off a GPU never."""
     from warpgnn.kernels.spec import edge_products_for, threads_for
 
     assert edge_products_for(64, 64, 90) == {"edge_rows": 64, "edge_gemm": "wgmma"}
     assert edge_products_for(32, 64, 90) == edge_products_for(64, 64, 80) == edge_products_for(64, 64, None) == {}
     assert edge_products_for(16, 16, 90) == edge_products_for(128, 128, 90) == {}
-    assert threads_for(64, 64, True, 90) == (("edge_pass", 256), ("node_pass", 256))
+    assert threads_for(64, 64, True, 90) == (("edge_pass", 256), ("hybrid_fields", 256), ("node_pass", 256))
     assert threads_for(64, 64, True, 80) == threads_for(64, 64, True) == (("node_pass", 256),)
     assert threads_for(32, 64, True, 90) == threads_for(64, 64, False, 90) == ()
     net = Network(random_model("vanilla", 1, 64), tool_topology(box((3, 3, 2)), 2), device="cpu")
@@ -419,14 +419,15 @@ def test_tensor_core_products_against_numpy(device):
 
 @pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
 def test_tensor_core_edge_pass(monkeypatch, kind):
-    """The edge pass on 64-row tiles with wgmma products (Spec.edge_rows, edge_gemm; the edge blocks padded to 64 rows
-    while the other launches take 32) and its weights in tensor-core layout, K in chunks of 16, 5 threads a block
-    (CPU fibers): the reference's answer."""
+    """The edge pass and the hybrid decoder on 64-row tiles with wgmma products (Spec.edge_rows, edge_gemm; the edge and
+    self-loop blocks padded to 64 rows while the other launches take 32) and their weights in tensor-core layout, K in
+    chunks of 16, 5 threads a block (CPU fibers): the reference's answer."""
     monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
     net, _ = check(random_model(kind, 2, 32, seed=9), tool_topology(box((5, 4, 3)), 3, seed=9), seed=9,
                    edge_rows=64, edge_gemm="wgmma", k_chunk=16, block_dim=5)
     lay = net.layout
     assert lay.edges_pad % 64 == 0 and lay.act_pad % 64 == 0 and lay.nodes_pad % 32 == 0
+    assert lay.self_pad == (-(-lay.n_nodes // 64) * 64 if kind == "hybrid" else 0)
     assert net.spec.sm90a and net.spec.edges.tile_rows == 64
 
 
