@@ -97,15 +97,16 @@ class Network:
             picked = node_rows_for(topology.n_nodes, self.device.sm_count if self.device.is_cuda else 0, w.latent,
                                    max_shared_of(self.device))
             node_rows = next(n for n in (picked, NODE_ROWS[0], tile_rows) if tile_rows % n == 0)
+        tiles_per_sm = -(-topology.n_nodes // node_rows) / self.device.sm_count if self.device.is_cuda else 0
+        small = node_rows == NODE_ROWS[0] and tiles_per_sm <= 1  # a node tile an SM at most
         if k_chunk is None:
-            tiles_per_sm = -(-topology.n_nodes // node_rows) / self.device.sm_count if self.device.is_cuda else 0
             k_chunk = k_chunk_for(node_rows, w.latent, max_shared_of(self.device), tiles_per_sm)
         arch = self.device.arch if self.device.is_cuda else None
-        if edge_rows is None and edge_gemm is None:  # by the GPU and the K chunk (spec.edge_products_for)
-            edge = edge_products_for(k_chunk, w.latent, arch)
+        if edge_rows is None and edge_gemm is None:  # by the GPU and the graph's size (spec.edge_products_for)
+            edge = edge_products_for(k_chunk, w.latent, arch, small)
         else:
             edge = {"edge_rows": edge_rows or 0, "edge_gemm": edge_gemm or ""}
-        threads = threads_for(k_chunk, w.latent, self.device.is_cuda, arch) if threads is None else threads
+        threads = threads_for(k_chunk, w.latent, self.device.is_cuda, arch, small) if threads is None else threads
         self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm, threads=tuple(dict(threads).items()), **edge)
         build_kernels(self.spec)
         self.block_dim = block_dim or default_block_dim(self.device)

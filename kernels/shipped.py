@@ -40,8 +40,9 @@ def specs(arch: int) -> list[Spec]:
     wgmma on sm_90 with whole weights, an sm_90a build)."""
     shapes = [(F, n, k_chunk_for(n, F)) for F in LATENTS for n in node_rows_allowed(F)]
     shapes += [(F, NODE_ROWS[0], k_chunk_for(NODE_ROWS[0], F, max_shared=0)) for F in LATENTS]
-    out = [Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, arch), **edge_products_for(k, F, arch))
-           for F, n, k in shapes]
+    small = NODE_ROWS[0]  # the small graphs' node tiles
+    out = [Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, arch, n == small),
+                **edge_products_for(k, F, arch, n == small)) for F, n, k in shapes]
     return list({s.module: s for s in out}.values())
 
 

@@ -199,28 +199,32 @@ def k_chunk_for(node_rows: int, latent: int, max_shared: int | None = None, node
 WIDE = 256  # threads a block of the kernels threads_for names
 
 
-def edge_products_for(k_chunk: int, latent: int, arch: int | None) -> dict:
+def edge_products_for(k_chunk: int, latent: int, arch: int | None, small: bool = False) -> dict:
     """Spec's edge_rows and edge_gemm for a Network on a GPU of compute capability ``arch`` (None: not a GPU): on
-    sm_90 (H100, H200) with whole F = 64 weights (small graphs: k_chunk_for), the edge pass on tiles of 64 rows with
-    wgmma products (tiles.GEMM_WGMMA) on two warpgroups (threads_for): an H200's hybrid steps 62.2 / 130.3 / 249.9 ->
-    61.1 / 126.5 / 241.0 us at 1 / 5 / 12 passes, its edge pass 12.5 -> 11.6 us (bench/results/
-    warp_wgmma_edge_pass_h200.json); on 128 threads it had been slower (130.4 -> 137.3 us at 5 passes), as at batch 64
-    (K chunks: 366 -> 382 us a launch). Else {} (the edge pass as the others)."""
-    return {"edge_rows": 64, "edge_gemm": "wgmma"} if arch == 90 and k_chunk == latent == 64 else {}
+    sm_90 (H100, H200), for small graphs (``small``: node tiles of 8, at most one an SM; at F = 64 whole weights,
+    k_chunk_for, which says as much), the edge-row launches (edge pass, hybrid decoder) on tiles of 64 rows with wgmma
+    products (tiles.GEMM_WGMMA) on two warpgroups (threads_for). On an H200 (L5, batch 1; bench/results/
+    warp_wgmma_edge_pass_h200.json): F = 64 hybrid 62.2 / 130.3 / 249.9 -> 61.1 / 126.5 / 241.0 us at 1 / 5 / 12 passes
+    with the edge pass, -> 58.2 / 124.1 / 239.1 with the decoder too; F = 128, 12 passes, 676.8 -> 639.7 us. On 128
+    threads the edge pass had been slower (130.4 -> 137.3 us at 5 passes), and it is at batch 64 (366 -> 382 us a
+    launch). Else {} (the launches' tiles and products as the others')."""
+    tensor = arch == 90 and ((latent == 64 and k_chunk == latent) or (latent == 128 and small))
+    return {"edge_rows": 64, "edge_gemm": "wgmma"} if tensor else {}
 
 
-def threads_for(k_chunk: int, latent: int, cuda: bool, arch: int | None = None) -> tuple:
+def threads_for(k_chunk: int, latent: int, cuda: bool, arch: int | None = None, small: bool = False) -> tuple:
     """Spec.threads of a Network on CUDA (``cuda``) with ``k_chunk`` (k_chunk_for): with whole weights (small
     graphs), the node pass on WIDE threads: its block holds an SM alone (137 KiB at F = 64), and 256 threads give its
     products more warps a scheduler, each summing a part of K (tiles.GEMM: two parts when measured, up to four
     since), and its CSR sums two threads a row vector (tiles.SEGMENT_SUMS): 141.8 -> 138.3 us a 5-pass step, 278.4 ->
     269.8 at 12 passes on an H200 (bench/results/warp_wide_blocks_h200.json). Else (): with K chunks (batch 64,
     F = 128) each thread's half of a 32-row chunk is 16 k with a barrier every chunk (F = 128: 705.5 -> 712.6 us at 12
-    passes on 256 threads). With wgmma edge products (edge_products_for, on sm_90: ``arch``) the edge-row launches
+    passes on 256 threads). With wgmma edge products (edge_products_for: ``arch``, ``small``) the edge-row launches
     too (edge pass, hybrid decoder): their 64-row tiles' products on two warpgroups, their other steps with a thread
     for as many rows as on 32-row tiles."""
     wide = [("node_pass", WIDE)] if cuda and k_chunk == latent else []
-    edges = [("edge_pass", WIDE), ("hybrid_fields", WIDE)] if cuda and edge_products_for(k_chunk, latent, arch) else []
+    tensor = cuda and edge_products_for(k_chunk, latent, arch, small)
+    edges = [("edge_pass", WIDE), ("hybrid_fields", WIDE)] if tensor else []
     return tuple(sorted(edges + wide))
 
 

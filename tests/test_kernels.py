@@ -285,14 +285,17 @@ def test_tiles_by_graph_size():
 
 
 def test_edge_products_and_threads_by_gpu():
-    """The edge-row launches (edge pass, hybrid decoder) on wgmma (64-row tiles, two warpgroups) only on sm_90 with
-    whole F = 64 weights (small graphs); their blocks then on 256 threads, as the node pass's; elsewhere as the other
-    launches (spec.edge_products_for, spec.threads_for); off a GPU never."""
+    """The edge-row launches (edge pass, hybrid decoder) on wgmma (64-row tiles, two warpgroups) only on sm_90 for small
+    graphs (whole F = 64 weights; F = 128 with node tiles of 8 at most one an SM); their blocks then on 256 threads;
+    elsewhere as the other launches (spec.edge_products_for, spec.threads_for); off a GPU never."""
     from warpgnn.kernels.spec import edge_products_for, threads_for
 
-    assert edge_products_for(64, 64, 90) == {"edge_rows": 64, "edge_gemm": "wgmma"}
+    tensor = {"edge_rows": 64, "edge_gemm": "wgmma"}
+    assert edge_products_for(64, 64, 90) == edge_products_for(32, 128, 90, small=True) == tensor
     assert edge_products_for(32, 64, 90) == edge_products_for(64, 64, 80) == edge_products_for(64, 64, None) == {}
-    assert edge_products_for(16, 16, 90) == edge_products_for(128, 128, 90) == {}
+    assert edge_products_for(16, 16, 90, True) == edge_products_for(32, 128, 90) == edge_products_for(32, 128, 80,
+                                                                                                      True) == {}
+    assert threads_for(32, 128, True, 90, small=True) == (("edge_pass", 256), ("hybrid_fields", 256))
     assert threads_for(64, 64, True, 90) == (("edge_pass", 256), ("hybrid_fields", 256), ("node_pass", 256))
     assert threads_for(64, 64, True, 80) == threads_for(64, 64, True) == (("node_pass", 256),)
     assert threads_for(32, 64, True, 90) == threads_for(64, 64, False, 90) == ()
@@ -314,28 +317,10 @@ def test_half_precision_products_round_their_operands(device):
     """Spec.gemm = "fp16" (tiles.GEMM_F16): acc += a @ b with a and b rounded to half precision and fp32 sums (tensor
     cores on CUDA, shapes that are no whole number of their (16, 8, 16) tiles), against numpy on the same rounded
     operands; and not the fp32 product, so the rounding is in effect."""
-    from warpgnn.kernels import tiles
-
     rows, k, n = 8, 24, 12
-    product = tiles.gemm(rows, k, n, "fp16", "test_half_precision_products")
-
-    @wp.kernel(enable_backward=False, module="test_half_precision_products")
-    def apply(a: wp.array2d(dtype=float), b: wp.array2d(dtype=float), c: wp.array2d(dtype=float)):
-        ta = wp.tile_load(a, shape=(rows, k), storage="shared")
-        tb = wp.tile_load(b, shape=(k, n), storage="shared")
-        tc = wp.tile_load(c, shape=(rows, n), storage="shared")
-        product(ta, tb, tc)
-        wp.tile_store(c, tc)
-
-    rng = np.random.default_rng(0)
-    a, b, c = (rng.standard_normal(s).astype(np.float32) for s in ((rows, k), (k, n), (rows, n)))
-    out = wp.array(c, dtype=float, device=device)
-    wp.launch_tiled(apply, dim=[1], inputs=[wp.array(a, dtype=float, device=device),
-                                            wp.array(b, dtype=float, device=device), out],
-                    block_dim=32 if device != "cpu" else 1, device=device)
+    a, b, c, got = tile_product("fp16", rows, k, n, device, 32, seed=0)
     half = c + a.astype(np.float16).astype(np.float64) @ b.astype(np.float16).astype(np.float64)
     single = c + a.astype(np.float64) @ b.astype(np.float64)
-    got = out.numpy()
     assert np.abs(got - half).max() <= 1e-5 * np.abs(half).max()
     assert np.abs(got - single).max() >= 1e-4 * np.abs(single).max()
 
@@ -374,34 +359,38 @@ def test_gemm_choice_is_its_own_module():
     assert Spec(16, edge_rows=64, edge_gemm="wgmma").module != Spec(16).module
 
 
-def _tensor_core_products(device):
-    """(64, 32) @ (32, 64) + acc through tiles.GEMM_WGMMA, the weight in weights.tensor_core_layout, on ``device``."""
+def tile_product(kind, rows, k, n, device, block_dim, seed=0):
+    """(a, b, c, c + a @ b) through tiles.gemm(kind) in a one-block kernel on ``device`` (``block_dim`` threads on
+    CUDA), random operands; for "wgmma" b goes in weights.tensor_core_layout, its module built for sm_90a on CUDA."""
     from warpgnn.kernels import tiles
+    from warpgnn.kernels.shipped import arch_suffix
+    from warpgnn.kernels.spec import Spec
     from warpgnn.kernels.weights import tensor_core_layout
 
-    rows, k, k2, n = 64, 32, 64, 64  # k2: the packed weight's rows
-    owner = "test_tensor_core_products"
-    product = tiles.gemm(rows, k, n, "wgmma", owner)
+    tensor = kind == "wgmma"
+    kb = 2 * k if tensor else k  # b's rows as stored
+    owner = f"test_tile_product_{kind}"
+    product = tiles.gemm(rows, k, n, kind, owner)
 
     @wp.kernel(enable_backward=False, module=owner)
     def apply(a: wp.array2d(dtype=float), b: wp.array2d(dtype=float), c: wp.array2d(dtype=float)):
         ta = wp.tile_load(a, shape=(rows, k), storage="shared")
-        tb = wp.tile_load(b, shape=(k2, n), storage="shared")
+        tb = wp.tile_load(b, shape=(kb, n), storage="shared")
         tc = wp.tile_load(c, shape=(rows, n), storage="shared")
         product(ta, tb, tc)
         wp.tile_store(c, tc)
 
-    rng = np.random.default_rng(1)
+    rng = np.random.default_rng(seed)
     a, b, c = (rng.standard_normal(s).astype(np.float32) for s in ((rows, k), (k, n), (rows, n)))
     out = wp.array(c, dtype=float, device=device)
-    from warpgnn.kernels.shipped import arch_suffix
-    from warpgnn.kernels.spec import Spec
-    with arch_suffix(Spec(16, edge_rows=64, edge_gemm="wgmma")):  # sm_90a on CUDA
-        wp.load_module(owner, device=device, block_dim=128 if device != "cpu" else 1)
+    threads = block_dim if device != "cpu" else 1
+    with arch_suffix(Spec(16, edge_rows=64, edge_gemm="wgmma" if tensor else "")):  # sm_90a for wgmma on CUDA
+        wp.load_module(owner, device=device, block_dim=threads)
     wp.launch_tiled(apply, dim=[1], inputs=[wp.array(a, dtype=float, device=device),
-                                            wp.array(tensor_core_layout(b), dtype=float, device=device), out],
-                    block_dim=128 if device != "cpu" else 1, device=device)
-    return out.numpy(), c + a.astype(np.float64) @ b.astype(np.float64)
+                                            wp.array(tensor_core_layout(b) if tensor else b, dtype=float,
+                                                     device=device), out],
+                    block_dim=threads, device=device)
+    return a, b, c, out.numpy()
 
 
 SM90 = HAS_CUDA and wp.get_device("cuda:0").arch == 90
@@ -413,8 +402,10 @@ def test_tensor_core_products_against_numpy(device):
     """Spec.edge_gemm = "wgmma" (tiles.GEMM_WGMMA): acc += a @ W with W in tf32 hi and lo parts in wgmma's core-matrix
     layout (weights.tensor_core_layout): fp32's answer (3xTF32 on Hopper's tensor cores; off CUDA the layout read
     element by element), so the packing and its reading agree."""
-    got, expected = _tensor_core_products(device)
-    assert np.abs(got - expected).max() <= 1e-5 * np.abs(expected).max()
+    for threads in (128, 256):  # one or two warpgroups (each half the columns)
+        a, b, c, got = tile_product("wgmma", 64, 32, 64, device, threads, seed=threads)
+        expected = c + a.astype(np.float64) @ b.astype(np.float64)
+        assert np.abs(got - expected).max() <= 1e-5 * np.abs(expected).max()
 
 
 @pytest.mark.parametrize("kind", ["hybrid", "vanilla"])

@@ -69,8 +69,9 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
         for F in shipped.LATENTS:
             for n in node_rows_allowed(F, max_shared):
                 k = k_chunk_for(n, F, max_shared)
-                spec = Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, arch),
-                            **edge_products_for(k, F, arch))
+                small = n == 8  # a small graph's node tiles
+                spec = Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, arch, small),
+                            **edge_products_for(k, F, arch, small))
                 assert spec.sm90a == (arch == 90 and k == F)
                 module = spec.module
                 assert shipped_specs.get(module) == spec, f"{module} (a GPU of {max_shared} B a block) is not shipped"
