@@ -470,10 +470,15 @@ def test_cuda_graph_step_equals_eager(kind):
     """On CUDA a whole step is one captured graph; its replay equals the launches one by one and the
     reference (the tile kernels' GPU path: 16-byte vector loads, warp shuffles, many threads a block). Latent 64:
     the shipped width, whose module kernels/aot holds prebuilt (no compile)."""
-    model = random_model(kind, 2, 64, seed=13)
-    top = tool_topology(box((5, 4, 3)), 3, seed=13)
-    z, u_now, u_next = random_inputs(top, 13)
-    net = Network(model, top, device="cuda:0")
+    captured_equals_eager(random_model(kind, 2, 64, seed=13), 13)
+
+
+def captured_equals_eager(model, seed, **kw):
+    """A Network on cuda:0 (``kw``: its Spec) on a 5 x 4 x 3 box with 3 tools: the reference's answer, its captured
+    replay equal to the launches one by one."""
+    top = tool_topology(box((5, 4, 3)), 3, seed=seed)
+    z, u_now, u_next = random_inputs(top, seed)
+    net = Network(model, top, device="cuda:0", **kw)
     eager = run(net, z, u_now, u_next)
     assert_matches(eager, reference(model, top, z, u_now, u_next))
     net.capture()
@@ -484,18 +489,10 @@ def test_cuda_graph_step_equals_eager(kind):
 
 @pytest.mark.skipif(not SM90, reason="wgmma needs an sm_90 GPU (H100, H200)")
 def test_tensor_core_edge_pass_on_hopper():
-    """The wgmma edge pass on an H100 / H200 (sm_90a module built on first use, Network.__init__): the reference's
-    answer, its captured replay equal to the launches one by one."""
-    model = random_model("hybrid", 2, 64, seed=17)
-    top = tool_topology(box((5, 4, 3)), 3, seed=17)
-    z, u_now, u_next = random_inputs(top, 17)
-    net = Network(model, top, device="cuda:0", edge_rows=64, edge_gemm="wgmma", k_chunk=32)
-    eager = run(net, z, u_now, u_next)
-    assert_matches(eager, reference(model, top, z, u_now, u_next))
-    net.capture()
-    replay = run(net, z, u_now, u_next)
-    for k, v in eager.items():
-        assert np.array_equal(replay[k], v), k
+    """The wgmma edge-row launches on an H100 / H200 on 128 threads with K chunks (not a Network's pick there: their
+    sm_90a module built on first use, Network.__init__); the default pick (256 threads, whole weights) runs in
+    test_cuda_graph_step_equals_eager."""
+    captured_equals_eager(random_model("hybrid", 2, 64, seed=17), 17, edge_rows=64, edge_gemm="wgmma", k_chunk=32)
 
 
 @pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device")
