@@ -181,9 +181,8 @@ def launches(net) -> list:
     hybrid_fields, vanilla_tail = kernels(net.spec), vanilla_kernel(net.spec)
     lay, w, g, dev = net.layout, net.weights, net.graph, net.device
     if w.kind == "hybrid":
-        T = lay.edge_tile  # the edge tiles (spec.edges), its weights in tf32 parts for tensor-core products
-        de_e, de_w2 = ((w.tensor_core("de_e"), w.tensor_core("de_w2")) if net.spec.edges.gemm == "wgmma"
-                       else (w.de_e, w.de_w2))
+        T = lay.edge_tile  # the edge tiles and products (spec.edges)
+        de_e, de_w2 = w.for_products(net.spec.edges.gemm, "de_e", "de_w2")
         return [wp.launch_tiled(
             hybrid_fields, dim=[(lay.edges_pad + lay.self_pad) // T], block_dim=net.block_dim_of("hybrid_fields"),
             device=dev,

@@ -287,9 +287,7 @@ def launches(net) -> list:
                 later_tools, net.lat, net.products])]
     mesh_tiles = lay.edges_pad // lay.edge_tile
     edge_tiles = mesh_tiles + lay.act_pad // lay.edge_tile
-    # the tensor-core products read their weights in tf32 parts (weights.tensor_core_layout)
-    ew_e, ew_w2 = ((w.tensor_core("ew_e"), w.tensor_core("ew_w2")) if net.spec.edges.gemm == "wgmma"
-                   else (w.ew_e, w.ew_w2))
+    ew_e, ew_w2 = w.for_products(net.spec.edges.gemm, "ew_e", "ew_w2")  # tensor-core products: in tf32 parts
     for p in range(w.passes):
         out.append(wp.launch_tiled(
             edge_pass, dim=[edge_tiles], block_dim=net.block_dim_of("edge_pass"), device=dev, record_cmd=True,

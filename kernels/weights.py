@@ -36,6 +36,11 @@ class Weights:
         except KeyError:
             raise AttributeError(name) from None
 
+    def for_products(self, gemm: str, *names: str) -> tuple:
+        """The weights ``names`` as products of kind ``gemm`` read them: in tensor_core_layout for "wgmma", else as
+        packed."""
+        return tuple(self.tensor_core(n) if gemm == "wgmma" else self.arrays[n] for n in names)
+
     def tensor_core(self, name: str):
         """Weight ``name`` in tensor_core_layout (the wgmma products'), packed on first use and kept."""
         key = f"{name}_tf32"
