@@ -26,7 +26,7 @@ from .spec import (
     NODE_ROWS,
     STATE,
     Spec,
-    edge_products_for,
+    edge_products,
     k_chunk_for,
     max_shared_of,
     node_rows_for,
@@ -102,10 +102,7 @@ class Network:
         if k_chunk is None:
             k_chunk = k_chunk_for(node_rows, w.latent, max_shared_of(self.device), tiles_per_sm)
         arch = self.device.arch if self.device.is_cuda else None
-        if edge_rows is None and edge_gemm is None:  # by the GPU and the graph's size (spec.edge_products_for)
-            edge = edge_products_for(k_chunk, w.latent, arch, small)
-        else:
-            edge = {"edge_rows": edge_rows or 0, "edge_gemm": edge_gemm or ""}
+        edge = edge_products(edge_rows, edge_gemm, k_chunk, w.latent, arch, small)  # None: by GPU and graph size
         threads = threads_for(k_chunk, w.latent, self.device.is_cuda, arch, small) if threads is None else threads
         self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm, threads=tuple(dict(threads).items()), **edge)
         build_kernels(self.spec)

@@ -24,7 +24,7 @@ import warp as wp
 
 from . import shipped
 from .network import build_kernels, default_block_dim
-from .spec import GEMMS, NODE_ROWS, SHARED_OF_ARCH, Spec, edge_products_for, k_chunk_for, max_shared_of, threads_for
+from .spec import GEMMS, NODE_ROWS, SHARED_OF_ARCH, Spec, edge_products, k_chunk_for, max_shared_of, threads_for
 
 
 def _specs(latents, max_shared: int | None, arch: int | None, **shape) -> list[Spec]:
@@ -39,8 +39,7 @@ def _specs(latents, max_shared: int | None, arch: int | None, **shape) -> list[S
     for F in latents:
         k = k_chunk_for(node_rows, F, max_shared) if k_chunk is None else k_chunk
         small = node_rows == NODE_ROWS[0]  # the small graphs' node tiles
-        edge = (edge_products_for(k, F, arch, small) if edge_rows is None and edge_gemm is None
-                else {"edge_rows": edge_rows or 0, "edge_gemm": edge_gemm or ""})
+        edge = edge_products(edge_rows, edge_gemm, k, F, arch, small)
         specs.append(Spec(F, k_chunk=k, threads=threads_for(k, F, True, arch, small) if threads is None else threads,
                           **edge, **shape))
     for spec in specs:

@@ -212,6 +212,14 @@ def edge_products_for(k_chunk: int, latent: int, arch: int | None, small: bool =
     return {"edge_rows": 64, "edge_gemm": "wgmma"} if tensor else {}
 
 
+def edge_products(edge_rows: int | None, edge_gemm: str | None, k_chunk: int, latent: int, arch: int | None,
+                  small: bool) -> dict:
+    """Spec's edge_rows and edge_gemm: those given, or where neither is (None) edge_products_for's pick."""
+    if edge_rows is None and edge_gemm is None:
+        return edge_products_for(k_chunk, latent, arch, small)
+    return {"edge_rows": edge_rows or 0, "edge_gemm": edge_gemm or ""}
+
+
 def threads_for(k_chunk: int, latent: int, cuda: bool, arch: int | None = None, small: bool = False) -> tuple:
     """Spec.threads of a Network on CUDA (``cuda``) with ``k_chunk`` (k_chunk_for): with whole weights (small
     graphs), the node pass on WIDE threads: its block holds an SM alone (137 KiB at F = 64), and 256 threads give its
