@@ -54,10 +54,10 @@ LM_CHUNK = 16  # K rows of the (F, 144) weight's chunks where blocks queue for t
 
 @functools.cache
 def kernels(spec: Spec):
-    """hybrid_fields on the edge tiles and products (spec.edges: its rows are edge rows), in
+    """hybrid_fields on its edge tiles and products (spec.edges: its rows are edge rows), in
     spec.module_of("hybrid_fields")."""
     owner = spec.module_of("hybrid_fields")
-    edges = spec.edges
+    edges = spec.edges("hybrid_fields")
     T, F, G = edges.tile_rows, spec.latent, edges.gemm
     _fill, activate, _second_layer, _sums, _project, gather_pair, _ahead = helpers(edges, owner)
     # where blocks queue for the SMs its (F, 144) weight in K chunks of LM_CHUNK rows (double-buffered, 18 KiB instead
@@ -181,8 +181,9 @@ def launches(net) -> list:
     hybrid_fields, vanilla_tail = kernels(net.spec), vanilla_kernel(net.spec)
     lay, w, g, dev = net.layout, net.weights, net.graph, net.device
     if w.kind == "hybrid":
-        T = lay.edge_tile  # the edge tiles and products (spec.edges)
-        de_e, de_w2 = w.for_products(net.spec.edges.gemm, "de_e", "de_w2")
+        edges = net.spec.edges("hybrid_fields")  # its tiles and products (within the layout's edge_tile padding)
+        T = edges.tile_rows
+        de_e, de_w2 = w.for_products(edges.gemm, "de_e", "de_w2")
         return [wp.launch_tiled(
             hybrid_fields, dim=[(lay.edges_pad + lay.self_pad) // T], block_dim=net.block_dim_of("hybrid_fields"),
             device=dev,

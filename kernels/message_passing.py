@@ -44,7 +44,7 @@ MANY_BLOCKS_REGISTERS = {"edge_pass": 96, "encode": 128}
 def _options(spec: Spec, kernel: str) -> dict:
     """Kernel options of ``kernel`` (MANY_BLOCKS_REGISTERS; not the tensor-core edge pass, whose 64-row blocks are
     two an SM by their shared memory)."""
-    tensor = kernel == "edge_pass" and spec.edges.gemm == "wgmma"
+    tensor = kernel == "edge_pass" and spec.edges("edge_pass").gemm == "wgmma"
     capped = spec.many_blocks and kernel in MANY_BLOCKS_REGISTERS and not tensor
     return {"cuda_max_registers": MANY_BLOCKS_REGISTERS[kernel]} if capped else {}
 
@@ -121,7 +121,7 @@ def encoder_kernel(spec: Spec):
 def edge_kernel(spec: Spec):
     """edge_pass, in spec.module_of("edge_pass")."""
     owner = spec.module_of("edge_pass")
-    edges = spec.edges  # its tiles and products (Spec.edge_rows, edge_gemm)
+    edges = spec.edges("edge_pass")  # its tiles and products (Spec.edge_rows, edge_gemm, edge_kernels)
     T, F = edges.tile_rows, spec.latent
     _fill, _activate, second_layer, _sums, _project, gather_pair, ahead_parts = helpers(edges, owner)
     w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
@@ -285,9 +285,10 @@ def launches(net) -> list:
                 w.tool_proj, w.eps, lay.mesh_row, lay.self_row, lay.act_row,
                 lay.tool_row, lay.nodes_pad, lay.tools_pad, pass_chunks, first_chunks, lay.tiles(lay.rows),
                 later_tools, net.lat, net.products])]
-    mesh_tiles = lay.edges_pad // lay.edge_tile
-    edge_tiles = mesh_tiles + lay.act_pad // lay.edge_tile
-    ew_e, ew_w2 = w.for_products(net.spec.edges.gemm, "ew_e", "ew_w2")  # tensor-core products: in tf32 parts
+    edges = net.spec.edges("edge_pass")  # its tiles (within the layout's edge_tile padding) and products
+    mesh_tiles = lay.edges_pad // edges.tile_rows
+    edge_tiles = mesh_tiles + lay.act_pad // edges.tile_rows
+    ew_e, ew_w2 = w.for_products(edges.gemm, "ew_e", "ew_w2")  # tensor-core products: in tf32 parts
     for p in range(w.passes):
         out.append(wp.launch_tiled(
             edge_pass, dim=[edge_tiles], block_dim=net.block_dim_of("edge_pass"), device=dev, record_cmd=True,

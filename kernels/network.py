@@ -82,11 +82,13 @@ def _as_warp(x, device):
 class Network:
     def __init__(self, model, topology, device=None, tile_rows: int = Spec.tile_rows, block_dim: int | None = None,
                  k_chunk: int | None = None, weights=None, node_rows: int | None = None, gemm: str = Spec.gemm,
-                 threads: dict | None = None, edge_rows: int | None = None, edge_gemm: str | None = None):
+                 threads: dict | None = None, edge_rows: int | None = None, edge_gemm: str | None = None,
+                 edge_kernels: tuple | None = None):
         """``model``: a warpgnn TIGNN (its config and weights are read once); ``topology``: a
         warpgnn.graphs.Topology, one simulation or a stacked batch. ``tile_rows``, ``node_rows``, ``k_chunk``,
-        ``gemm``, ``edge_rows``, ``edge_gemm``: the kernels' Spec (node_rows and k_chunk None: by the graph's size,
-        spec.node_rows_for and spec.k_chunk_for; edge_rows and edge_gemm None: by the GPU, spec.edge_products_for;
+        ``gemm``, ``edge_rows``, ``edge_gemm``, ``edge_kernels``: the kernels' Spec (node_rows and k_chunk None: by the
+        graph's size, spec.node_rows_for and spec.k_chunk_for; the edge products None: by the GPU and the graph's size,
+        spec.edge_products_for;
         the shapes kernels/aot ships). ``block_dim``: threads a block
         of the tile kernels (default_block_dim); ``threads``: {kernel name: threads a block} of those whose CUDA
         launches take another (Spec.threads; None: by the K chunk, spec.threads_for). ``weights``: the
@@ -102,7 +104,7 @@ class Network:
         if k_chunk is None:
             k_chunk = k_chunk_for(node_rows, w.latent, max_shared_of(self.device), tiles_per_sm)
         arch = self.device.arch if self.device.is_cuda else None
-        edge = edge_products(edge_rows, edge_gemm, k_chunk, w.latent, arch, small)  # None: by GPU and graph size
+        edge = edge_products(edge_rows, edge_gemm, k_chunk, w.latent, arch, small, edge_kernels)  # None: by GPU, size
         threads = threads_for(k_chunk, w.latent, self.device.is_cuda, arch, small) if threads is None else threads
         self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm, threads=tuple(dict(threads).items()), **edge)
         build_kernels(self.spec)

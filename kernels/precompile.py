@@ -29,17 +29,18 @@ from .spec import GEMMS, NODE_ROWS, SHARED_OF_ARCH, Spec, edge_products, k_chunk
 
 def _specs(latents, max_shared: int | None, arch: int | None, **shape) -> list[Spec]:
     """The Spec of each width, its kernels built. ``shape``: Spec's tile_rows, node_rows, k_chunk, threads, edge_rows,
-    edge_gemm (its defaults where absent; k_chunk None: the one a Network with those node tiles picks on a GPU allowing
-    a block ``max_shared`` bytes, spec.k_chunk_for; threads and the edge products None: a Network's on a GPU of
-    compute capability ``arch``, spec.threads_for and spec.edge_products_for)."""
+    edge_gemm, edge_kernels (its defaults where absent; k_chunk None: the one a Network with those node tiles picks
+    on a GPU allowing a block ``max_shared`` bytes, spec.k_chunk_for; threads and the edge products None: a
+    Network's on a GPU of compute capability ``arch``, spec.threads_for and spec.edge_products_for)."""
     k_chunk, threads = shape.pop("k_chunk", None), shape.pop("threads", None)
     edge_rows, edge_gemm = shape.pop("edge_rows", None), shape.pop("edge_gemm", None)
+    edge_kernels = shape.pop("edge_kernels", None)
     node_rows = shape.get("node_rows", Spec.node_rows)
     specs = []
     for F in latents:
         k = k_chunk_for(node_rows, F, max_shared) if k_chunk is None else k_chunk
         small = node_rows == NODE_ROWS[0]  # the small graphs' node tiles
-        edge = edge_products(edge_rows, edge_gemm, k, F, arch, small)
+        edge = edge_products(edge_rows, edge_gemm, k, F, arch, small, edge_kernels)
         specs.append(Spec(F, k_chunk=k, threads=threads_for(k, F, True, arch, small) if threads is None else threads,
                           **edge, **shape))
     for spec in specs:
@@ -91,7 +92,8 @@ def ship(log=print) -> None:
         for spec in shipped.specs(arch):
             with tempfile.TemporaryDirectory() as tmp:
                 seconds = compile_ahead([spec.latent], arch, tmp, node_rows=spec.node_rows, k_chunk=spec.k_chunk,
-                                        threads=spec.threads, edge_rows=spec.edge_rows, edge_gemm=spec.edge_gemm)
+                                        threads=spec.threads, edge_rows=spec.edge_rows, edge_gemm=spec.edge_gemm,
+                                        edge_kernels=spec.edge_kernels)
                 for cubin, meta in shipped.files(spec, arch):
                     cubin.write_bytes(lzma.compress((Path(tmp) / cubin.stem).read_bytes(), preset=6))
                     shutil.copy(Path(tmp) / meta.name, meta)
@@ -125,6 +127,8 @@ def main(argv=None) -> None:
                         help="Spec.edge_rows (default: a Network's pick, spec.edge_products_for; not --ship)")
     parser.add_argument("--edge-gemm", default=None,
                         help="Spec.edge_gemm, e.g. wgmma (sm_90a; default: a Network's pick; not --ship)")
+    parser.add_argument("--edge-kernels", default=None,
+                        help="Spec.edge_kernels, comma-separated (default: a Network's pick; not --ship)")
     parser.add_argument("--threads", default=None,
                         help="Spec.threads as KERNEL=N,... (default: a Network's pick on a GPU; 'none': every "
                              "kernel on --block-dim; not --ship)")
@@ -133,7 +137,8 @@ def main(argv=None) -> None:
     latents = sorted({int(x) for x in args.latent.split(",") if x.strip()})
     shape = {"tile_rows": args.tile_rows, "node_rows": args.node_rows, "k_chunk": args.k_chunk, "gemm": args.gemm,
              "threads": None if args.threads is None else parse_threads(args.threads),
-             "edge_rows": args.edge_rows, "edge_gemm": args.edge_gemm}
+             "edge_rows": args.edge_rows, "edge_gemm": args.edge_gemm,
+             "edge_kernels": tuple(args.edge_kernels.split(",")) if args.edge_kernels else None}
     if args.ship:
         ship()
     elif args.arch is not None:

@@ -37,7 +37,7 @@ def specs(arch: int) -> list[Spec]:
     """The specs shipped for ``arch``: each latent width of LATENTS with each node tile size of NODE_ROWS and its K
     chunk, and the small graphs' tiles with the K chunk of GPUs allowing a block less shared memory (sm_86/sm_89, which
     run the sm_80 build: spec.k_chunk_for), each with the edge products a Network picks there (edge_products_for:
-    wgmma on sm_90 with whole weights, an sm_90a build)."""
+    wgmma on sm_90, an sm_90a build)."""
     shapes = [(F, n, k_chunk_for(n, F)) for F in LATENTS for n in node_rows_allowed(F)]
     shapes += [(F, NODE_ROWS[0], k_chunk_for(NODE_ROWS[0], F, max_shared=0)) for F in LATENTS]
     small = NODE_ROWS[0]  # the small graphs' node tiles

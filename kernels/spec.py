@@ -21,6 +21,7 @@ FEATURE_WIDTH = 24  # widest encoder input (18: the single-graph node features) 
 STAT_WIDTH = 9  # widest standardised raw feature set (the node's v, sigma)
 GEMMS = ("native", "scalar", "mathdx", "fp16", "wgmma")  # the first is the default
 TILE_KERNELS = ("encode", "edge_pass", "node_pass", "hybrid_fields", "vanilla_tail")  # Spec.threads may name them
+EDGE_KERNELS = ("edge_pass", "hybrid_fields")  # the edge-row launches (Spec.edge_kernels may name them)
 
 
 @dataclass(frozen=True)
@@ -52,6 +53,9 @@ class Spec:
     # (tiles.GEMM_WGMMA: sm_90a modules, weights packed in tf32 parts)
     edge_rows: int = 0
     edge_gemm: str = ""
+    # which of the edge-row launches take edge_rows and edge_gemm (names of EDGE_KERNELS); the others run on
+    # tile_rows and gemm within the layout's padding to edge_rows
+    edge_kernels: tuple = EDGE_KERNELS
     # ((kernel, threads a block), ...): tile kernels whose CUDA launches take another block than the others' (names
     # of TILE_KERNELS). Each lives in a module of its block size (module_of): Warp builds a module for one. A Network
     # picks them (threads_for)
@@ -63,12 +67,16 @@ class Spec:
                 raise ValueError(f"gemm {gemm!r}: expected one of {', '.join(GEMMS)}")
         if self.edge_tile % self.tile_rows:
             raise ValueError(f"edge_rows {self.edge_tile} must be a multiple of tile_rows {self.tile_rows}")
-        # wgmma: the edge pass's products only (edge_gemm; Spec.edges is then a spec of gemm "wgmma" and 64-row tiles)
+        # wgmma: the edge-row launches' products only (edge_gemm; Spec.edges of gemm "wgmma" and 64-row tiles)
         edge_only = self.edge_gemm == "wgmma" or (self.gemm == "wgmma" and self.node_rows == 0 and not self.edge_gemm)
         if "wgmma" in (self.gemm, self.edge_gemm) and (not edge_only or self.edge_tile != 64 or self.latent % 16
                                                        or self.kc % 16):
-            raise ValueError("wgmma products: the edge pass's only (edge_gemm), on edge tiles of 64 rows, F and its "
-                             "K chunk multiples of 16")
+            raise ValueError("wgmma products: the edge-row launches' only (edge_gemm), on edge tiles of 64 rows, F "
+                             "and its K chunk multiples of 16")
+        kernels = tuple(k for k in EDGE_KERNELS if k in self.edge_kernels)
+        if len(kernels) != len(set(self.edge_kernels)) or not kernels:
+            raise ValueError(f"edge_kernels {self.edge_kernels!r}: expected some of {', '.join(EDGE_KERNELS)}")
+        object.__setattr__(self, "edge_kernels", kernels)  # one order
         threads = tuple(sorted((str(k), int(n)) for k, n in dict(self.threads).items() if n))
         unknown = sorted({k for k, _ in threads} - set(TILE_KERNELS))
         if unknown:
@@ -101,10 +109,14 @@ class Spec:
     def edge_tile(self) -> int:
         return self.edge_rows or self.tile_rows
 
-    @property
-    def edges(self) -> "Spec":
-        """The tile shape and products of the edge pass (its tile helpers; the kernel lives in this spec's modules)."""
-        return Spec(self.latent, self.edge_tile, 0, self.k_chunk, self.edge_gemm or self.gemm)
+    def edges(self, kernel: str) -> "Spec":
+        """The tile shape and products of the edge-row launch ``kernel`` (edge_pass or hybrid_fields; its tile
+        helpers, the kernel lives in this spec's modules): edge_rows and edge_gemm where edge_kernels names it."""
+        if kernel not in EDGE_KERNELS:
+            raise ValueError(f"{kernel!r} is not an edge-row launch ({', '.join(EDGE_KERNELS)})")
+        if kernel in self.edge_kernels:
+            return Spec(self.latent, self.edge_tile, 0, self.k_chunk, self.edge_gemm or self.gemm)
+        return Spec(self.latent, self.tile_rows, 0, self.k_chunk, self.gemm)
 
     @property
     def sm90a(self) -> bool:
@@ -122,6 +134,8 @@ class Spec:
         gemm = "" if self.gemm == GEMMS[0] else f"_{self.gemm}"
         if self.edge_tile != self.tile_rows or (self.edge_gemm or self.gemm) != self.gemm:
             gemm += f"_E{self.edge_tile}{self.edge_gemm}"
+            if self.edge_kernels != EDGE_KERNELS:  # on some of the edge-row launches only
+                gemm += "".join(f"_{k}" for k in self.edge_kernels)
         # kernels moved to a module of another block size (threads) leave this one: its name says which, so that two
         # specs differing only there never share (and mix the kernels of) one Warp module
         moved = "".join(f"_{k}{n}" for k, n in self.threads)
@@ -200,24 +214,32 @@ WIDE = 256  # threads a block of the kernels threads_for names
 
 
 def edge_products_for(k_chunk: int, latent: int, arch: int | None, small: bool = False) -> dict:
-    """Spec's edge_rows and edge_gemm for a Network on a GPU of compute capability ``arch`` (None: not a GPU): on
-    sm_90 (H100, H200), for small graphs (``small``: node tiles of 8, at most one an SM; at F = 64 whole weights,
-    k_chunk_for, which says as much), the edge-row launches (edge pass, hybrid decoder) on tiles of 64 rows with wgmma
-    products (tiles.GEMM_WGMMA) on two warpgroups (threads_for). On an H200 (L5, batch 1; bench/results/
-    warp_wgmma_edge_pass_h200.json): F = 64 hybrid 62.2 / 130.3 / 249.9 -> 61.1 / 126.5 / 241.0 us at 1 / 5 / 12 passes
-    with the edge pass, -> 58.2 / 124.1 / 239.1 with the decoder too; F = 128, 12 passes, 676.8 -> 639.7 us. On 128
-    threads the edge pass had been slower (130.4 -> 137.3 us at 5 passes), and it is at batch 64 (366 -> 382 us a
-    launch). Else {} (the launches' tiles and products as the others')."""
-    tensor = arch == 90 and ((latent == 64 and k_chunk == latent) or (latent == 128 and small))
-    return {"edge_rows": 64, "edge_gemm": "wgmma"} if tensor else {}
+    """Spec's edge_rows, edge_gemm and edge_kernels for a Network on a GPU of compute capability ``arch`` (None: not
+    a GPU): on sm_90 (H100, H200) the edge-row launches on tiles of 64 rows with wgmma products (tiles.GEMM_WGMMA) on
+    two warpgroups (threads_for). For small graphs (``small``: node tiles of 8, at most one an SM; at F = 64 whole
+    weights, k_chunk_for, which says as much) both, the edge pass and the hybrid decoder. On an H200 (L5, batch 1;
+    bench/results/warp_wgmma_edge_pass_h200.json): F = 64 hybrid 62.2 / 130.3 / 249.9 -> 61.1 / 126.5 / 241.0 us at
+    1 / 5 / 12 passes with the edge pass, -> 58.2 / 124.1 / 239.1 with the decoder too; F = 128, 12 passes, 676.8 ->
+    639.7 us. On larger graphs at F = 64 (K chunks) the hybrid decoder only: its launch 688.8 -> 575.1 us at batch 64,
+    the 5-pass step 3818 -> 3707 us, batch 8 575 -> 562, 4 331 -> 321, 2 214 -> 208 (warp_wgmma_decoder_h200.json),
+    where the edge pass on wgmma was slower (batch 64 367 -> 375 us a launch on 256 threads, 366 -> 382 on 128).
+    Else {} (the launches' tiles and products as the others')."""
+    if arch != 90:
+        return {}
+    if (latent == 64 and k_chunk == latent) or (latent == 128 and small):
+        return {"edge_rows": 64, "edge_gemm": "wgmma"}
+    if latent == 64:
+        return {"edge_rows": 64, "edge_gemm": "wgmma", "edge_kernels": ("hybrid_fields",)}
+    return {}
 
 
 def edge_products(edge_rows: int | None, edge_gemm: str | None, k_chunk: int, latent: int, arch: int | None,
-                  small: bool) -> dict:
-    """Spec's edge_rows and edge_gemm: those given, or where neither is (None) edge_products_for's pick."""
-    if edge_rows is None and edge_gemm is None:
+                  small: bool, edge_kernels: tuple | None = None) -> dict:
+    """Spec's edge_rows, edge_gemm and edge_kernels: those given, or where none is (None) edge_products_for's
+    pick."""
+    if edge_rows is None and edge_gemm is None and edge_kernels is None:
         return edge_products_for(k_chunk, latent, arch, small)
-    return {"edge_rows": edge_rows or 0, "edge_gemm": edge_gemm or ""}
+    return {"edge_rows": edge_rows or 0, "edge_gemm": edge_gemm or "", "edge_kernels": edge_kernels or EDGE_KERNELS}
 
 
 def threads_for(k_chunk: int, latent: int, cuda: bool, arch: int | None = None, small: bool = False) -> tuple:
@@ -227,12 +249,12 @@ def threads_for(k_chunk: int, latent: int, cuda: bool, arch: int | None = None, 
     since), and its CSR sums two threads a row vector (tiles.SEGMENT_SUMS): 141.8 -> 138.3 us a 5-pass step, 278.4 ->
     269.8 at 12 passes on an H200 (bench/results/warp_wide_blocks_h200.json). Else (): with K chunks (batch 64,
     F = 128) each thread's half of a 32-row chunk is 16 k with a barrier every chunk (F = 128: 705.5 -> 712.6 us at 12
-    passes on 256 threads). With wgmma edge products (edge_products_for: ``arch``, ``small``) the edge-row launches
-    too (edge pass, hybrid decoder): their 64-row tiles' products on two warpgroups, their other steps with a thread
-    for as many rows as on 32-row tiles."""
+    passes on 256 threads). The edge-row launches with wgmma products (edge_products_for: ``arch``, ``small``) too:
+    their 64-row tiles' products on two warpgroups, their other steps with a thread for as many rows as on 32-row
+    tiles."""
     wide = [("node_pass", WIDE)] if cuda and k_chunk == latent else []
-    tensor = cuda and edge_products_for(k_chunk, latent, arch, small)
-    edges = [("edge_pass", WIDE), ("hybrid_fields", WIDE)] if tensor else []
+    tensor = edge_products_for(k_chunk, latent, arch, small) if cuda else {}
+    edges = [(k, WIDE) for k in tensor.get("edge_kernels", EDGE_KERNELS)] if tensor else []
     return tuple(sorted(edges + wide))
 
 

@@ -285,22 +285,26 @@ def test_tiles_by_graph_size():
 
 
 def test_edge_products_and_threads_by_gpu():
-    """The edge-row launches (edge pass, hybrid decoder) on wgmma (64-row tiles, two warpgroups) only on sm_90 for small
-    graphs (whole F = 64 weights; F = 128 with node tiles of 8 at most one an SM); their blocks then on 256 threads;
-    elsewhere as the other launches (spec.edge_products_for, spec.threads_for); off a GPU never."""
+    """The edge-row launches (edge pass, hybrid decoder) on wgmma (64-row tiles, two warpgroups) only on sm_90: both for
+    small graphs (whole F = 64 weights; F = 128 with node tiles of 8 at most one an SM), the decoder alone for larger
+    ones at F = 64; their blocks then on 256 threads; elsewhere as the other launches (spec.edge_products_for,
+    spec.threads_for); off a GPU never."""
     from warpgnn.kernels.spec import edge_products_for, threads_for
 
     tensor = {"edge_rows": 64, "edge_gemm": "wgmma"}
     assert edge_products_for(64, 64, 90) == edge_products_for(32, 128, 90, small=True) == tensor
-    assert edge_products_for(32, 64, 90) == edge_products_for(64, 64, 80) == edge_products_for(64, 64, None) == {}
+    # larger graphs at F = 64 (K chunks): the hybrid decoder alone
+    assert edge_products_for(32, 64, 90) == tensor | {"edge_kernels": ("hybrid_fields",)}
+    assert edge_products_for(64, 64, 80) == edge_products_for(64, 64, None) == {}
     assert edge_products_for(16, 16, 90, True) == edge_products_for(32, 128, 90) == edge_products_for(32, 128, 80,
                                                                                                       True) == {}
     assert threads_for(32, 128, True, 90, small=True) == (("edge_pass", 256), ("hybrid_fields", 256))
     assert threads_for(64, 64, True, 90) == (("edge_pass", 256), ("hybrid_fields", 256), ("node_pass", 256))
     assert threads_for(64, 64, True, 80) == threads_for(64, 64, True) == (("node_pass", 256),)
-    assert threads_for(32, 64, True, 90) == threads_for(64, 64, False, 90) == ()
+    assert threads_for(32, 64, True, 90) == (("hybrid_fields", 256),)
+    assert threads_for(32, 64, True, 80) == threads_for(64, 64, False, 90) == ()
     net = Network(random_model("vanilla", 1, 64), tool_topology(box((3, 3, 2)), 2), device="cpu")
-    assert net.spec.edge_tile == 32 and net.spec.edges.gemm == "native" and not net.spec.sm90a
+    assert net.spec.edge_tile == 32 and net.spec.edges("edge_pass").gemm == "native" and not net.spec.sm90a
 
 
 def test_unsupported_configuration_refused_in_one_line():
@@ -408,18 +412,24 @@ def test_tensor_core_products_against_numpy(device):
         assert np.abs(got - expected).max() <= 1e-5 * np.abs(expected).max()
 
 
-@pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
-def test_tensor_core_edge_pass(monkeypatch, kind):
-    """The edge pass and the hybrid decoder on 64-row tiles with wgmma products (Spec.edge_rows, edge_gemm; the edge and
-    self-loop blocks padded to 64 rows while the other launches take 32) and their weights in tensor-core layout, K in
-    chunks of 16, 5 threads a block (CPU fibers): the reference's answer."""
+@pytest.mark.parametrize("kind, edge_kernels", [("hybrid", ("edge_pass", "hybrid_fields")), ("vanilla", None),
+                                                ("hybrid", ("hybrid_fields",)), ("hybrid", ("edge_pass",))])
+def test_tensor_core_edge_pass(monkeypatch, kind, edge_kernels):
+    """The edge pass and the hybrid decoder (or either alone: Spec.edge_kernels) on 64-row tiles with wgmma products
+    (Spec.edge_rows, edge_gemm; the edge and self-loop blocks padded to 64 rows while the other launches, an edge-row
+    launch left out among them, take 32) and their weights in tensor-core layout, K in chunks of 16, 5 threads a
+    block (CPU fibers): the reference's answer."""
     monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
     net, _ = check(random_model(kind, 2, 32, seed=9), tool_topology(box((5, 4, 3)), 3, seed=9), seed=9,
-                   edge_rows=64, edge_gemm="wgmma", k_chunk=16, block_dim=5)
+                   edge_rows=64, edge_gemm="wgmma", k_chunk=16, block_dim=5, edge_kernels=edge_kernels)
     lay = net.layout
     assert lay.edges_pad % 64 == 0 and lay.act_pad % 64 == 0 and lay.nodes_pad % 32 == 0
     assert lay.self_pad == (-(-lay.n_nodes // 64) * 64 if kind == "hybrid" else 0)
-    assert net.spec.sm90a and net.spec.edges.tile_rows == 64
+    on = edge_kernels or ("edge_pass", "hybrid_fields")
+    assert net.spec.sm90a and net.spec.edge_kernels == on
+    for kernel in ("edge_pass", "hybrid_fields"):
+        edges = net.spec.edges(kernel)
+        assert (edges.tile_rows, edges.gemm) == ((64, "wgmma") if kernel in on else (32, "native"))
 
 
 # ----------------------------------------------------------------------------- the shipped network

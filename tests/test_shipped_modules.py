@@ -49,8 +49,8 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
     (sm_86, sm_89: RTX 30x0 and 40x0, running the sm_80 build) must get chunked kernels that fit it, those of 163 and
     227 KiB (sm_80, sm_90) whole weights; each pick is shipped, and its largest kernel's shared memory (the .meta
     Warp wrote at the build) fits with 1 KiB to spare for Warp's static allocations; with whole weights the edge pass
-    holds enough that at most two of its blocks share an SM; on sm_90 its small graphs' edge pass takes wgmma (an
-    sm_90a build)."""
+    holds enough that at most two of its blocks share an SM; on sm_90 the hybrid decoder takes wgmma (an sm_90a build),
+    and the edge pass too on small graphs."""
     from warpgnn.kernels.message_passing import EDGE_PASS_SHARED
     from warpgnn.kernels.spec import (
         SHARED_OF_ARCH,
@@ -72,7 +72,9 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
                 small = n == 8  # a small graph's node tiles
                 spec = Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, arch, small),
                             **edge_products_for(k, F, arch, small))
-                assert spec.sm90a == (arch == 90 and k == F)
+                # on sm_90 the hybrid decoder's products on wgmma (an sm_90a build), the edge pass's with whole weights
+                assert spec.sm90a == (arch == 90)
+                assert (spec.sm90a and "edge_pass" in spec.edge_kernels) == (arch == 90 and k == F)
                 module = spec.module
                 assert shipped_specs.get(module) == spec, f"{module} (a GPU of {max_shared} B a block) is not shipped"
                 meta = {}  # every kernel's shared memory, from the .meta of each of the spec's modules

@@ -49,12 +49,14 @@ def shape_args(shape: str) -> dict:
     """"T:N:B[:K[:GEMM[:E]]]" -> Network's tile_rows, node_rows (0: by graph size), block_dim, k_chunk (absent: by
     graph size; 0: Spec's), gemm (Spec.gemm), and the edge pass's tiles and products as E = rows then products
     (Spec.edge_rows, edge_gemm; e.g. 64wgmma, or 32 for the plain edge pass; absent: a Network's pick,
-    spec.edge_products_for)."""
+    spec.edge_products_for), on the edge-row launches after an @ (Spec.edge_kernels, +-separated; e.g.
+    64wgmma@hybrid_fields; absent: both)."""
     T, N, B, *rest = shape.split(":")
-    edge = re.fullmatch(r"(\d*)(\w*)", rest[2]) if len(rest) > 2 else None  # absent: a Network's pick
+    edge = re.fullmatch(r"(\d*)([a-z0-9]*)(?:@([\w+]+))?", rest[2]) if len(rest) > 2 else None  # absent: a pick
     return {"tile_rows": int(T), "node_rows": int(N), "block_dim": int(B), "k_chunk": int(rest[0]) if rest else None,
             "gemm": rest[1] if len(rest) > 1 and rest[1] else Spec.gemm,
-            "edge_rows": int(edge[1] or 0) if edge else None, "edge_gemm": edge[2] if edge else None}
+            "edge_rows": int(edge[1] or 0) if edge else None, "edge_gemm": edge[2] if edge else None,
+            "edge_kernels": tuple(edge[3].split("+")) if edge and edge[3] else None}
 
 
 def aot_folder(root, latent: int, shape: dict) -> Path:
@@ -62,6 +64,7 @@ def aot_folder(root, latent: int, shape: dict) -> Path:
     k = f"_K{shape['k_chunk']}" if shape["k_chunk"] else ""
     g = f"_{shape['gemm']}" if shape["gemm"] != Spec.gemm else ""
     e = f"_E{shape['edge_rows'] or ''}{shape['edge_gemm']}" if shape["edge_rows"] or shape["edge_gemm"] else ""
+    e += "".join(f"_{k}" for k in shape.get("edge_kernels") or ())
     return Path(root) / f"F{latent}_T{shape['tile_rows']}_N{shape['node_rows']}_B{shape['block_dim']}{k}{g}{e}"
 
 
@@ -122,7 +125,7 @@ def main():
         sh = shape_args(shape)
         T, N, B, K, G = sh["tile_rows"], sh["node_rows"], sh["block_dim"], sh["k_chunk"], sh["gemm"]
         tiles = {"tile_rows": T, "node_rows": N, "k_chunk": K, "gemm": G, "edge_rows": sh["edge_rows"],
-                 "edge_gemm": sh["edge_gemm"]}
+                 "edge_gemm": sh["edge_gemm"], "edge_kernels": sh["edge_kernels"]}
         threads = None if a.threads is None else dict(precompile.parse_threads(a.threads))
         if a.aot:
             if not N or K is None:
@@ -142,11 +145,13 @@ def main():
             alone = sum(v["mean_us"] * v["per_forward"] for v in kernels.values())
             cases.append({"model": kind, "passes": int(passes), "batch": int(batch), "latent": a.latent,
                           "tile_rows": T, "node_rows": N_used, "block_dim": B, "k_chunk": K_used, "gemm": G,
-                          "edge_rows": net.spec.edge_tile, "edge_gemm": net.spec.edges.gemm,
+                          "edge_rows": net.spec.edge_tile, "edge_gemm": net.spec.edge_gemm or G,
+                          "edge_kernels": list(net.spec.edge_kernels),
                           "threads": dict(net.spec.threads),
                           "step_ms": median, "step_p10_ms": p10, "step_p90_ms": p90, "launches": net.n_launches,
                           "kernels_alone_us": alone, "kernels": kernels})
-            print(f"T{T} N{N_used} B{B} K{K_used} {G} E{net.spec.edge_tile}{net.spec.edges.gemm} "
+            print(f"T{T} N{N_used} B{B} K{K_used} {G} E{net.spec.edge_tile}{net.spec.edge_gemm or G}"
+                  f"@{'+'.join(net.spec.edge_kernels)} "
                   f"{dict(net.spec.threads)}", kind, passes, batch,
                   f"step {median * 1e3:.1f} us (its kernels alone {alone:.1f})",
                   {k: round(v["mean_us"], 1) for k, v in kernels.items()}, flush=True)
