@@ -485,7 +485,7 @@ def test_cuda_graph_step_equals_eager(kind):
 
 def captured_equals_eager(model, seed, **kw):
     """A Network on cuda:0 (``kw``: its Spec) on a 5 x 4 x 3 box with 3 tools: the reference's answer, its captured
-    replay equal to the launches one by one."""
+    replay equal to the launches one by one; the Network."""
     top = tool_topology(box((5, 4, 3)), 3, seed=seed)
     z, u_now, u_next = random_inputs(top, seed)
     net = Network(model, top, device="cuda:0", **kw)
@@ -495,14 +495,19 @@ def captured_equals_eager(model, seed, **kw):
     replay = run(net, z, u_now, u_next)
     for k, v in eager.items():
         assert np.array_equal(replay[k], v), k
+    return net
 
 
 @pytest.mark.skipif(not SM90, reason="wgmma needs an sm_90 GPU (H100, H200)")
 def test_tensor_core_edge_pass_on_hopper():
     """The wgmma edge-row launches on an H100 / H200 on 128 threads with K chunks (not a Network's pick there: their
-    sm_90a module built on first use, Network.__init__); the default pick (256 threads, whole weights) runs in
+    sm_90a module built on first use, Network.__init__), and the pick with K chunks (the larger graphs': the hybrid
+    decoder alone on wgmma, 256 threads; shipped); the small graphs' pick (256 threads, whole weights) runs in
     test_cuda_graph_step_equals_eager."""
-    captured_equals_eager(random_model("hybrid", 2, 64, seed=17), 17, edge_rows=64, edge_gemm="wgmma", k_chunk=32)
+    model = random_model("hybrid", 2, 64, seed=17)
+    captured_equals_eager(model, 17, edge_rows=64, edge_gemm="wgmma", k_chunk=32)
+    net = captured_equals_eager(model, 17, k_chunk=32)
+    assert net.spec.edge_kernels == ("hybrid_fields",) and net.spec.threads == (("hybrid_fields", 256),)
 
 
 @pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device")
