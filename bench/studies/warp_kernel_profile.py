@@ -104,6 +104,8 @@ def main():
                     help="Spec.threads as KERNEL=N,... ('none': every kernel on the shape's block; default: a "
                     "Network's pick, spec.threads_for)")
     ap.add_argument("--repeats", type=int, default=300, help="captured steps timed a case")
+    ap.add_argument("--without", default="", help="kernels whose launches each step leaves out, comma-separated "
+                    "(timing only: the outputs are then wrong), e.g. generic_tail: what a launch costs the step")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
@@ -137,6 +139,9 @@ def main():
             case = base.stacked(int(batch))
             net = Network(random_model(kind, int(passes), a.latent), case.topology, device="cuda:0", block_dim=B,
                           threads=threads, **tiles)
+            if a.without:  # a probe: the step less these launches
+                left_out = set(a.without.split(","))
+                net._launches = [x for x in net._launches if x.kernel.key.rsplit("__", 1)[-1] not in left_out]
             net.set_inputs(case.z, case.u_now, case.u_next, DT)
             kernels = kernel_means(net, a.calls)
             p10, median, p90 = captured_step_ms(net, a.repeats)
