@@ -213,47 +213,59 @@ def k_chunk_for(node_rows: int, latent: int, max_shared: int | None = None, node
 WIDE = 256  # threads a block of the kernels threads_for names
 
 
-def edge_products_for(k_chunk: int, latent: int, arch: int | None, small: bool = False) -> dict:
+# node tiles an SM up to which the edge pass takes wgmma too on graphs with K chunks at F = 64 (edge_products_for)
+FEW_NODE_TILES = 2.0
+
+
+def edge_products_for(k_chunk: int, latent: int, arch: int | None, small: bool = False,
+                      node_tiles_per_sm: float = 0.0) -> dict:
     """Spec's edge_rows, edge_gemm and edge_kernels for a Network on a GPU of compute capability ``arch`` (None: not
     a GPU): on sm_90 (H100, H200) the edge-row launches on tiles of 64 rows with wgmma products (tiles.GEMM_WGMMA) on
-    two warpgroups (threads_for). For small graphs (``small``: node tiles of 8, at most one an SM; at F = 64 whole
-    weights, k_chunk_for, which says as much) both, the edge pass and the hybrid decoder. On an H200 (L5, batch 1;
-    bench/results/warp_wgmma_edge_pass_h200.json): F = 64 hybrid 62.2 / 130.3 / 249.9 -> 61.1 / 126.5 / 241.0 us at
-    1 / 5 / 12 passes with the edge pass, -> 58.2 / 124.1 / 239.1 with the decoder too; F = 128, 12 passes, 676.8 ->
-    639.7 us. On larger graphs at F = 64 (K chunks) the hybrid decoder only: its launch 688.8 -> 575.1 us at batch 64,
-    the 5-pass step 3818 -> 3707 us, batch 8 575 -> 562, 4 331 -> 321, 2 214 -> 208 (warp_wgmma_decoder_h200.json),
-    where the edge pass on wgmma was slower (batch 64 367 -> 375 us a launch on 256 threads, 366 -> 382 on 128).
-    Else {} (the launches' tiles and products as the others')."""
+    two warpgroups (threads_for). Both, the edge pass and the hybrid decoder, for small graphs (``small``: node tiles
+    of 8, at most one an SM; at F = 64 whole weights, k_chunk_for, which says as much) and, at F = 64, for graphs of
+    up to FEW_NODE_TILES node tiles an SM (``node_tiles_per_sm``); the hybrid decoder alone on larger ones at F = 64.
+    On an H200 (L5, 5-pass hybrid steps; bench/results/warp_wgmma_edge_pass_h200.json, warp_wgmma_decoder_h200.json):
+    batch 1 62.2 / 130.3 / 249.9 -> 61.1 / 126.5 / 241.0 us at 1 / 5 / 12 passes with the edge pass, -> 58.2 / 124.1
+    / 239.1 with the decoder too; F = 128, 12 passes, 676.8 -> 639.7 us. With K chunks, against the fp32 launches: the
+    decoder alone 214 -> 208 us at batch 2, 331 -> 321 at 4, 575 -> 562 at 8, 3818 -> 3707 at 64 (its launch 689 ->
+    575 us); both, against the decoder alone, 207.8 -> 191.7 us at batch 2, 321.1 -> 300.6 at 4, 560.3 -> 540.3 at 8
+    (node tiles of 8, 16, 32: 1.27 an SM each), and slower at 16 (1055 -> 1059, 2.5 tiles an SM), 32 (1942 -> 1962)
+    and 64 (the edge pass's launch 367 -> 375 us). Else {} (the launches' tiles and products as the others')."""
     if arch != 90:
         return {}
-    if (latent == 64 and k_chunk == latent) or (latent == 128 and small):
-        return {"edge_rows": 64, "edge_gemm": "wgmma"}
-    if latent == 64:
-        return {"edge_rows": 64, "edge_gemm": "wgmma", "edge_kernels": ("hybrid_fields",)}
-    return {}
+    tensor = {"edge_rows": 64, "edge_gemm": "wgmma"}
+    if latent == 128:
+        return tensor if small else {}
+    if latent != 64:
+        return {}
+    if k_chunk == latent or node_tiles_per_sm <= FEW_NODE_TILES:
+        return tensor
+    return tensor | {"edge_kernels": ("hybrid_fields",)}
 
 
 def edge_products(edge_rows: int | None, edge_gemm: str | None, k_chunk: int, latent: int, arch: int | None,
-                  small: bool, edge_kernels: tuple | None = None) -> dict:
+                  small: bool, edge_kernels: tuple | None = None, node_tiles_per_sm: float = 0.0) -> dict:
     """Spec's edge_rows, edge_gemm and edge_kernels: those given, or where none is (None) edge_products_for's
     pick."""
     if edge_rows is None and edge_gemm is None and edge_kernels is None:
-        return edge_products_for(k_chunk, latent, arch, small)
+        return edge_products_for(k_chunk, latent, arch, small, node_tiles_per_sm)
     return {"edge_rows": edge_rows or 0, "edge_gemm": edge_gemm or "", "edge_kernels": edge_kernels or EDGE_KERNELS}
 
 
-def threads_for(k_chunk: int, latent: int, cuda: bool, arch: int | None = None, small: bool = False) -> tuple:
+def threads_for(k_chunk: int, latent: int, cuda: bool, arch: int | None = None, small: bool = False,
+                node_tiles_per_sm: float = 0.0) -> tuple:
     """Spec.threads of a Network on CUDA (``cuda``) with ``k_chunk`` (k_chunk_for): with whole weights (small
     graphs), the node pass on WIDE threads: its block holds an SM alone (137 KiB at F = 64), and 256 threads give its
     products more warps a scheduler, each summing a part of K (tiles.GEMM: two parts when measured, up to four
     since), and its CSR sums two threads a row vector (tiles.SEGMENT_SUMS): 141.8 -> 138.3 us a 5-pass step, 278.4 ->
     269.8 at 12 passes on an H200 (bench/results/warp_wide_blocks_h200.json). Else (): with K chunks (batch 64,
     F = 128) each thread's half of a 32-row chunk is 16 k with a barrier every chunk (F = 128: 705.5 -> 712.6 us at 12
-    passes on 256 threads). The edge-row launches with wgmma products (edge_products_for: ``arch``, ``small``) too:
+    passes on 256 threads). The edge-row launches with wgmma products (edge_products_for: ``arch``, ``small``,
+    ``node_tiles_per_sm``) too:
     their 64-row tiles' products on two warpgroups, their other steps with a thread for as many rows as on 32-row
     tiles."""
     wide = [("node_pass", WIDE)] if cuda and k_chunk == latent else []
-    tensor = edge_products_for(k_chunk, latent, arch, small) if cuda else {}
+    tensor = edge_products_for(k_chunk, latent, arch, small, node_tiles_per_sm) if cuda else {}
     edges = [(k, WIDE) for k in tensor.get("edge_kernels", EDGE_KERNELS)] if tensor else []
     return tuple(sorted(edges + wide))
 

@@ -286,22 +286,24 @@ def test_tiles_by_graph_size():
 
 def test_edge_products_and_threads_by_gpu():
     """The edge-row launches (edge pass, hybrid decoder) on wgmma (64-row tiles, two warpgroups) only on sm_90: both for
-    small graphs (whole F = 64 weights; F = 128 with node tiles of 8 at most one an SM), the decoder alone for larger
-    ones at F = 64; their blocks then on 256 threads; elsewhere as the other launches (spec.edge_products_for,
-    spec.threads_for); off a GPU never."""
+    small graphs (whole F = 64 weights; F = 128 with node tiles of 8 at most one an SM) and at F = 64 for graphs of up
+    to two node tiles an SM, the decoder alone for larger ones at F = 64; their blocks then on 256 threads; elsewhere as
+    the other launches (spec.edge_products_for, spec.threads_for); off a GPU never."""
     from warpgnn.kernels.spec import edge_products_for, threads_for
 
     tensor = {"edge_rows": 64, "edge_gemm": "wgmma"}
     assert edge_products_for(64, 64, 90) == edge_products_for(32, 128, 90, small=True) == tensor
+    assert edge_products_for(32, 64, 90, node_tiles_per_sm=1.27) == edge_products_for(32, 64, 90) == tensor
     # larger graphs at F = 64 (K chunks): the hybrid decoder alone
-    assert edge_products_for(32, 64, 90) == tensor | {"edge_kernels": ("hybrid_fields",)}
+    assert edge_products_for(32, 64, 90, node_tiles_per_sm=2.5) == tensor | {"edge_kernels": ("hybrid_fields",)}
     assert edge_products_for(64, 64, 80) == edge_products_for(64, 64, None) == {}
     assert edge_products_for(16, 16, 90, True) == edge_products_for(32, 128, 90) == edge_products_for(32, 128, 80,
                                                                                                       True) == {}
     assert threads_for(32, 128, True, 90, small=True) == (("edge_pass", 256), ("hybrid_fields", 256))
     assert threads_for(64, 64, True, 90) == (("edge_pass", 256), ("hybrid_fields", 256), ("node_pass", 256))
     assert threads_for(64, 64, True, 80) == threads_for(64, 64, True) == (("node_pass", 256),)
-    assert threads_for(32, 64, True, 90) == (("hybrid_fields", 256),)
+    assert threads_for(32, 64, True, 90) == (("edge_pass", 256), ("hybrid_fields", 256))
+    assert threads_for(32, 64, True, 90, node_tiles_per_sm=10) == (("hybrid_fields", 256),)
     assert threads_for(32, 64, True, 80) == threads_for(64, 64, False, 90) == ()
     net = Network(random_model("vanilla", 1, 64), tool_topology(box((3, 3, 2)), 2), device="cpu")
     assert net.spec.edge_tile == 32 and net.spec.edges("edge_pass").gemm == "native" and not net.spec.sm90a
@@ -501,13 +503,16 @@ def captured_equals_eager(model, seed, **kw):
 @pytest.mark.skipif(not SM90, reason="wgmma needs an sm_90 GPU (H100, H200)")
 def test_tensor_core_edge_pass_on_hopper():
     """The wgmma edge-row launches on an H100 / H200 on 128 threads with K chunks (not a Network's pick there: their
-    sm_90a module built on first use, Network.__init__), and the pick with K chunks (the larger graphs': the hybrid
-    decoder alone on wgmma, 256 threads; shipped); the small graphs' pick (256 threads, whole weights) runs in
-    test_cuda_graph_step_equals_eager."""
+    sm_90a module built on first use, Network.__init__), the pick with K chunks (the medium graphs': both on 256
+    threads; shipped) and the larger graphs' (the hybrid decoder alone; shipped); the small graphs' pick (256
+    threads, whole weights) runs in test_cuda_graph_step_equals_eager."""
     model = random_model("hybrid", 2, 64, seed=17)
     captured_equals_eager(model, 17, edge_rows=64, edge_gemm="wgmma", k_chunk=32)
     net = captured_equals_eager(model, 17, k_chunk=32)
-    assert net.spec.edge_kernels == ("hybrid_fields",) and net.spec.threads == (("hybrid_fields", 256),)
+    assert net.spec.edge_kernels == ("edge_pass", "hybrid_fields") and dict(net.spec.threads)["edge_pass"] == 256
+    net = captured_equals_eager(model, 17, k_chunk=32, node_rows=32, edge_rows=64, edge_gemm="wgmma",
+                                edge_kernels=("hybrid_fields",), threads={"hybrid_fields": 256})
+    assert net.spec.edge_kernels == ("hybrid_fields",)
 
 
 @pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device")

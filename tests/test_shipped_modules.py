@@ -49,8 +49,8 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
     (sm_86, sm_89: RTX 30x0 and 40x0, running the sm_80 build) must get chunked kernels that fit it, those of 163 and
     227 KiB (sm_80, sm_90) whole weights; each pick is shipped, and its largest kernel's shared memory (the .meta
     Warp wrote at the build) fits with 1 KiB to spare for Warp's static allocations; with whole weights the edge pass
-    holds enough that at most two of its blocks share an SM; on sm_90 the hybrid decoder takes wgmma (an sm_90a build),
-    and the edge pass too on small graphs."""
+    holds enough that at most two of its blocks share an SM; on sm_90 the edge-row launches take wgmma (an sm_90a
+    build), on the largest graphs the hybrid decoder's alone."""
     from warpgnn.kernels.message_passing import EDGE_PASS_SHARED
     from warpgnn.kernels.spec import (
         SHARED_OF_ARCH,
@@ -72,9 +72,13 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
                 small = n == 8  # a small graph's node tiles
                 spec = Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, arch, small),
                             **edge_products_for(k, F, arch, small))
-                # on sm_90 the hybrid decoder's products on wgmma (an sm_90a build), the edge pass's with whole weights
-                assert spec.sm90a == (arch == 90)
-                assert (spec.sm90a and "edge_pass" in spec.edge_kernels) == (arch == 90 and k == F)
+                # on sm_90 the edge-row launches' products on wgmma (an sm_90a build); on graphs of more than
+                # FEW_NODE_TILES node tiles an SM with K chunks the decoder's alone, also shipped
+                assert spec.sm90a == (arch == 90) and (not spec.sm90a or "edge_pass" in spec.edge_kernels)
+                if arch == 90 and not k_chunk_for(n, F, max_shared) and n == 32:
+                    large = Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, arch, small, 10.0),
+                                 **edge_products_for(k, F, arch, small, 10.0))
+                    assert large.edge_kernels == ("hybrid_fields",) and shipped_specs.get(large.module) == large
                 module = spec.module
                 assert shipped_specs.get(module) == spec, f"{module} (a GPU of {max_shared} B a block) is not shipped"
                 meta = {}  # every kernel's shared memory, from the .meta of each of the spec's modules
