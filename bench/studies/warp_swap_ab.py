@@ -13,13 +13,13 @@ float64 product.
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/: provenance.py
 import numpy as np
 import provenance
 import warp as wp
+from warp_product_latency import per_rep_us, wgmma_macro
 
 from warpgnn.kernels import tiles
 from warpgnn.kernels.weights import tf32
@@ -110,9 +110,9 @@ SWAP_AB = r"""
 #pragma unroll
             for (int s = 0; s < S; ++s) {
                 const unsigned long long dh = desc0 + (ks * STEPS + c * S + s) * STEP, dl = dh + LO;
-                MMA(d[r], al[s], dh);
-                MMA(d[r], ah[s], dl);
-                MMA(d[r], ah[s], dh);
+                WGMMA(d[r], al[s], dh);
+                WGMMA(d[r], ah[s], dl);
+                WGMMA(d[r], ah[s], dh);
             }
             asm volatile("wgmma.commit_group.sync.aligned;\n" ::: "memory");
             asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory");
@@ -156,15 +156,6 @@ SWAP_AB = r"""
 """
 
 
-def mma_macro(n: int) -> str:
-    outs = ", ".join(f"%{i}" for i in range(n // 2))
-    cons = ", ".join(f'"+f"(D[{i}])' for i in range(n // 2))
-    m = n // 2
-    return (f'#define MMA(D, A, DESC) asm volatile("wgmma.mma_async.sync.aligned.m64n{n}k8.f32.tf32.tf32 '
-            f'{{{outs}}}, {{%{m}, %{m + 1}, %{m + 2}, %{m + 3}}}, %{m + 4}, 1, 1, 1;\\n" : {cons} : "r"(A[0]), '
-            f'"r"(A[1]), "r"(A[2]), "r"(A[3]), "l"(DESC))\n')
-
-
 def swap_ab_layout(w: np.ndarray) -> np.ndarray:
     """A (K, N) weight (K a multiple of 8, N of 64) as SWAP_AB reads it, the same shape: for k step j and 64-column
     block b, 128 threads' float4s, thread 32 w + 4 g + q holding W[8 j + q, c], W[8 j + q, c + 8], W[8 j + q + 4,
@@ -178,7 +169,7 @@ def swap_ab_layout(w: np.ndarray) -> np.ndarray:
 def swap_ab_kernel(rows: int, k: int, n: int, threads: int):
     owner = f"swap_ab_{rows}_{k}_{n}_{threads}"
     rows2 = 2 * rows  # a compile-time constant for the kernel
-    @wp.func_native(mma_macro(rows) + SWAP_AB + "#undef MMA\n")
+    @wp.func_native(wgmma_macro(rows) + SWAP_AB + "#undef WGMMA\n")
     def product(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
                 xs: wp.tile(dtype=float, shape=(rows2, k)), acc: wp.tile(dtype=float, shape=(rows, n))): ...
 
@@ -225,20 +216,6 @@ def kernels():
     for *_case, threads, kernel, _swap in out:
         kernel.module.options["block_dim"] = threads
     return out
-
-
-def per_rep_us(launch, reps: int, device, calls: int = 20) -> float:
-    def median(r):
-        launch(r)
-        wp.synchronize_device(device)
-        times = []
-        for _ in range(calls):
-            t = time.perf_counter()
-            launch(r)
-            wp.synchronize_device(device)
-            times.append(time.perf_counter() - t)
-        return float(np.median(times))
-    return (median(reps) - median(1)) / (reps - 1) * 1e6
 
 
 def main() -> None:
