@@ -54,7 +54,7 @@ LM_CHUNK = 16  # K rows of the (F, 144) weight's chunks where blocks queue for t
 
 @functools.cache
 def kernels(spec: Spec):
-    """hybrid_fields on its edge tiles and products (spec.edges: its rows are edge rows), in
+    """hybrid_fields on its edge tiles and products (spec.edges("hybrid_fields"): its rows are edge rows), in
     spec.module_of("hybrid_fields")."""
     owner = spec.module_of("hybrid_fields")
     edges = spec.edges("hybrid_fields")

@@ -42,8 +42,8 @@ MANY_BLOCKS_REGISTERS = {"edge_pass": 96, "encode": 128}
 
 
 def _options(spec: Spec, kernel: str) -> dict:
-    """Kernel options of ``kernel`` (MANY_BLOCKS_REGISTERS; not the tensor-core edge pass, whose 64-row blocks are
-    two an SM by their shared memory)."""
+    """Kernel options of ``kernel`` (MANY_BLOCKS_REGISTERS; not the tensor-core edge pass: its 64-row blocks on 256
+    threads, their registers uncapped as measured)."""
     tensor = kernel == "edge_pass" and spec.edges("edge_pass").gemm == "wgmma"
     capped = spec.many_blocks and kernel in MANY_BLOCKS_REGISTERS and not tensor
     return {"cuda_max_registers": MANY_BLOCKS_REGISTERS[kernel]} if capped else {}

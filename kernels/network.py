@@ -105,9 +105,9 @@ class Network:
             k_chunk = k_chunk_for(node_rows, w.latent, max_shared_of(self.device), tiles_per_sm)
         arch = self.device.arch if self.device.is_cuda else None
         # None: by the GPU and the graph's size
-        edge = edge_products(edge_rows, edge_gemm, k_chunk, w.latent, arch, small, edge_kernels, tiles_per_sm)
-        if threads is None:
-            threads = threads_for(k_chunk, w.latent, self.device.is_cuda, arch, small, tiles_per_sm)
+        edge = edge_products(edge_rows, edge_gemm, k_chunk, w.latent, arch, small, edge_kernels, tiles_per_sm,
+                             tile_rows)
+        threads = threads_for(k_chunk, w.latent, self.device.is_cuda, edge) if threads is None else threads
         self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm, threads=tuple(dict(threads).items()), **edge)
         build_kernels(self.spec)
         self.block_dim = block_dim or default_block_dim(self.device)

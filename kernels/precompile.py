@@ -40,8 +40,9 @@ def _specs(latents, max_shared: int | None, arch: int | None, **shape) -> list[S
     for F in latents:
         k = k_chunk_for(node_rows, F, max_shared) if k_chunk is None else k_chunk
         small = node_rows == NODE_ROWS[0]  # the small graphs' node tiles
-        edge = edge_products(edge_rows, edge_gemm, k, F, arch, small, edge_kernels)
-        specs.append(Spec(F, k_chunk=k, threads=threads_for(k, F, True, arch, small) if threads is None else threads,
+        edge = edge_products(edge_rows, edge_gemm, k, F, arch, small, edge_kernels,
+                             tile_rows=shape.get("tile_rows", Spec.tile_rows))
+        specs.append(Spec(F, k_chunk=k, threads=threads_for(k, F, True, edge) if threads is None else threads,
                           **edge, **shape))
     for spec in specs:
         build_kernels(spec)
@@ -128,7 +129,9 @@ def main(argv=None) -> None:
     parser.add_argument("--edge-gemm", default=None,
                         help="Spec.edge_gemm, e.g. wgmma (sm_90a; default: a Network's pick; not --ship)")
     parser.add_argument("--edge-kernels", default=None,
-                        help="Spec.edge_kernels, comma-separated (default: a Network's pick; not --ship)")
+                        help="Spec.edge_kernels, comma-separated (default: a Network's pick at up to two node tiles "
+                             "an SM; hybrid_fields with --edge-rows 64 --edge-gemm wgmma: the larger graphs'; "
+                             "not --ship)")
     parser.add_argument("--threads", default=None,
                         help="Spec.threads as KERNEL=N,... (default: a Network's pick on a GPU; 'none': every "
                              "kernel on --block-dim; not --ship)")
@@ -138,7 +141,7 @@ def main(argv=None) -> None:
     shape = {"tile_rows": args.tile_rows, "node_rows": args.node_rows, "k_chunk": args.k_chunk, "gemm": args.gemm,
              "threads": None if args.threads is None else parse_threads(args.threads),
              "edge_rows": args.edge_rows, "edge_gemm": args.edge_gemm,
-             "edge_kernels": tuple(args.edge_kernels.split(",")) if args.edge_kernels else None}
+             "edge_kernels": tuple(k.strip() for k in args.edge_kernels.split(",")) if args.edge_kernels else None}
     if args.ship:
         ship()
     elif args.arch is not None:

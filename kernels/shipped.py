@@ -3,8 +3,8 @@
 Warp compiles a module on its first launch: the F = 64 module builds in ~15-30 s on a 2-core CPU with the
 default products (Spec.gemm; with cuBLASDx products, one per product shape, it took 149 s on an H100 and 287 s
 here). The shipped network's width is shipped built for sm_80 (A100, and by binary
-compatibility sm_86/sm_89) and sm_90 (H100, H200; sm_90a where the edge pass takes wgmma), in each shape a Network
-picks on them (specs(arch)), as
+compatibility sm_86/sm_89) and sm_90 (H100, H200; as sm_90a: the edge-row launches' wgmma products), in each shape
+a Network picks on them (specs(arch)), as
 xz-compressed cubins of 0.02-0.06 MB (one a module: Spec.modules); loading the sm_90 one
 took 3 ms on an H200 (bench/results/warp_gemm_h200.json's run; the cuBLASDx module took 0.6 s). A file is named
 by Warp's module identifier, which holds a hash of the kernels' code and options: a changed kernel finds no file
@@ -43,8 +43,8 @@ def specs(arch: int) -> list[Spec]:
     small = NODE_ROWS[0]  # the small graphs' node tiles
     # the largest node tiles serve graphs of any size above: their picks at up to FEW_NODE_TILES an SM and beyond
     loads = {n: (1.0, 2 * FEW_NODE_TILES) if n == NODE_ROWS[-1] else (1.0,) for n in NODE_ROWS}
-    out = [Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, arch, n == small, load),
-                **edge_products_for(k, F, arch, n == small, load)) for F, n, k in shapes for load in loads[n]]
+    edges = [(F, n, k, edge_products_for(k, F, arch, n == small, load)) for F, n, k in shapes for load in loads[n]]
+    out = [Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, edge), **edge) for F, n, k, edge in edges]
     return list({s.module: s for s in out}.values())
 
 

@@ -76,6 +76,8 @@ class Spec:
         kernels = tuple(k for k in EDGE_KERNELS if k in self.edge_kernels)
         if len(kernels) != len(set(self.edge_kernels)) or not kernels:
             raise ValueError(f"edge_kernels {self.edge_kernels!r}: expected some of {', '.join(EDGE_KERNELS)}")
+        if self.edge_tile == self.tile_rows and (self.edge_gemm or self.gemm) == self.gemm:
+            kernels = EDGE_KERNELS  # edge tiles and products as the others': which launches take them says nothing
         object.__setattr__(self, "edge_kernels", kernels)  # one order
         threads = tuple(sorted((str(k), int(n)) for k, n in dict(self.threads).items() if n))
         unknown = sorted({k for k, _ in threads} - set(TILE_KERNELS))
@@ -218,7 +220,7 @@ FEW_NODE_TILES = 2.0
 
 
 def edge_products_for(k_chunk: int, latent: int, arch: int | None, small: bool = False,
-                      node_tiles_per_sm: float = 0.0) -> dict:
+                      node_tiles_per_sm: float = 0.0, tile_rows: int = Spec.tile_rows) -> dict:
     """Spec's edge_rows, edge_gemm and edge_kernels for a Network on a GPU of compute capability ``arch`` (None: not
     a GPU): on sm_90 (H100, H200) the edge-row launches on tiles of 64 rows with wgmma products (tiles.GEMM_WGMMA) on
     two warpgroups (threads_for). Both, the edge pass and the hybrid decoder, for small graphs (``small``: node tiles
@@ -230,8 +232,9 @@ def edge_products_for(k_chunk: int, latent: int, arch: int | None, small: bool =
     decoder alone 214 -> 208 us at batch 2, 331 -> 321 at 4, 575 -> 562 at 8, 3818 -> 3707 at 64 (its launch 689 ->
     575 us); both, against the decoder alone, 207.8 -> 191.7 us at batch 2, 321.1 -> 300.6 at 4, 560.3 -> 540.3 at 8
     (node tiles of 8, 16, 32: 1.27 an SM each), and slower at 16 (1055 -> 1059, 2.5 tiles an SM), 32 (1942 -> 1962)
-    and 64 (the edge pass's launch 367 -> 375 us). Else {} (the launches' tiles and products as the others')."""
-    if arch != 90:
+    and 64 (the edge pass's launch 367 -> 375 us). Else {} (the launches' tiles and products as the others'), as
+    where wgmma cannot take the shape (K chunks not a multiple of 16, ``tile_rows`` not dividing 64)."""
+    if arch != 90 or k_chunk % 16 or 64 % tile_rows:
         return {}
     tensor = {"edge_rows": 64, "edge_gemm": "wgmma"}
     if latent == 128:
@@ -244,29 +247,29 @@ def edge_products_for(k_chunk: int, latent: int, arch: int | None, small: bool =
 
 
 def edge_products(edge_rows: int | None, edge_gemm: str | None, k_chunk: int, latent: int, arch: int | None,
-                  small: bool, edge_kernels: tuple | None = None, node_tiles_per_sm: float = 0.0) -> dict:
+                  small: bool, edge_kernels: tuple | None = None, node_tiles_per_sm: float = 0.0,
+                  tile_rows: int = Spec.tile_rows) -> dict:
     """Spec's edge_rows, edge_gemm and edge_kernels: those given, or where none is (None) edge_products_for's
     pick."""
     if edge_rows is None and edge_gemm is None and edge_kernels is None:
-        return edge_products_for(k_chunk, latent, arch, small, node_tiles_per_sm)
+        return edge_products_for(k_chunk, latent, arch, small, node_tiles_per_sm, tile_rows)
     return {"edge_rows": edge_rows or 0, "edge_gemm": edge_gemm or "", "edge_kernels": edge_kernels or EDGE_KERNELS}
 
 
-def threads_for(k_chunk: int, latent: int, cuda: bool, arch: int | None = None, small: bool = False,
-                node_tiles_per_sm: float = 0.0) -> tuple:
-    """Spec.threads of a Network on CUDA (``cuda``) with ``k_chunk`` (k_chunk_for): with whole weights (small
-    graphs), the node pass on WIDE threads: its block holds an SM alone (137 KiB at F = 64), and 256 threads give its
-    products more warps a scheduler, each summing a part of K (tiles.GEMM: two parts when measured, up to four
-    since), and its CSR sums two threads a row vector (tiles.SEGMENT_SUMS): 141.8 -> 138.3 us a 5-pass step, 278.4 ->
-    269.8 at 12 passes on an H200 (bench/results/warp_wide_blocks_h200.json). Else (): with K chunks (batch 64,
-    F = 128) each thread's half of a 32-row chunk is 16 k with a barrier every chunk (F = 128: 705.5 -> 712.6 us at 12
-    passes on 256 threads). The edge-row launches with wgmma products (edge_products_for: ``arch``, ``small``,
-    ``node_tiles_per_sm``) too:
-    their 64-row tiles' products on two warpgroups, their other steps with a thread for as many rows as on 32-row
-    tiles."""
+def threads_for(k_chunk: int, latent: int, cuda: bool, edge: dict | None = None) -> tuple:
+    """Spec.threads of a Network on CUDA (``cuda``) with ``k_chunk`` (k_chunk_for) and the edge products ``edge``
+    (edge_products: Spec's edge_rows, edge_gemm, edge_kernels): with whole weights (small graphs), the node pass on
+    WIDE threads: its block holds an SM alone (137 KiB at F = 64), and 256 threads give its products more warps a
+    scheduler, each summing a part of K (tiles.GEMM: two parts when measured, up to four since), and its CSR sums two
+    threads a row vector (tiles.SEGMENT_SUMS): 141.8 -> 138.3 us a 5-pass step, 278.4 -> 269.8 at 12 passes on an
+    H200 (bench/results/warp_wide_blocks_h200.json). Not with K chunks (batch 64, F = 128): each thread's half of a
+    32-row chunk is 16 k with a barrier every chunk (F = 128: 705.5 -> 712.6 us at 12 passes on 256 threads). The
+    edge-row launches with wgmma products too: their 64-row tiles' products on two warpgroups, their other steps with
+    a thread for as many rows as on 32-row tiles (edge_products_for's measurements; on 128 threads the wgmma edge pass
+    was slower, 130.4 -> 137.3 us at 5 passes, warp_wgmma_edge_pass_h200.json)."""
     wide = [("node_pass", WIDE)] if cuda and k_chunk == latent else []
-    tensor = edge_products_for(k_chunk, latent, arch, small, node_tiles_per_sm) if cuda else {}
-    edges = [(k, WIDE) for k in tensor.get("edge_kernels", EDGE_KERNELS)] if tensor else []
+    tensor = cuda and edge and edge.get("edge_gemm") == "wgmma"
+    edges = [(k, WIDE) for k in edge.get("edge_kernels", EDGE_KERNELS)] if tensor else []
     return tuple(sorted(edges + wide))
 
 

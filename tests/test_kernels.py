@@ -299,12 +299,19 @@ def test_edge_products_and_threads_by_gpu():
     assert edge_products_for(64, 64, 80) == edge_products_for(64, 64, None) == {}
     assert edge_products_for(16, 16, 90, True) == edge_products_for(32, 128, 90) == edge_products_for(32, 128, 80,
                                                                                                       True) == {}
-    assert threads_for(32, 128, True, 90, small=True) == (("edge_pass", 256), ("hybrid_fields", 256))
-    assert threads_for(64, 64, True, 90) == (("edge_pass", 256), ("hybrid_fields", 256), ("node_pass", 256))
-    assert threads_for(64, 64, True, 80) == threads_for(64, 64, True) == (("node_pass", 256),)
-    assert threads_for(32, 64, True, 90) == (("edge_pass", 256), ("hybrid_fields", 256))
-    assert threads_for(32, 64, True, 90, node_tiles_per_sm=10) == (("hybrid_fields", 256),)
-    assert threads_for(32, 64, True, 80) == threads_for(64, 64, False, 90) == ()
+    # shapes wgmma does not take: K chunks not a multiple of 16, tiles that do not divide 64 rows
+    assert edge_products_for(8, 64, 90) == edge_products_for(64, 64, 90, tile_rows=128) == {}
+    decoder = tensor | {"edge_kernels": ("hybrid_fields",)}
+    assert threads_for(32, 128, True, tensor) == threads_for(32, 64, True, tensor) == (("edge_pass", 256),
+                                                                                       ("hybrid_fields", 256))
+    assert threads_for(64, 64, True, tensor) == (("edge_pass", 256), ("hybrid_fields", 256), ("node_pass", 256))
+    assert threads_for(64, 64, True, {}) == threads_for(64, 64, True) == (("node_pass", 256),)
+    assert threads_for(32, 64, True, decoder) == (("hybrid_fields", 256),)
+    assert threads_for(32, 64, True, {}) == threads_for(64, 64, False, tensor) == ()
+    # only edge kernels named, the edge tiles and products the others': one Spec, one module
+    from warpgnn.kernels.spec import Spec
+
+    assert Spec(64, edge_kernels=("hybrid_fields",)) == Spec(64)
     net = Network(random_model("vanilla", 1, 64), tool_topology(box((3, 3, 2)), 2), device="cpu")
     assert net.spec.edge_tile == 32 and net.spec.edges("edge_pass").gemm == "native" and not net.spec.sm90a
 
@@ -507,12 +514,15 @@ def test_tensor_core_edge_pass_on_hopper():
     threads; shipped) and the larger graphs' (the hybrid decoder alone; shipped); the small graphs' pick (256
     threads, whole weights) runs in test_cuda_graph_step_equals_eager."""
     model = random_model("hybrid", 2, 64, seed=17)
-    captured_equals_eager(model, 17, edge_rows=64, edge_gemm="wgmma", k_chunk=32)
+    net = captured_equals_eager(model, 17, edge_rows=64, edge_gemm="wgmma", k_chunk=32, threads={})
+    assert not net.spec.threads and not net.shipped_module
     net = captured_equals_eager(model, 17, k_chunk=32)
     assert net.spec.edge_kernels == ("edge_pass", "hybrid_fields") and dict(net.spec.threads)["edge_pass"] == 256
+    assert net.shipped_module
     net = captured_equals_eager(model, 17, k_chunk=32, node_rows=32, edge_rows=64, edge_gemm="wgmma",
-                                edge_kernels=("hybrid_fields",), threads={"hybrid_fields": 256})
-    assert net.spec.edge_kernels == ("hybrid_fields",)
+                                edge_kernels=("hybrid_fields",))
+    assert net.spec.edge_kernels == ("hybrid_fields",) and net.spec.threads == (("hybrid_fields", 256),)
+    assert net.shipped_module
 
 
 @pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device")

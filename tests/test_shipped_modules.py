@@ -53,6 +53,7 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
     build), on the largest graphs the hybrid decoder's alone."""
     from warpgnn.kernels.message_passing import EDGE_PASS_SHARED
     from warpgnn.kernels.spec import (
+        NODE_ROWS,
         SHARED_OF_ARCH,
         Spec,
         edge_products_for,
@@ -67,18 +68,18 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
     for max_shared, arch in ((99 * 1024, 80), (163 * 1024, 80), (227 * 1024, 90)):
         shipped_specs = {s.module: s for s in shipped.specs(arch)}
         for F in shipped.LATENTS:
-            for n in node_rows_allowed(F, max_shared):
-                k = k_chunk_for(n, F, max_shared)
-                small = n == 8  # a small graph's node tiles
-                spec = Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, arch, small),
-                            **edge_products_for(k, F, arch, small))
+            # (node tiles, node tiles an SM): each size at a tile an SM, the small tiles at more (K chunks: batch 2 of
+            # L5), the largest at more than FEW_NODE_TILES (batch 16 on)
+            cases = [(n, 1.0) for n in node_rows_allowed(F, max_shared)]
+            cases += [(NODE_ROWS[0], 1.27), (node_rows_allowed(F, max_shared)[-1], 10.0)]
+            for n, load in cases:
+                k = k_chunk_for(n, F, max_shared, load)
+                edge = edge_products_for(k, F, arch, n == NODE_ROWS[0] and load <= 1, load)
+                spec = Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, edge), **edge)
                 # on sm_90 the edge-row launches' products on wgmma (an sm_90a build); on graphs of more than
-                # FEW_NODE_TILES node tiles an SM with K chunks the decoder's alone, also shipped
-                assert spec.sm90a == (arch == 90) and (not spec.sm90a or "edge_pass" in spec.edge_kernels)
-                if arch == 90 and not k_chunk_for(n, F, max_shared) and n == 32:
-                    large = Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, arch, small, 10.0),
-                                 **edge_products_for(k, F, arch, small, 10.0))
-                    assert large.edge_kernels == ("hybrid_fields",) and shipped_specs.get(large.module) == large
+                # FEW_NODE_TILES node tiles an SM with K chunks the decoder's alone
+                assert spec.sm90a == (arch == 90)
+                assert (spec.sm90a and "edge_pass" in spec.edge_kernels) == (arch == 90 and (k == F or load <= 2))
                 module = spec.module
                 assert shipped_specs.get(module) == spec, f"{module} (a GPU of {max_shared} B a block) is not shipped"
                 meta = {}  # every kernel's shared memory, from the .meta of each of the spec's modules
@@ -86,10 +87,10 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
                     meta.update(json.loads(path.read_text()))
                 need = max(meta.values())
                 assert need + 1024 <= max_shared, f"{module} needs {need} B a block, the GPU allows {max_shared}"
-                if k_chunk_for(n, F, max_shared):  # whole weights: at most two edge blocks an SM (message_passing)
-                    edge = next(v for k, v in meta.items() if "edge_pass" in k)
-                    fits = 3 * (edge + 1024) > SM_SHARED[arch]  # at most two blocks an SM
-                    assert edge >= EDGE_PASS_SHARED and fits, (module, edge)
+                if k == F:  # whole weights: at most two edge blocks an SM (message_passing)
+                    edge_shared = next(v for k, v in meta.items() if "edge_pass" in k)
+                    fits = 3 * (edge_shared + 1024) > SM_SHARED[arch]  # at most two blocks an SM
+                    assert edge_shared >= EDGE_PASS_SHARED and fits, (module, edge_shared)
     assert k_chunk_for(8, 64, 99 * 1024) == 0 and k_chunk_for(8, 64, 163 * 1024) == 64
     # builds without the GPU (precompile --arch) pick by SHARED_OF_ARCH as a Network there would
     assert [k_chunk_for(8, 64, SHARED_OF_ARCH.get(a, 0)) for a in (75, 80, 86, 89, 90)] == [0, 64, 0, 0, 64]
