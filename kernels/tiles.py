@@ -334,16 +334,20 @@ assert "half_round(av" in GEMM_F16
 WGMMA_N = (32, 64, 72, 128, 144)  # a warpgroup's widths built (F = 64 and the decoder's 144 on one or two, F = 128)
 
 
+def wgmma_asm(n: int, d: str, a: str, desc: str) -> str:
+    """The C++ statement d[0:n / 2] += a (a warpgroup's tf32 A fragments in registers, a[0:4]) x desc (a shared-memory
+    descriptor of k8 x n tf32): one wgmma m64n{n}k8 with fp32 accumulators, no semicolon (the caller's)."""
+    outs = ", ".join(f"%{i}" for i in range(n // 2))
+    cons = ", ".join(f'"+f"({d}[{i}])' for i in range(n // 2))
+    m = n // 2
+    return (f'asm volatile("wgmma.mma_async.sync.aligned.m64n{n}k8.f32.tf32.tf32 {{{outs}}}, '
+            f'{{%{m}, %{m + 1}, %{m + 2}, %{m + 3}}}, %{m + 4}, 1, 1, 1;\\n" : {cons} : "r"({a}[0]), "r"({a}[1]), '
+            f'"r"({a}[2]), "r"({a}[3]), "l"({desc}))')
+
+
 def _wgmma_source() -> str:
-    def instr(n: int) -> str:
-        outs = ", ".join(f"%{i}" for i in range(n // 2))
-        cons = ", ".join(f'"+f"(d[{i}])' for i in range(n // 2))
-        m = n // 2
-        return (f'asm volatile("wgmma.mma_async.sync.aligned.m64n{n}k8.f32.tf32.tf32 {{{outs}}}, '
-                f'{{%{m}, %{m + 1}, %{m + 2}, %{m + 3}}}, %{m + 4}, 1, 1, 1;\\n" : {cons} : "r"(x[0]), "r"(x[1]), '
-                f'"r"(x[2]), "r"(x[3]), "l"(desc));')
-    dispatch = "\n".join(f"            {'' if i == 0 else 'else '}if constexpr (NW == {n}) {{ {instr(n)} }}"
-                         for i, n in enumerate(WGMMA_N))
+    dispatch = "\n".join(f"            {'' if i == 0 else 'else '}if constexpr (NW == {n}) "
+                         f"{{ {wgmma_asm(n, 'd', 'x', 'desc')}; }}" for i, n in enumerate(WGMMA_N))
     return r"""
     using LA = typename tile_a::Layout;
     using LB = typename tile_b::Layout;

@@ -279,12 +279,7 @@ assert WGMMA_TC_V.count("__shfl_xor_sync") == 2 and "d[i] = 0.f" in WGMMA_TC_V
 
 def wgmma_macro(n: int) -> str:
     """WGMMA(D, A, DESC) defined for n columns: D[n / 2] += A (registers, m64k8) x DESC (shared, k8 x n), tf32."""
-    outs = ", ".join(f"%{i}" for i in range(n // 2))
-    cons = ", ".join(f'"+f"(D[{i}])' for i in range(n // 2))
-    m = n // 2
-    return (f'#define WGMMA(D, A, DESC) asm volatile("wgmma.mma_async.sync.aligned.m64n{n}k8.f32.tf32.tf32 '
-            f'{{{outs}}}, {{%{m}, %{m + 1}, %{m + 2}, %{m + 3}}}, %{m + 4}, 1, 1, 1;\\n" : {cons} : "r"(A[0]), '
-            f'"r"(A[1]), "r"(A[2]), "r"(A[3]), "l"(DESC))\n')
+    return f"#define WGMMA(D, A, DESC) {tiles.wgmma_asm(n, 'D', 'A', 'DESC')}\n"
 
 
 def wgmma_source(n: int, variant: str = "wgmma3") -> str:
