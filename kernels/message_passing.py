@@ -24,6 +24,7 @@ import functools
 
 import warp as wp
 
+from . import features
 from .decoders import node_decoder
 from .spec import FEATURE_WIDTH, Spec
 from .tiles import grid_step, helpers, index_steps, matmul, matmul_ahead, row_vector, stage, store
@@ -54,19 +55,27 @@ def encoder_kernel(spec: Spec):
     """encode, in spec.module_of("encode")."""
     owner = spec.module_of("encode")
     T, F = spec.tile_rows, spec.latent
-    fill, _activate, second_layer, _sums, project, _gather, _ahead = helpers(spec, owner)
+    fill, _activate, second_layer, _sums, project, _gather, ahead_parts = helpers(spec, owner)
+    w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
     mm_in = matmul(T, FW, FW, F, spec.gemm, owner)
+    in_rows, begin_in, finish_in = matmul_ahead(T, FW, FW, F, spec.gemm, owner)
+    inline = spec.features_in_encoder  # else read from the features launch's rows
+    # computing its features with whole weights, both layers' weight copies first, in flight while the features' loads
+    # are (as the edge pass's)
+    ahead = inline and spec.kc == F
+    tile_features = features.tile_features(T, owner)
     load_feat, loaded_feat = stage(T, FW, owner)
     store_rows = store(T, F, owner)
 
     @wp.kernel(enable_backward=False, module=owner, **_options(spec, "encode"))
-    def encode(feat: wp.array2d(dtype=float), w1: wp.array2d(dtype=float), b1: wp.array2d(dtype=float),
+    def encode(raw: features.Inputs, feat: wp.array2d(dtype=float), w1: wp.array2d(dtype=float),
+               b1: wp.array2d(dtype=float),
                w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float), gain: wp.array2d(dtype=float),
                shift: wp.array2d(dtype=float), self_loop: wp.array2d(dtype=float), proj: wp.array2d(dtype=float),
                tool_proj: wp.array2d(dtype=float), eps: float, mesh_row: int, self_row: int, act_row: int,
                tool_row: int, nodes_pad: int, tools_pad: int, proj_chunks: int, first_chunks: int, row_tiles: int,
                later_tools: int, lat: wp.array2d(dtype=float), products: wp.array2d(dtype=float)):
-        blk, _lane = wp.tid()
+        blk, lane = wp.tid()
         grid_step(0)
         grid_step(1)
         tool_pass = wp.int32(0)  # which pass's tool products this block writes (-1: none, nor the latents)
@@ -98,14 +107,26 @@ def encoder_kernel(spec: Spec):
             cls = 2
         elif row0 >= mesh_row:
             cls = 1
+        if wp.static(ahead):
+            w1_buf = wp.tile_empty(shape=(in_rows, F), dtype=float, storage="shared")
+            begin_in(w1_buf, w1, cls * FW, 0)
+            w2_buf = wp.tile_empty(shape=(w2_rows, F), dtype=float, storage="shared")
+            begin_second_layer(w2_buf, w2, cls)
         x = wp.tile_empty(shape=(T, FW), dtype=float, storage="shared")
-        load_feat(x, feat, row0, 0)
-        loaded_feat(x)
+        if wp.static(inline):
+            tile_features(x, raw, row0, lane)
+        else:
+            load_feat(x, feat, row0, 0)
+            loaded_feat(x)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         fill(h, b1, cls)
-        mm_in(x, w1, cls * FW, 0, h)
         y = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        second_layer(h, w2, b2, gain, shift, cls, eps, h, 0, y)
+        if wp.static(ahead):
+            finish_in(x, w1, cls * FW, 0, w1_buf, h)
+            second_layer_ahead(h, w2, w2_buf, b2, gain, shift, cls, eps, h, 0, y)
+        else:
+            mm_in(x, w1, cls * FW, 0, h)
+            second_layer(h, w2, b2, gain, shift, cls, eps, h, 0, y)
         if tool_pass == 0:
             store_rows(y, lat, row0, 0)
         if cls == 0:
@@ -281,8 +302,8 @@ def launches(net) -> list:
     out = [wp.launch_tiled(
         encode, dim=[lay.tiles(lay.rows) + later_tools + node_chunks], block_dim=net.block_dim_of("encode"), device=dev,
         record_cmd=True,
-        inputs=[net.feat, w.enc_w1, w.enc_b1, w.enc_w2, w.enc_b2, w.enc_g, w.enc_be, net.self_loop, w.proj,
-                w.tool_proj, w.eps, lay.mesh_row, lay.self_row, lay.act_row,
+        inputs=[features.inputs(net), net.feat, w.enc_w1, w.enc_b1, w.enc_w2, w.enc_b2, w.enc_g, w.enc_be,
+                net.self_loop, w.proj, w.tool_proj, w.eps, lay.mesh_row, lay.self_row, lay.act_row,
                 lay.tool_row, lay.nodes_pad, lay.tools_pad, pass_chunks, first_chunks, lay.tiles(lay.rows),
                 later_tools, net.lat, net.products])]
     edges = net.spec.edges("edge_pass")  # its tiles (within the layout's edge_tile padding) and products

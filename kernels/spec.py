@@ -101,6 +101,16 @@ class Spec:
         return self.kc != self.latent and self.latent <= 64
 
     @property
+    def features_in_encoder(self) -> bool:
+        """Whether the encoder's blocks compute their rows' raw features (kernels/features.py) rather than read them
+        from a features launch before: where blocks do not queue for the SMs (not many_blocks). On an H200 (L5):
+        batch 1 hybrid 58.5 / 123.8 / 238.5 -> 55.7 / 121.1 / 235.6 us at 1 / 5 / 12 passes, vanilla 42.0 / 107.2 /
+        221.4 -> 39.2 / 104.3 / 218.4, F = 128 12 passes 639.5 -> 632.7; at batch 64 the encoder's blocks wait
+        for their features' loads one wave after another: 3712 -> 3746 us
+        (bench/results/warp_features_inline_h200.json)."""
+        return not self.many_blocks
+
+    @property
     def node_tile(self) -> int:
         n = self.node_rows or self.tile_rows
         if self.tile_rows % n:

@@ -129,7 +129,8 @@ def check(model, top, seed=0, **kw):
 def test_forward_and_step_match_reference(kind, actuator_graphs, passes, latent):
     model = random_model(kind, passes, latent, actuator_graphs)
     net, _ = check(model, tool_topology(box((3, 3, 2)), 2))
-    assert net.n_launches == 2 * passes + (4 if kind == "hybrid" else 3)
+    # small graphs: the encoder computes the raw features (Spec.features_in_encoder)
+    assert net.spec.features_in_encoder and net.n_launches == 2 * passes + (3 if kind == "hybrid" else 2)
 
 
 @pytest.mark.parametrize("cells,tools", [((2, 2, 1), 1), ((3, 3, 2), 2), ((5, 4, 3), 3), ((7, 6, 3), 4)])
@@ -199,10 +200,11 @@ def test_weight_chunks_double_buffered(monkeypatch, latent, k_chunk):
     comes in chunks of decoders.LM_CHUNK = 16 instead: Spec.many_blocks): the next chunk's weights are staged while
     the current one's product runs (tiles.matmul), the decoder's edge rows read from inside its output tile, with 5
     threads a block (CPU fibers, so the block's row LayerNorm and CSR sums take several threads too): the
-    reference's answer."""
+    reference's answer; the raw features by a launch of their own there (Spec.features_in_encoder)."""
     monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
-    check(random_model("hybrid", 2, latent, seed=3), tool_topology(box((3, 3, 2)), 2), seed=3, k_chunk=k_chunk,
-          block_dim=5)
+    net, _ = check(random_model("hybrid", 2, latent, seed=3), tool_topology(box((3, 3, 2)), 2), seed=3,
+                   k_chunk=k_chunk, block_dim=5)
+    assert not net.spec.features_in_encoder and net.n_launches == 2 * 2 + 4
 
 
 @pytest.mark.parametrize("k_chunk", [16, 8], ids=["whole", "chunks"])
