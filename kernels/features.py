@@ -130,7 +130,7 @@ def feature_group(f: Inputs, row: int, g: int):
     return out
 
 
-# x[r, c:c + 4] = v, then (put_done) a barrier: the shared tile's element stores of a per-thread loop
+# x[r, c:c + 4] = v: a thread's stores into the shared tile (tile_features' loop; its barrier after, sync)
 PUT = r"""
     for (int j = 0; j < 4; ++j)
         x.data(wp::tile_coord(r, c + j)) = v[j];
@@ -171,7 +171,6 @@ def inputs(net) -> Inputs:
     f.single_graph = 0 if w.actuator_graphs else 1
     f.mesh_row, f.act_row, f.tool_row = lay.mesh_row, lay.act_row, lay.tool_row
     return f
-
 
 
 @functools.cache
