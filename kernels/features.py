@@ -20,11 +20,11 @@ import functools
 import warp as wp
 
 from .spec import FEATURE_WIDTH, STAT_WIDTH, Spec
-from .tiles import grid_step
+from .tiles import grid_step, row_vector
 
 FW = FEATURE_WIDTH
-COLUMNS = wp.types.vector(length=4, dtype=float)  # a thread's group of a row's columns
-GROUP = 4
+COLUMNS = row_vector(FW)  # a thread's group of a row's columns: 4 floats, one 16-byte store (tiles.row_view)
+GROUP = COLUMNS._length_
 GROUPS = FW // GROUP
 
 
