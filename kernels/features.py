@@ -1,7 +1,8 @@
 """Raw features and their standardisation, from the state z and the tools' displacements, as
 warpgnn.graphs.raw_features + TIGNN.graph: computed by the encoder's blocks for their own rows
-(message_passing.encode) on small graphs, by a launch of their own before it (a thread a row's group
-of 4 columns, one 16-byte store) where the encoder's blocks queue for the SMs (Spec.features_in_encoder):
+(message_passing.encode), or, with K chunks at F <= 64 (Spec.many_blocks: a Network's pick for graphs
+of more than a node tile an SM), by a launch of their own before it (a thread a row's group of 4
+columns, one 16-byte store): Spec.features_in_encoder.
 
     node (N, 12 or 18): standardised v, sigma; one-hot type; [single-graph: the standardised tool
         features summed at their loaded node]
@@ -26,6 +27,7 @@ FW = FEATURE_WIDTH
 COLUMNS = row_vector(FW)  # a thread's group of a row's columns: 4 floats, one 16-byte store (tiles.row_view)
 GROUP = COLUMNS._length_
 GROUPS = FW // GROUP
+assert GROUP == 4  # feature_group's groups 0 and 1 are an edge's (d, |d|) now and at rest; PUT stores 4 floats
 
 
 @wp.func

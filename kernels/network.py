@@ -7,10 +7,11 @@ whole step can be captured once as a CUDA graph (``capture()``) and replayed.
     net.forward()                              # net.zdot, net.zdot_std, [net.degeneracy, net.entropy], net.z_next
     net.step()                                 # forward, then z <- z_next (a rollout: set u, step, ...)
 
-Launches per step: encoders 1 (the raw features computed there; on large graphs a features launch
-before: Spec.features_in_encoder), 2 per pass, then the hybrid's decoder fields 1 and GENERIC tail 1
-(Euler and boundary conditions included), or the vanilla decoder-and-tail 1; ``step()`` adds one device
-copy. 2 P + 3 (hybrid) or 2 P + 2 (vanilla) kernels on small graphs, one more on large ones.
+Launches per step: encoders 1 (the raw features computed there; with K chunks at F <= 64, a Network's
+pick for large graphs, a features launch before: Spec.features_in_encoder), 2 per pass, then the hybrid's
+decoder fields 1 and GENERIC tail 1 (Euler and boundary conditions included), or the vanilla
+decoder-and-tail 1; ``step()`` adds one device copy. 2 P + 3 (hybrid) or 2 P + 2 (vanilla) kernels, one
+more with that features launch.
 """
 
 from __future__ import annotations
@@ -129,7 +130,7 @@ class Network:
         self.n_tools = k
         # scratch: features (where a launch computes them: Spec.features_in_encoder) and latents of every row, node
         # (and tool) products, decoder fields
-        self.feat = zeros(1 if self.spec.features_in_encoder else lay.rows, FEATURE_WIDTH)
+        self.feat = zeros(1 if self.spec.features_in_encoder else lay.rows, FEATURE_WIDTH)  # 1: a placeholder
         self.feat_groups = row_view(self.feat, FEATURE_WIDTH)  # the same rows, 4 floats an item (kernels.features)
         self.lat = zeros(lay.rows, F)
         self.lat_rows = row_view(self.lat, F)  # the same rows as vectors, for the node pass's CSR sums

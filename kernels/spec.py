@@ -103,7 +103,9 @@ class Spec:
     @property
     def features_in_encoder(self) -> bool:
         """Whether the encoder's blocks compute their rows' raw features (kernels/features.py) rather than read them
-        from a features launch before: where blocks do not queue for the SMs (not many_blocks). On an H200 (L5):
+        from a features launch before: unless K chunks at F <= 64 (many_blocks: a Network's pick for graphs of more
+        than a node tile an SM, where blocks queue for the SMs; at F = 128 always, measured at batch 1). On an H200
+        (L5):
         batch 1 hybrid 58.5 / 123.8 / 238.5 -> 55.7 / 121.1 / 235.6 us at 1 / 5 / 12 passes, vanilla 42.0 / 107.2 /
         221.4 -> 39.2 / 104.3 / 218.4, F = 128 12 passes 639.5 -> 632.7; at batch 64 the encoder's blocks wait
         for their features' loads one wave after another: 3712 -> 3746 us

@@ -163,14 +163,19 @@ def test_step_per_node_dt_and_given_zdot():
     assert_matches({"z": given.numpy()}, {"z": expected})
 
 
+@pytest.mark.parametrize("k_chunk,actuator_graphs", [(None, True), (8, True), (8, False)],
+                         ids=["features-in-encoder", "features-launch", "features-launch-single-graph"])
 @pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
-def test_every_output_written_and_runs_repeat(kind):
+def test_every_output_written_and_runs_repeat(kind, k_chunk, actuator_graphs):
     """Outputs and every scratch buffer poisoned with NaN: the forward still equals the reference
-    (nothing real reads an unwritten element), and a second run is bit for bit the first (CSR sums)."""
-    model = random_model(kind, 2, 16, seed=7)
+    (nothing real reads an unwritten element), and a second run is bit for bit the first (CSR sums). With whole
+    weights the encoder computes the raw features, with K chunks a features launch writes them (every row of its
+    buffer, padding and self-loop rows too: Spec.features_in_encoder), with actuator graphs or without."""
+    model = random_model(kind, 2, 16, actuator_graphs, seed=7)
     top = tool_topology(box((4, 3, 2)), 3, seed=7)
     z, u_now, u_next = random_inputs(top, 7)
-    net = Network(model, top, device="cpu")
+    net = Network(model, top, device="cpu", k_chunk=k_chunk)
+    assert net.spec.features_in_encoder == (k_chunk is None)
     net.set_inputs(z, u_now, u_next, DT)
     for name in ("feat", "lat", "products", "grads", "ports", "node_terms", "zdot", "zdot_std", "degeneracy",
                  "entropy", "z_next"):
@@ -426,13 +431,14 @@ def test_tensor_core_products_against_numpy(device):
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
     not HAS_CUDA, reason="needs a CUDA device"))])
 @pytest.mark.parametrize("self_loops", [0, 1], ids=["edges", "self-loops"])
-def test_port_terms_against_dense_operators(device, self_loops):
+def test_port_terms_against_dense_operators(monkeypatch, device, self_loops):
     """The hybrid decoder's port terms from a (rows, 144) tile of packed (l, m) triangles (generic_tail.PORT_TERMS):
     L dE + M dS with L = A - A^T and M = B B^T formed densely in numpy, and on self-loop rows the degeneracy and
     entropy shares (L dS)^2 + (M dE)^2 and dS (M dS)."""
     from warpgnn.kernels.generic_tail import row_operators
     from warpgnn.kernels.spec import N_LM, STATE, Spec
 
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)  # on the CPU several threads a block (fibers)
     T, S, owner = 32, STATE, "test_port_terms"
     S2 = 2 * S
     _, port_terms = row_operators(Spec(16, tile_rows=T), owner)
@@ -451,7 +457,7 @@ def test_port_terms_against_dense_operators(device, self_loops):
     terms = wp.zeros((T, S2), dtype=float, device=device)
     wp.launch_tiled(apply, dim=[1], inputs=[wp.array(lm, dtype=float, device=device),
                                             wp.array(x, dtype=float, device=device), self_loops, ports, terms],
-                    block_dim=64 if device != "cpu" else 1, device=device)
+                    block_dim=64 if device != "cpu" else 5, device=device)  # CPU fibers: 5 threads split the items
     got, got_terms = ports.numpy(), terms.numpy()
     low, tri = np.tril_indices(S, -1), np.tril_indices(S)
     for r in range(T):

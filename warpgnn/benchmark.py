@@ -479,7 +479,11 @@ def plot(doc: dict, out) -> None:
         ax.set_title(f"batch {b}", fontsize=10)
         ax.grid(alpha=0.3, which="both")
     # the legend below the panels, where no point is (one pass count puts every point mid-panel)
-    handles, labels = axes[0, -1].get_legend_handles_labels()
+    legend = {}  # label -> handle, over every panel (a backend or model may be missing from one)
+    for ax in axes[0]:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            legend.setdefault(label, handle)
+    handles, labels = list(legend.values()), list(legend)
     ncol = min(3, len(labels))
     fig.legend(handles, labels, loc="lower center", ncol=ncol, fontsize=7, frameon=False)
     fig.suptitle(f"{doc['mesh']}, F = {records[0]['latent']}: {doc['device']}", fontsize=10)
