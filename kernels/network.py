@@ -90,8 +90,7 @@ class Network:
         warpgnn.graphs.Topology, one simulation or a stacked batch. ``tile_rows``, ``node_rows``, ``k_chunk``,
         ``gemm``, ``edge_rows``, ``edge_gemm``, ``edge_kernels``: the kernels' Spec (node_rows and k_chunk None: by the
         graph's size, spec.node_rows_for and spec.k_chunk_for; the edge products None: by the GPU and the graph's size,
-        spec.edge_products_for;
-        the shapes kernels/aot ships). ``block_dim``: threads a block
+        spec.edge_products_for; the shapes kernels/aot ships). ``block_dim``: threads a block
         of the tile kernels (default_block_dim); ``threads``: {kernel name: threads a block} of those whose CUDA
         launches take another (Spec.threads; None: by the K chunk, spec.threads_for). ``weights``: the
         model already packed on ``device`` (weights.pack), so Networks of many topologies share one copy."""
