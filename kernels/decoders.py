@@ -2,11 +2,15 @@
 
 * ``node_fields`` (a function the last node pass runs, message_passing): delta_v on a tile of nodes ->
   (dE, dS), from the node latents still in shared memory, so that they exist before the edge launch.
-* ``hybrid_fields``: delta_e on every mesh edge and self-loop (their latent rows are contiguous,
-  see graph.Layout) -> (l, m), 144 values a row, its first layer's per-node products computed by the
-  last node pass (each edge row costs e W_e + two gathers); then, with (l, m) still in shared memory and
-  the senders' (dE, dS) from the node pass, each row's port term L dE + M dS (generic_tail.port_terms):
-  12 values a row leave the launch instead of 144, and generic_tail only sums them per node.
+* ``hybrid_step`` (where blocks do not queue for the SMs: graph.receiver_groups): delta_e on a receiver
+  group's rows, the incoming mesh edges and self-loops of a few consecutive nodes (one tile) -> (l, m), 144
+  values a row, its first layer's per-node products computed by the last node pass (each row costs e W_e +
+  two gathers); then, with (l, m) still in shared memory and the senders' (dE, dS) from the node pass, each
+  row's port term L dE + M dS (generic_tail.PORT_TERMS) into a shared tile, and each of the group's nodes'
+  sum of them, zdot and Euler step in the same block: the hybrid's decoder and GENERIC tail in one launch.
+* ``hybrid_fields`` (large graphs; a graph with a node of more incoming edges than a tile): the same on tiles
+  of contiguous edge rows (mesh edges, then self-loops, see graph.Layout), the port terms into a buffer, 12
+  values a row instead of 144, which generic_tail's launch sums per node.
 * ``vanilla_tail``: delta on every node, zdot (standardised and physical), the Euler update and
   the boundary conditions, in one launch: the (rows, 12) output tile stays in shared memory and
   each thread takes (node, component) items of it.
@@ -15,13 +19,15 @@
 # No `from __future__ import annotations`: row_vector(F) in signatures is evaluated when defined.
 import functools
 import math
+from typing import Any
 
 import warp as wp
 
-from .generic_tail import row_operators
-from .integrate import advance
+from . import generic_tail
+from .generic_tail import Tail, row_operators, settle, step_values
+from .integrate import hold
 from .spec import N_GRAD, N_LM, STATE, Spec
-from .tiles import grid_step, helpers, index_steps, matmul, matmul_ahead, row_steps, row_vector, stage
+from .tiles import gather_rows, grid_step, helpers, index_steps, matmul, matmul_ahead, row_steps, row_vector, stage
 
 
 @functools.cache
@@ -54,11 +60,13 @@ LM_CHUNK = 16  # K rows of the (F, 144) weight's chunks where blocks queue for t
 
 @functools.cache
 def kernels(spec: Spec):
-    """hybrid_fields on its edge tiles and products (spec.edges("hybrid_fields"): its rows are edge rows), in
-    spec.module_of("hybrid_fields")."""
+    """(hybrid_fields, hybrid_step) on the edge tiles and products of hybrid_fields (spec.edges("hybrid_fields"): its
+    rows are edge rows), in spec.module_of("hybrid_fields"): the decoder's tiles of contiguous edge rows (their port
+    terms summed by generic_tail's launch), and of receiver-owned rows with the tail in the same block."""
     owner = spec.module_of("hybrid_fields")
     edges = spec.edges("hybrid_fields")
     T, F, G = edges.tile_rows, spec.latent, edges.gemm
+    PT = N_GRAD + STATE  # a grouped tile's port terms and self-loop shares a row (generic_tail.PORTS_TO_TILE)
     _fill, activate, _second_layer, _sums, _project, gather_pair, _ahead = helpers(edges, owner)
     # where blocks queue for the SMs its (F, 144) weight in K chunks of LM_CHUNK rows (double-buffered, 18 KiB instead
     # of 36 at 32 rows: with e in o, four blocks an SM instead of three; batch 64 723 -> 699 us)
@@ -73,52 +81,117 @@ def kernels(spec: Spec):
     ff_rows, begin_ff, finish_ff = matmul_ahead(T, F, edges.kc, F, G, owner)
     lm_rows, begin_lm, finish_lm = matmul_ahead(T, F, edges.kc, N_LM, G, owner)
     fill_lm, _activate_lm = row_steps(T, N_LM, owner)
-    sender_grads, port_terms = row_operators(edges, owner)
+    port_terms, port_terms_to_tile = row_operators(edges, owner)
+    gather_grads, gather_latents = gather_rows(T, N_GRAD, owner), gather_rows(T, F, owner)
     load_rows, loaded = stage(T, F, owner)
     stage_ids, _stage_offsets = index_steps(T, owner)
 
+    def edge_fields_of(grouped: bool):
+        """delta_e on a tile of rows -> (l, m) -> port terms. Ungrouped: contiguous edge rows from row0, the ports
+        into the ports buffer (rows self0 .. self1 - 1 self-loops of nodes node0 + r: a tile is all self-loops or
+        none). ``grouped``: block row0 / T's receiver group (graph.receiver_groups; rows named by its slots: latent
+        row, receiver, sender), the ports into a shared tile, then each of its nodes' sums and Euler step (``tail``,
+        a generic_tail.Tail; ``lane`` the thread)."""
+        @wp.func
+        def edge_fields(lat: wp.array2d(dtype=float), row_recv: wp.array(dtype=wp.int32),
+                        row_send: wp.array(dtype=wp.int32), slot_row: wp.array(dtype=wp.int32),
+                        products: wp.array2d(dtype=row_vector(F)), w_e: wp.array2d(dtype=float),
+                        b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float),
+                        row0: int, grads: wp.array2d(dtype=float), self0: int, self1: int, out_row: int,
+                        node0: int, ports: wp.array2d(dtype=float), node_terms: wp.array2d(dtype=float), tail: Any,
+                        lane: int):
+            if wp.static(ahead):  # whole weights: both copies first, in flight while the rows' and gather's loads are
+                w1_buf = wp.tile_empty(shape=(ff_rows, F), dtype=float, storage="shared")
+                begin_ff(w1_buf, w_e, 0, 0)
+                w2_buf = wp.tile_empty(shape=(lm_rows, N_LM), dtype=float, storage="shared")
+                begin_lm(w2_buf, w2, 0, 0)
+            ids = wp.tile_empty(shape=(2, T), dtype=wp.int32, storage="shared")
+            stage_ids(ids, row_recv, row_send, row0)  # the graph's: before the wait
+            if wp.static(grouped):
+                at = wp.tile_empty(shape=(2, T), dtype=wp.int32, storage="shared")
+                stage_ids(at, slot_row, slot_row, row0)
+                n0, n1 = tail.group_node[row0 // T], tail.group_node[row0 // T + 1]
+                e0 = tail.mesh_off[n0]
+                self0 = tail.mesh_off[n1] - e0  # the group's incoming edges, then its self-loops
+                self1 = self0 + n1 - n0
+                # a thread a (node, component) item where the block has enough (on a GPU every group of L5): its
+                # offsets, state and boundary values loaded before the wait (the graph's and the step's inputs),
+                # unconditionally (clamped) so that nothing waits for them before the weight copies and the wait
+                k = lane // STATE
+                a = lane - k * STATE
+                i = wp.min(n0 + k, n1 - 1)
+                lo, hi = tail.mesh_off[i] - e0, tail.mesh_off[i + 1] - e0
+                zc, dti, kind, tool, weight, rest_c = step_values(i, a, tail)
+            grid_step(1)
+            x = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
+            gather_grads(x, grads, ids, 1)  # the senders' (dE, dS) for the port terms, in flight with the loads below
+            if wp.static(shared_eo):
+                eo = wp.tile_empty(shape=(T, eo_cols), dtype=float, storage="shared")
+                e = wp.tile_view(eo, offset=(0, 0), shape=(T, F))
+            else:
+                e = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+            if wp.static(grouped):
+                gather_latents(e, lat, at, 0)
+            else:
+                load_rows(e, lat, row0, 0)
+            h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+            gather_pair(h, b1, 0, products, ids, 0, 0, F)
+            loaded(e)
+            if wp.static(ahead):
+                finish_ff(e, w_e, 0, 0, w1_buf, h)
+            else:
+                mm_ff(e, w_e, 0, 0, h)
+            activate(h, b1, 0, 0)
+            if wp.static(shared_eo):
+                o = wp.tile_view(eo, offset=(0, 0), shape=(T, N_LM))
+            else:
+                o = wp.tile_empty(shape=(T, N_LM), dtype=float, storage="shared")
+            fill_lm(o, b2, 0)
+            if wp.static(ahead):
+                finish_lm(h, w2, 0, 0, w2_buf, o)
+            else:
+                mm_lm(h, w2, 0, 0, o)
+            y = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
+            if wp.static(grouped):
+                pt = wp.tile_empty(shape=(T, PT), dtype=float, storage="shared")
+                port_terms_to_tile(o, x, y, self0, self1, pt)
+                items = (n1 - n0) * STATE
+                if items <= wp.block_dim():
+                    if lane < items:
+                        node_sums(pt, n0, k, a, self0, lo, hi, hold(a, zc, dti, kind, tool, weight, rest_c,
+                                                                   tail.u_next), tail)
+                else:
+                    for item in range(lane, items, wp.block_dim()):
+                        k = item // STATE
+                        a = item - k * STATE
+                        zc, dti, kind, tool, weight, rest_c = step_values(n0 + k, a, tail)
+                        node_sums(pt, n0, k, a, self0, tail.mesh_off[n0 + k] - e0, tail.mesh_off[n0 + k + 1] - e0,
+                                  hold(a, zc, dti, kind, tool, weight, rest_c, tail.u_next), tail)
+            else:
+                port_terms(o, x, y, out_row, self1, node0, ports, node_terms)
+
+        return edge_fields
+
     @wp.func
-    def edge_fields(lat: wp.array2d(dtype=float), row_recv: wp.array(dtype=wp.int32),
-                    row_send: wp.array(dtype=wp.int32), products: wp.array2d(dtype=row_vector(F)),
-                    w_e: wp.array2d(dtype=float), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
-                    b2: wp.array2d(dtype=float), row0: int, grads: wp.array2d(dtype=float), out_row: int,
-                    self_loops: int, node0: int, ports: wp.array2d(dtype=float), node_terms: wp.array2d(dtype=float)):
-        """delta_e on a tile of mesh edges or self-loops (receiver = sender = the node) -> (l, m) -> port terms."""
-        if wp.static(ahead):  # whole weights: both copies first, in flight while the rows' and gather's loads are
-            w1_buf = wp.tile_empty(shape=(ff_rows, F), dtype=float, storage="shared")
-            begin_ff(w1_buf, w_e, 0, 0)
-            w2_buf = wp.tile_empty(shape=(lm_rows, N_LM), dtype=float, storage="shared")
-            begin_lm(w2_buf, w2, 0, 0)
-        ids = wp.tile_empty(shape=(2, T), dtype=wp.int32, storage="shared")
-        stage_ids(ids, row_recv, row_send, row0)  # the graph's: before the wait
-        grid_step(1)
-        x = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
-        sender_grads(x, grads, ids)  # for the port terms, in flight with the loads below
-        if wp.static(shared_eo):
-            eo = wp.tile_empty(shape=(T, eo_cols), dtype=float, storage="shared")
-            e = wp.tile_view(eo, offset=(0, 0), shape=(T, F))
-        else:
-            e = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        load_rows(e, lat, row0, 0)
-        h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        gather_pair(h, b1, 0, products, ids, 0, 0, F)
-        loaded(e)
-        if wp.static(ahead):
-            finish_ff(e, w_e, 0, 0, w1_buf, h)
-        else:
-            mm_ff(e, w_e, 0, 0, h)
-        activate(h, b1, 0, 0)
-        if wp.static(shared_eo):
-            o = wp.tile_view(eo, offset=(0, 0), shape=(T, N_LM))
-        else:
-            o = wp.tile_empty(shape=(T, N_LM), dtype=float, storage="shared")
-        fill_lm(o, b2, 0)
-        if wp.static(ahead):
-            finish_lm(h, w2, 0, 0, w2_buf, o)
-        else:
-            mm_lm(h, w2, 0, 0, o)
-        y = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
-        port_terms(o, x, y, out_row, self_loops, node0, ports, node_terms)
+    def node_sums(pt: wp.tile(dtype=float, shape=(T, PT)), n0: int, k: int, a: int, ne: int, lo: int, hi: int,
+                  b: wp.vec4, tail: Tail):
+        """Component a of a group's node k (node n0 + k) from the port terms in pt (generic_tail.PORTS_TO_TILE): its
+        self-loop's (row ne + k) minus its incoming edges' (rows lo .. hi - 1), summed in CSR order as generic_tail
+        does, its degeneracy residual (a = 0) and entropy production (a = 1) in component order, then settle."""
+        incoming = float(0.0)
+        for s in range(lo, hi):
+            incoming += pt[s, a]
+        if a < 2:
+            total = float(0.0)
+            for c in range(STATE):
+                total += pt[ne + k, STATE + a * STATE + c]
+            if a == 0:
+                tail.degeneracy[n0 + k] = total
+            else:
+                tail.entropy[n0 + k] = total
+        settle(n0 + k, a, pt[ne + k, a] - incoming, b, tail)
+
+    edge_fields, grouped_fields = edge_fields_of(False), edge_fields_of(True)
 
     @wp.kernel(enable_backward=False, module=owner)
     def hybrid_fields(lat: wp.array2d(dtype=float), row_recv: wp.array(dtype=wp.int32),
@@ -126,13 +199,27 @@ def kernels(spec: Spec):
                       de_e: wp.array2d(dtype=float), de_b1: wp.array2d(dtype=float), de_w2: wp.array2d(dtype=float),
                       de_b2: wp.array2d(dtype=float), grads: wp.array2d(dtype=float), mesh_row: int, mesh_tiles: int,
                       ports: wp.array2d(dtype=float), node_terms: wp.array2d(dtype=float)):
-        blk, _lane = wp.tid()  # mesh edges, then self-loops: contiguous latent rows, ports rows from 0
+        blk, lane = wp.tid()  # mesh edges, then self-loops: contiguous latent rows, ports rows from 0
         grid_step(0)
-        self_loops = wp.where(blk >= mesh_tiles, 1, 0)
-        edge_fields(lat, row_recv, row_send, products, de_e, de_b1, de_w2, de_b2, mesh_row + blk * T, grads, blk * T,
-                    self_loops, (blk - mesh_tiles) * T, ports, node_terms)
+        self1 = wp.where(blk >= mesh_tiles, T, 0)
+        edge_fields(lat, row_recv, row_send, row_recv, products, de_e, de_b1, de_w2, de_b2, mesh_row + blk * T,
+                    grads, 0, self1, blk * T, (blk - mesh_tiles) * T, ports, node_terms, 0, lane)
 
-    return hybrid_fields
+    @wp.kernel(enable_backward=False, module=owner)
+    def hybrid_step(lat: wp.array2d(dtype=float), slot_row: wp.array(dtype=wp.int32),
+                    slot_recv: wp.array(dtype=wp.int32), slot_send: wp.array(dtype=wp.int32),
+                    products: wp.array2d(dtype=row_vector(F)), de_e: wp.array2d(dtype=float),
+                    de_b1: wp.array2d(dtype=float), de_w2: wp.array2d(dtype=float), de_b2: wp.array2d(dtype=float),
+                    grads: wp.array2d(dtype=float), tail: Tail):
+        """The hybrid decoder and GENERIC tail on a group of consecutive nodes (graph.receiver_groups): its tile holds
+        their incoming mesh edges (in CSR order) and self-loops, so each node's port terms are summed in shared
+        memory and its Euler step follows in the same block: no ports buffer and no tail launch."""
+        blk, lane = wp.tid()
+        grid_step(0)
+        grouped_fields(lat, slot_recv, slot_send, slot_row, products, de_e, de_b1, de_w2, de_b2, blk * T, grads, 0,
+                       0, 0, 0, grads, grads, tail, lane)
+
+    return hybrid_fields, hybrid_step
 
 
 @functools.cache
@@ -147,15 +234,16 @@ def vanilla_kernel(spec: Spec):
 
     @wp.kernel(enable_backward=False, module=owner)
     def vanilla_tail(products: wp.array2d(dtype=float), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
-                     b2: wp.array2d(dtype=float), zdot_scale: wp.array(dtype=float), z: wp.array2d(dtype=float),
-                     dt: wp.array(dtype=float), rest: wp.array2d(dtype=float), node_type: wp.array(dtype=wp.int32),
-                     presc_tool: wp.array(dtype=wp.int32), presc_weight: wp.array(dtype=float),
-                     u_next: wp.array2d(dtype=float), n_nodes: int, zdot: wp.array2d(dtype=float),
-                     zdot_std: wp.array2d(dtype=float), z_next: wp.array2d(dtype=float)):
+                     b2: wp.array2d(dtype=float), n_nodes: int, t: Tail):
         blk, lane = wp.tid()
         grid_step(0)
-        grid_step(1)
         row0 = blk * T
+        # a thread a (node, component) item where the block has enough (node tiles of 8 on a GPU): its state and
+        # boundary values loaded before the wait (clamped: no branch waits for them)
+        r = lane // STATE
+        c = lane - r * STATE
+        zc, dti, kind, tool, weight, rest_c = step_values(wp.min(row0 + r, n_nodes - 1), c, t)
+        grid_step(1)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         load_products(h, products, row0, 0)
         loaded(h)
@@ -163,35 +251,38 @@ def vanilla_kernel(spec: Spec):
         o = wp.tile_empty(shape=(T, STATE), dtype=float, storage="shared")
         fill_state(o, b2, 0)
         mm_state(h, w2, 0, 0, o)
-        for idx in range(lane, T * STATE, wp.block_dim()):  # per-thread epilogue, reads of a shared tile
-            r = idx // STATE
-            c = idx - r * STATE
-            i = row0 + r
-            if i < n_nodes:
-                v = o[r, c]
-                zdot_std[i, c] = v
-                zp = v * zdot_scale[c]
-                zdot[i, c] = zp
-                z_next[i, c] = advance(i, c, z, zp, dt, rest, node_type, presc_tool, presc_weight, u_next)
+        if T * STATE <= wp.block_dim():
+            if lane < T * STATE and row0 + r < n_nodes:
+                settle(row0 + r, c, o[r, c], hold(c, zc, dti, kind, tool, weight, rest_c, t.u_next), t)
+        else:
+            for idx in range(lane, T * STATE, wp.block_dim()):  # per-thread epilogue, reads of a shared tile
+                r = idx // STATE
+                c = idx - r * STATE
+                if row0 + r < n_nodes:
+                    zc, dti, kind, tool, weight, rest_c = step_values(row0 + r, c, t)
+                    settle(row0 + r, c, o[r, c], hold(c, zc, dti, kind, tool, weight, rest_c, t.u_next), t)
 
     return vanilla_tail
 
 
 def launches(net) -> list:
-    hybrid_fields, vanilla_tail = kernels(net.spec), vanilla_kernel(net.spec)
+    hybrid_fields, hybrid_step = kernels(net.spec)
     lay, w, g, dev = net.layout, net.weights, net.graph, net.device
     if w.kind == "hybrid":
         edges = net.spec.edges("hybrid_fields")  # its tiles and products (within the layout's edge_tile padding)
         T = edges.tile_rows
         de_e, de_w2 = w.for_products(edges.gemm, "de_e", "de_w2")
+        weights = [net.product_rows, de_e, w.de_b1, de_w2, w.de_b2, net.grads]
+        if g.groups:  # receiver-owned tiles, the tail in the same launch
+            return [wp.launch_tiled(
+                hybrid_step, dim=[g.groups], block_dim=net.block_dim_of("hybrid_fields"), device=dev, record_cmd=True,
+                inputs=[net.lat, g.slot_row, g.slot_recv, g.slot_send, *weights, generic_tail.tail(net)])]
         return [wp.launch_tiled(
             hybrid_fields, dim=[(lay.edges_pad + lay.self_pad) // T], block_dim=net.block_dim_of("hybrid_fields"),
-            device=dev,
-            record_cmd=True,
-            inputs=[net.lat, g.row_recv, g.row_send, net.product_rows, de_e, w.de_b1, de_w2, w.de_b2, net.grads,
-                    lay.mesh_row, lay.edges_pad // T, net.ports, net.node_terms])]
+            device=dev, record_cmd=True,
+            inputs=[net.lat, g.row_recv, g.row_send, *weights, lay.mesh_row, lay.edges_pad // T, net.ports,
+                    net.node_terms])]
     return [wp.launch_tiled(
-        vanilla_tail, dim=[lay.nodes_pad // net.spec.node_tile], block_dim=net.block_dim_of("vanilla_tail"), device=dev,
-        record_cmd=True,
-        inputs=[net.products, w.vd_b1, w.vd_w2, w.vd_b2, w.zdot_scale, net.z, net.dt, g.rest, g.node_type,
-                g.presc_tool, g.presc_weight, net.u_next, lay.n_nodes, net.zdot, net.zdot_std, net.z_next])]
+        vanilla_kernel(net.spec), dim=[lay.nodes_pad // net.spec.node_tile], block_dim=net.block_dim_of("vanilla_tail"),
+        device=dev, record_cmd=True,
+        inputs=[net.products, w.vd_b1, w.vd_w2, w.vd_b2, lay.n_nodes, generic_tail.tail(net)])]

@@ -1,4 +1,5 @@
-"""The hybrid decoder's GENERIC combination (paper Eq. Gen12, port_metriplectic.py), in two parts:
+"""The hybrid decoder's GENERIC combination (paper Eq. Gen12, port_metriplectic.py), in two parts (both inside
+decoders.hybrid_step's blocks on small graphs, receiver groups; else the second as a launch of its own):
 
     zdot_i = L_ii dE_i + M_ii dS_i - sum_{j -> i} (L_ij dE_j + M_ij dS_j)
 
@@ -11,7 +12,7 @@
   the L5 step's tail in 121 us on an H100; bench/results/warp_kernel_profile_h100.json). Self-loop rows also write each
   component's share of the degeneracy residual |L_ii dS_i|^2 + |M_ii dE_i|^2 and of the entropy production
   dS_i . M_ii dS_i.
-* ``generic_tail`` (one launch, a thread per (node, component)): the self term minus the node's incoming
+* ``generic_tail`` (a thread per (node, component)): the self term minus the node's incoming
   port terms, summed in CSR order (destination-sorted, as the reference's scatter: no atomics), the
   degeneracy and entropy shares summed in component order, zdot standardised and physical, and z(t + dt)
   after Euler and the boundary conditions.
@@ -23,44 +24,21 @@ import functools
 
 import warp as wp
 
-from .integrate import advance
-from .spec import N_LM, STATE, Spec
-from .tiles import ROW_PTR, grid_step
+from .integrate import euler, hold
+from .spec import N_GRAD, N_LM, STATE, Spec
+from .tiles import grid_step
 
-# The rows' senders' (dE, dS) are gathered into a shared (T, 24) tile (read once a row, not once a component) by
-# SENDER_GRADS at the launch's start: asynchronous copies in flight with the launch's row copies and gathers, complete
-# once the next tiles.stage wait (cp.async.wait_all and a barrier) has passed, which must come before x is read;
-# 16-byte copies, so grads' rows (24 floats) and base must be 16-byte aligned, as the Network allocates them.
-# (Gathered between the products before, a chain of dependent loads a thread, the port terms took 6.5 us a block at
-# batch 1, now 5.6; the batch-64 decoder launch 1072 -> 1013 us: bench/results/warp_timeline_h200.json,
-# warp_sums_grads_h200.json.) Then two block steps over the tile, each one loop and one barrier: (B^T x)[b] a (row, b)
-# item (x = dS; on self-loops dE too), then each (row, a) item's (L x)[a] = sum_{b<a} A[a, b] x_b - sum_{b>a} A[b, a]
-# x_b and (M x)[a] = sum_{b<=a} B[a, b] (B^T x)_b, in the order of additions of the reference's loops. B^T x is formed
-# once a row instead of once a component: the decoder launch 37 -> 26 us at batch 1, 247 -> 130 registers (its loops
-# as Warp code, 12 x 12 branches an item, held ~30 % of its stall samples; bench/results/warp_step_trims_h200.json).
-SENDER_GRADS = ROW_PTR + r"""
-    using L = typename tile_x::Layout;
-    constexpr int R = L::Shape::dim(0), C = L::Shape::dim(1), S = L::Stride::dim(0);
-    bool done = false;
-#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800  // 16-byte asynchronous copies, waited for with the row copies
-    if constexpr (C % 4 == 0 && S % 4 == 0) {
-        constexpr int C4 = C / 4;
-        const unsigned d0 = static_cast<unsigned>(__cvta_generic_to_shared(x.data.ptr));
-        const int* send = ids.data.ptr + tile_ids::Layout::Stride::dim(0);  // the rows' senders (tiles.stage_ids)
-        for (int i = WP_TILE_THREAD_IDX; i < R * C4; i += WP_TILE_BLOCK_DIM) {
-            const int r = i / C4, c = i - r * C4;
-            const char* src = reinterpret_cast<const char*>(row_ptr(grads, send[r])) + 16 * c;
-            asm volatile("cp.async.cg.shared.global [%0], [%1], 16;\n" :: "r"(d0 + (r * S + 4 * c) * 4), "l"(src));
-        }
-        asm volatile("cp.async.commit_group;\n" ::);
-        done = true;
-    }
-#endif
-    if (!done)
-        for (int i = WP_TILE_THREAD_IDX; i < R * C; i += WP_TILE_BLOCK_DIM)
-            x.data(wp::tile_coord(i / C, i % C)) = wp::index(grads, ids.data(wp::tile_coord(1, i / C)), i % C);
-"""
-
+# The rows' senders' (dE, dS) are gathered into a shared (T, 24) tile (read once a row, not once a component) at the
+# launch's start (tiles.gather_rows: asynchronous copies in flight with the launch's row copies and gathers, complete
+# once the next tiles.stage wait has passed, which must come before x is read). (Gathered between the products before,
+# a chain of dependent loads a thread, the port terms took 6.5 us a block at batch 1, now 5.6; the batch-64 decoder
+# launch 1072 -> 1013 us: bench/results/warp_timeline_h200.json, warp_sums_grads_h200.json.) Then two block steps
+# over the tile, each one loop and one barrier: (B^T x)[b] a (row, b) item (x = dS; on self-loops dE too), then each
+# (row, a) item's (L x)[a] = sum_{b<a} A[a, b] x_b - sum_{b>a} A[b, a] x_b and (M x)[a] = sum_{b<=a} B[a, b]
+# (B^T x)_b, in the order of additions of the reference's loops. B^T x is formed once a row instead of once a
+# component: the decoder launch 37 -> 26 us at batch 1, 247 -> 130 registers (its loops as Warp code, 12 x 12 branches
+# an item, held ~30 % of its stall samples; bench/results/warp_step_trims_h200.json). Where its results go (is_self,
+# put) is the variant's: a global ports buffer (PORTS_TO_BUFFERS) or a shared tile (PORTS_TO_TILE).
 PORT_TERMS = r"""
     constexpr int T = tile_lm::Layout::Shape::dim(0), S = 12, NL = S * (S - 1) / 2;
     constexpr int SL = tile_lm::Layout::Stride::dim(0), SX = tile_x::Layout::Stride::dim(0);
@@ -69,12 +47,13 @@ PORT_TERMS = r"""
     wp::float32* __restrict__ py = y.data.ptr;
     for (int i = WP_TILE_THREAD_IDX; i < T * S; i += WP_TILE_BLOCK_DIM) {  // y = (B^T dE | B^T dS)
         const int r = i / S, b = i - r * S;
+        const bool sl = is_self(r);
         const wp::float32* B = l + r * SL + NL;
         wp::float32 ye = 0, ys = 0;
         for (int c = b; c < S; ++c) {
             const wp::float32 w = B[c * (c + 1) / 2 + b];
             ys += w * px[r * SX + S + c];
-            if (self_loops)
+            if (sl)
                 ye += w * px[r * SX + c];
         }
         py[r * SX + b] = ye;
@@ -83,6 +62,7 @@ PORT_TERMS = r"""
     WP_TILE_SYNC();
     for (int i = WP_TILE_THREAD_IDX; i < T * S; i += WP_TILE_BLOCK_DIM) {
         const int r = i / S, a = i - r * S;
+        const bool sl = is_self(r);
         const wp::float32* A = l + r * SL;
         const wp::float32* B = A + NL;
         const wp::float32* xe = px + r * SX;
@@ -93,89 +73,156 @@ PORT_TERMS = r"""
             const wp::float32 v = A[b < a ? a * (a - 1) / 2 + b : b * (b - 1) / 2 + a];  // b == a: A[66] at most,
             const wp::float32 w = b < a ? v : b > a ? -v : wp::float32(0);                // still in the row
             l_de += w * xe[b];
-            if (self_loops)
+            if (sl)
                 l_ds += w * xs[b];
         }
         for (int b = 0; b <= a; ++b) {  // B (B^T x)
             const wp::float32 w = B[a * (a + 1) / 2 + b];
             m_ds += w * py[r * SX + S + b];
-            if (self_loops)
+            if (sl)
                 m_de += w * py[r * SX + b];
         }
-        wp::index(ports, out_row + r, a) = l_de + m_ds;
-        if (self_loops) {
-            wp::index(node_terms, node0 + r, a) = l_ds * l_ds + m_de * m_de;
-            wp::index(node_terms, node0 + r, S + a) = xs[a] * m_ds;
-        }
+        put(r, a, sl, l_de + m_ds, l_ds * l_ds + m_de * m_de, xs[a] * m_ds);
     }
     WP_TILE_SYNC();
 """
 
+# the decoder's edge launch: ports[out_row + r] a row, the degeneracy and entropy shares node_terms[node0 + r] on
+# self-loop tiles (self_loops != 0: a tile is all self-loops or none), for the tail launch to sum
+PORTS_TO_BUFFERS = r"""
+    auto is_self = [&](int) { return self_loops != 0; };
+    auto put = [&](int r, int a, bool sl, wp::float32 port, wp::float32 degeneracy, wp::float32 entropy) {
+        wp::index(ports, out_row + r, a) = port;
+        if (sl) {
+            wp::index(node_terms, node0 + r, a) = degeneracy;
+            wp::index(node_terms, node0 + r, 12 + a) = entropy;
+        }
+    };
+"""
+
+# a block of receiver-owned rows (decoders.hybrid_step): rows self0 .. self1 - 1 are self-loops; out[r, 0:12] the
+# row's port term, out[r, 12:36] a self-loop's degeneracy and entropy shares, for the same block to sum
+PORTS_TO_TILE = r"""
+    auto is_self = [&](int r) { return r >= self0 && r < self1; };
+    constexpr int SO = tile_out::Layout::Stride::dim(0);
+    auto put = [&](int r, int a, bool sl, wp::float32 port, wp::float32 degeneracy, wp::float32 entropy) {
+        out.data.ptr[r * SO + a] = port;
+        if (sl) {
+            out.data.ptr[r * SO + 12 + a] = degeneracy;
+            out.data.ptr[r * SO + 24 + a] = entropy;
+        }
+    };
+"""
+
+
 
 @functools.cache
 def row_operators(spec: Spec, owner: str):
-    """(sender_grads, port_terms). sender_grads(x, grads, ids): starts gathering x[r] = grads[ids[1, r]] (the rows'
-    senders, tiles.stage_ids; on CUDA asynchronous copies: the next wait for the launch's row copies, tiles.stage's,
-    waits for them too). port_terms(lm, x, y, out_row, self_loops, node0, ports, node_terms): ports[out_row + r,
-    a] = (L_r dE_j + M_r dS_j)[a] for each row r of a (rows, 144) tile of delta_e's outputs, j the row's sender (the
-    node itself on a self-loop), L x = A x - A^T x and M x = B (B^T x) from the packed triangles; on self-loop rows
-    (self_loops != 0, node node0 + r) also node_terms[node, a] = (L dS)[a]^2 + (M dE)[a]^2 and node_terms[node, 12 +
-    a] = dS[a] (M dS)[a]. ``x``: the senders' (dE, dS), gathered; ``y``: a (rows, 24) shared scratch tile. Cached by
-    ``owner``, the module of the kernel using them (as tiles.py's factories)."""
+    """(port_terms, port_terms_to_tile) on (T, 144) tiles of delta_e's outputs, x the rows' senders' (dE, dS)
+    (gathered: tiles.gather_rows) and y a (T, 24) shared scratch tile. port_terms(lm, x, y, out_row, self_loops,
+    node0, ports, node_terms): ports[out_row + r, a] = (L_r dE_j + M_r dS_j)[a] for each row r, j the row's sender
+    (the node itself on a self-loop), L x = A x - A^T x and M x = B (B^T x) from the packed triangles; on self-loop
+    tiles (self_loops != 0, node node0 + r) also node_terms[node, a] = (L dS)[a]^2 + (M dE)[a]^2 and node_terms[node,
+    12 + a] = dS[a] (M dS)[a]. port_terms_to_tile(lm, x, y, self0, self1, out): the same into the shared (T, 36) tile
+    out, its rows self0 .. self1 - 1 the self-loops (columns 0:12 the port term, 12:36 a self-loop's shares). Cached
+    by ``owner``, the module of the kernel using them (as tiles.py's factories)."""
     T = spec.tile_rows
 
-    @wp.func_native(SENDER_GRADS)
-    def sender_grads(x: wp.tile(dtype=float, shape=(T, 2 * STATE)), grads: wp.array2d(dtype=float),
-                     ids: wp.tile(dtype=wp.int32, shape=(2, T))): ...
-
-    @wp.func_native(PORT_TERMS)
-    def port_terms(lm: wp.tile(dtype=float, shape=(T, N_LM)), x: wp.tile(dtype=float, shape=(T, 2 * STATE)),
-                   y: wp.tile(dtype=float, shape=(T, 2 * STATE)), out_row: int, self_loops: int, node0: int,
+    @wp.func_native(PORTS_TO_BUFFERS + PORT_TERMS)
+    def port_terms(lm: wp.tile(dtype=float, shape=(T, N_LM)), x: wp.tile(dtype=float, shape=(T, N_GRAD)),
+                   y: wp.tile(dtype=float, shape=(T, N_GRAD)), out_row: int, self_loops: int, node0: int,
                    ports: wp.array2d(dtype=float), node_terms: wp.array2d(dtype=float)): ...
 
-    return sender_grads, port_terms
+    @wp.func_native(PORTS_TO_TILE + PORT_TERMS)
+    def port_terms_to_tile(lm: wp.tile(dtype=float, shape=(T, N_LM)), x: wp.tile(dtype=float, shape=(T, N_GRAD)),
+                           y: wp.tile(dtype=float, shape=(T, N_GRAD)), self0: int, self1: int,
+                           out: wp.tile(dtype=float, shape=(T, N_GRAD + STATE))): ...
+
+    return port_terms, port_terms_to_tile
+
+
+@wp.struct
+class Tail:
+    """What a decoder's last step reads and writes: the receiver groups and CSR offsets (graph.build's), the
+    standardisation of zdot, the step's inputs and the graph's boundary conditions, and the outputs (degeneracy and
+    entropy the hybrid's only)."""
+    group_node: wp.array(dtype=wp.int32)
+    mesh_off: wp.array(dtype=wp.int32)
+    zdot_scale: wp.array(dtype=float)
+    z: wp.array2d(dtype=float)
+    dt: wp.array(dtype=float)
+    rest: wp.array2d(dtype=float)
+    node_type: wp.array(dtype=wp.int32)
+    presc_tool: wp.array(dtype=wp.int32)
+    presc_weight: wp.array(dtype=float)
+    u_next: wp.array2d(dtype=float)
+    zdot: wp.array2d(dtype=float)
+    zdot_std: wp.array2d(dtype=float)
+    degeneracy: wp.array(dtype=float)
+    entropy: wp.array(dtype=float)
+    z_next: wp.array2d(dtype=float)
+
+
+def tail(net) -> Tail:
+    """A network.Network's Tail: its graph, buffers and weights."""
+    g, t = net.graph, Tail()
+    t.group_node = g.group_node if g.groups else None
+    t.mesh_off, t.zdot_scale, t.z, t.dt, t.rest = g.mesh_off, net.weights.zdot_scale, net.z, net.dt, g.rest
+    t.node_type, t.presc_tool, t.presc_weight, t.u_next = g.node_type, g.presc_tool, g.presc_weight, net.u_next
+    t.zdot, t.zdot_std, t.degeneracy, t.entropy, t.z_next = (net.zdot, net.zdot_std, net.degeneracy, net.entropy,
+                                                              net.z_next)
+    return t
+
+
+@wp.func
+def step_values(i: int, c: int, tail: Tail):
+    """Node i's z[i, c], dt[i], node type, tool and weight (presc_tool, presc_weight) and rest[i, min(c, 2)]: what
+    integrate.hold needs besides u_next, inputs of the step and the graph's only, so a kernel loads them before it
+    waits for the launch before (plain loads: nothing waits for them until hold)."""
+    return (tail.z[i, c], tail.dt[i], tail.node_type[i], tail.presc_tool[i], tail.presc_weight[i],
+            tail.rest[i, wp.min(c, 2)])
+
+
+@wp.func
+def settle(i: int, a: int, zs: float, b: wp.vec4, tail: Tail):
+    """Node i's component a of the standardised zdot ``zs`` -> zdot_std, zdot (physical) and z(t + dt) after Euler
+    and the boundary conditions (``b``: integrate.hold's): every decoder's last step."""
+    tail.zdot_std[i, a] = zs
+    zp = zs * tail.zdot_scale[a]
+    tail.zdot[i, a] = zp
+    tail.z_next[i, a] = euler(b, zp)
 
 
 @functools.cache
 def kernels(spec: Spec):
     @wp.kernel(enable_backward=False, module=spec.module)
-    def generic_tail(ports: wp.array2d(dtype=float), node_terms: wp.array2d(dtype=float),
-                     mesh_off: wp.array(dtype=wp.int32), self_row: int, zdot_scale: wp.array(dtype=float),
-                     z: wp.array2d(dtype=float), dt: wp.array(dtype=float), rest: wp.array2d(dtype=float),
-                     node_type: wp.array(dtype=wp.int32), presc_tool: wp.array(dtype=wp.int32),
-                     presc_weight: wp.array(dtype=float), u_next: wp.array2d(dtype=float),
-                     zdot: wp.array2d(dtype=float), zdot_std: wp.array2d(dtype=float),
-                     degeneracy: wp.array(dtype=float), entropy: wp.array(dtype=float),
-                     z_next: wp.array2d(dtype=float)):
+    def generic_tail(ports: wp.array2d(dtype=float), node_terms: wp.array2d(dtype=float), self_row: int, t: Tail):
         i, a = wp.tid()
         grid_step(0)
+        lo, hi = t.mesh_off[i], t.mesh_off[i + 1]  # the graph's and the step's inputs: before the wait
+        zc, dti, kind, tool, weight, rest_c = step_values(i, a, t)
         grid_step(1)
         incoming = float(0.0)
-        for e in range(mesh_off[i], mesh_off[i + 1]):  # the ports row of sorted mesh edge e is e
+        for e in range(lo, hi):  # the ports row of sorted mesh edge e is e
             incoming += ports[e, a]
-        zs = ports[self_row + i, a] - incoming
         if a < 2:  # the node's degeneracy residual (a = 0) and entropy production (a = 1), in component order
             total = float(0.0)
             for c in range(STATE):
                 total += node_terms[i, a * STATE + c]
             if a == 0:
-                degeneracy[i] = total
+                t.degeneracy[i] = total
             else:
-                entropy[i] = total
-        zdot_std[i, a] = zs
-        zp = zs * zdot_scale[a]
-        zdot[i, a] = zp
-        z_next[i, a] = advance(i, a, z, zp, dt, rest, node_type, presc_tool, presc_weight, u_next)
+                t.entropy[i] = total
+        b = hold(a, zc, dti, kind, tool, weight, rest_c, t.u_next)
+        settle(i, a, ports[self_row + i, a] - incoming, b, t)
 
     return generic_tail
 
 
 def launches(net) -> list:
-    if net.weights.kind != "hybrid":
+    if net.weights.kind != "hybrid" or net.graph.groups:  # no tail launch: decoders.hybrid_step sums the ports
         return []
-    g, lay = net.graph, net.layout
+    lay = net.layout
     return [wp.launch(
         kernels(net.spec), dim=(lay.n_nodes, STATE), block_dim=net.block_dim, device=net.device, record_cmd=True,
-        inputs=[net.ports, net.node_terms, g.mesh_off, lay.edges_pad, net.weights.zdot_scale, net.z, net.dt,
-                g.rest, g.node_type, g.presc_tool, g.presc_weight, net.u_next, net.zdot, net.zdot_std,
-                net.degeneracy, net.entropy, net.z_next])]
+        inputs=[net.ports, net.node_terms, lay.edges_pad, tail(net)])]

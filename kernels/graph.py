@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import warp as wp
 
@@ -105,10 +106,41 @@ def _last_wins(index: torch.Tensor, values: torch.Tensor, n: int, empty) -> torc
     return torch.where(last >= 0, picked, empty)  # a Python number: no copy to the device
 
 
+def receiver_groups(mesh_off, rows: int):
+    """Consecutive nodes in groups whose incoming mesh edges and self-loops fill at most ``rows`` rows (a tile of
+    decoders.hybrid_step), greedily in node order: the groups' first nodes and the node count, a numpy array of G + 1;
+    None when a node alone needs more (its in-degree + 1 > rows). ``mesh_off``: the CSR offsets (n + 1) on the host.
+    L5 (670 nodes, in-degrees 4-25, 6,760 edges) in tiles of 64 rows: 130 groups of ~57 rows (the edge tiles of the
+    ungrouped decoder: 117)."""
+    ends = np.asarray(mesh_off, np.int64) + np.arange(len(mesh_off))  # rows before node i: its edges, its self-loops
+    if len(ends) > 1 and (ends[1:] - ends[:-1]).max() > rows:
+        return None
+    starts = [0]
+    while starts[-1] < len(ends) - 1:  # the most nodes from the last start whose rows fit
+        starts.append(int(np.searchsorted(ends, ends[starts[-1]] + rows, side="right")) - 1)
+    return np.asarray(starts, np.int64)
+
+
+def group_slots(starts, mesh_off, lay: Layout, rows: int, mesh_recv, mesh_send):
+    """Each group's ``rows`` slots (receiver_groups): its nodes' incoming mesh edges in CSR order, then their
+    self-loops, then padding (the group's last self-loop again, computed and never read): (latent row, receiver,
+    sender) a slot, numpy arrays of G * rows."""
+    slot_row, slot_recv, slot_send = [], [], []
+    for n0, n1 in zip(starts[:-1], starts[1:]):
+        e0, e1 = mesh_off[n0], mesh_off[n1]
+        pad = rows - (e1 - e0) - (n1 - n0)
+        nodes = np.concatenate([np.arange(n0, n1), np.full(pad, n1 - 1)])
+        slot_row += [lay.mesh_row + np.arange(e0, e1), lay.self_row + nodes]
+        slot_recv += [mesh_recv[e0:e1], nodes]
+        slot_send += [mesh_send[e0:e1], nodes]
+    return [np.concatenate(x) for x in (slot_row, slot_recv, slot_send)]
+
+
 @dataclass
 class Graph:
     layout: Layout
     arrays: dict  # name -> wp.array (views of torch tensors, which wp.from_torch keeps alive)
+    groups: int = 0  # receiver groups (decoders.hybrid_step's blocks): 0 when not built
 
     def __getattr__(self, name):
         try:
@@ -118,13 +150,15 @@ class Graph:
 
 
 def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = True, device=None,
-          edge_rows: int = 0) -> Graph:
+          edge_rows: int = 0, group_rows: int = 0) -> Graph:
     """The kernels' view of a ``warpgnn.graphs.Topology`` (one simulation or a stacked batch) on the Warp ``device``,
     computed by torch where the topology lives and never copied to the host: a copy from the device would wait for
     the GPU's work in flight (eval builds a chunk's Network while the one before rolls out). A topology on the CPU
     (eval's, as the dataset gave it) is built there, the results sent on through pinned memory without waiting: on
     the H200 the first chunk's build took 111 ms on the device, most of it torch loading its sort, search and scatter
-    kernels on first use, against ~20 ms on the host (bench/results/warp_rollout_l5_h200.json)."""
+    kernels on first use, against ~20 ms on the host (bench/results/warp_rollout_l5_h200.json). ``group_rows``
+    (self-loops only): the receiver groups of tiles of that many rows (receiver_groups), formed on the host (from a
+    topology on a GPU a copy that waits for its work in flight) where every node's rows fit one."""
     device = wp.get_device(device)
     dev = top.senders.device
     target = torch.device(wp.device_to_torch(device))
@@ -181,4 +215,11 @@ def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = 
         "tool_off": ints(tool_off), "tool_list": ints(t_order),
         "row_recv": ints(row_recv), "row_send": ints(row_send),
         "presc_tool": ints(presc_tool), "presc_weight": view(presc_weight, wp.float32)}
-    return Graph(lay, arrays)
+    starts = receiver_groups(mesh_off.cpu().numpy(), group_rows) if group_rows and self_loops else None
+    if starts is None:
+        return Graph(lay, arrays)
+    host = [x.cpu().numpy() for x in (mesh_off, mesh_recv, mesh_send)]
+    slots = group_slots(starts, host[0], lay, group_rows, *host[1:])
+    for name, x in zip(("group_node", "slot_row", "slot_recv", "slot_send"), (starts, *slots)):
+        arrays[name] = ints(torch.from_numpy(x))
+    return Graph(lay, arrays, len(starts) - 1)

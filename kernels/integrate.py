@@ -16,21 +16,38 @@ NODE_FIXED = 1  # graphs.NODE_FIXED
 
 
 @wp.func
-def advance(i: int, c: int, z: wp.array2d(dtype=float), zdot: float, dt: wp.array(dtype=float),
-            rest: wp.array2d(dtype=float), node_type: wp.array(dtype=wp.int32), presc_tool: wp.array(dtype=wp.int32),
-            presc_weight: wp.array(dtype=float), u_next: wp.array2d(dtype=float)):
-    """z(t + dt)[i, c]: z + dt zdot, then fixed nodes at rest with zero velocity, then each tool's
-    rigid tip at rest + weight * its displacement at t + dt."""
-    value = z[i, c] + dt[i] * zdot
-    if c < 6 and node_type[i] == NODE_FIXED:
-        value = 0.0
+def hold(c: int, zc: float, dti: float, kind: wp.int32, tool: wp.int32, weight: float, rest_c: float,
+         u_next: wp.array2d(dtype=float)):
+    """What z(t + dt)[i, c] needs besides zdot (euler), from node i's z[i, c], dt[i], node type, tool and weight
+    (presc_tool, presc_weight) and rest[i, c] (read where c < 3): (z[i, c], dt[i], 1 where a boundary condition sets
+    the value, else 0, that value): fixed nodes at rest with zero velocity, then each tool's rigid tip at rest +
+    weight * its displacement at t + dt."""
+    value = float(0.0)
+    held = float(0.0)
+    if c < 6 and kind == NODE_FIXED:
+        held = 1.0
         if c < 3:
-            value = rest[i, c]
-    if c < 3:
-        t = presc_tool[i]
-        if t >= 0:
-            value = rest[i, c] + presc_weight[i] * u_next[t, c]
-    return value
+            value = rest_c
+    if c < 3 and tool >= 0:
+        held = 1.0
+        value = rest_c + weight * u_next[tool, c]
+    return wp.vec4(zc, dti, held, value)
+
+
+@wp.func
+def boundary(i: int, c: int, z: wp.array2d(dtype=float), dt: wp.array(dtype=float), rest: wp.array2d(dtype=float),
+             node_type: wp.array(dtype=wp.int32), presc_tool: wp.array(dtype=wp.int32),
+             presc_weight: wp.array(dtype=float), u_next: wp.array2d(dtype=float)):
+    """hold's values of node i, component c, read from the step's inputs and the graph."""
+    return hold(c, z[i, c], dt[i], node_type[i], presc_tool[i], presc_weight[i], rest[i, wp.min(c, 2)], u_next)
+
+
+@wp.func
+def euler(b: wp.vec4, zdot: float):
+    """z(t + dt)[i, c] from boundary's b: z + dt zdot unless a boundary condition holds it."""
+    if b[2] != 0.0:
+        return b[3]
+    return b[0] + b[1] * zdot
 
 
 @functools.cache
@@ -43,7 +60,7 @@ def kernels(spec: Spec):
         i, c = wp.tid()
         grid_step(0)
         grid_step(1)
-        z_next[i, c] = advance(i, c, z, zdot[i, c], dt, rest, node_type, presc_tool, presc_weight, u_next)
+        z_next[i, c] = euler(boundary(i, c, z, dt, rest, node_type, presc_tool, presc_weight, u_next), zdot[i, c])
 
     return integrate
 

@@ -9,9 +9,9 @@ whole step can be captured once as a CUDA graph (``capture()``) and replayed.
 
 Launches per step: encoders 1 (the raw features computed there; with K chunks at F <= 64, a Network's
 pick for large graphs, a features launch before: Spec.features_in_encoder), 2 per pass, then the hybrid's
-decoder fields 1 and GENERIC tail 1 (Euler and boundary conditions included), or the vanilla
-decoder-and-tail 1; ``step()`` adds one device copy. 2 P + 3 (hybrid) or 2 P + 2 (vanilla) kernels, one
-more with that features launch.
+decoder and GENERIC tail 1 (Euler and boundary conditions included; on receiver groups, decoders.hybrid_step;
+on those large graphs the decoder fields 1 and the tail 1), or the vanilla decoder-and-tail 1; ``step()`` adds
+one device copy. 2 P + 2 kernels on small graphs; 2 P + 4 (hybrid) or 2 P + 3 (vanilla) on large ones.
 """
 
 from __future__ import annotations
@@ -85,7 +85,7 @@ class Network:
     def __init__(self, model, topology, device=None, tile_rows: int = Spec.tile_rows, block_dim: int | None = None,
                  k_chunk: int | None = None, weights=None, node_rows: int | None = None, gemm: str = Spec.gemm,
                  threads: dict | None = None, edge_rows: int | None = None, edge_gemm: str | None = None,
-                 edge_kernels: tuple | None = None):
+                 edge_kernels: tuple | None = None, receiver_groups: bool | None = None):
         """``model``: a warpgnn TIGNN (its config and weights are read once); ``topology``: a
         warpgnn.graphs.Topology, one simulation or a stacked batch. ``tile_rows``, ``node_rows``, ``k_chunk``,
         ``gemm``, ``edge_rows``, ``edge_gemm``, ``edge_kernels``: the kernels' Spec (node_rows and k_chunk None: by the
@@ -93,7 +93,9 @@ class Network:
         spec.edge_products_for; the shapes kernels/aot ships). ``block_dim``: threads a block
         of the tile kernels (default_block_dim); ``threads``: {kernel name: threads a block} of those whose CUDA
         launches take another (Spec.threads; None: by the K chunk, spec.threads_for). ``weights``: the
-        model already packed on ``device`` (weights.pack), so Networks of many topologies share one copy."""
+        model already packed on ``device`` (weights.pack), so Networks of many topologies share one copy.
+        ``receiver_groups``: the hybrid decoder and tail in one launch on receiver-owned tiles (decoders.hybrid_step)
+        where every node's incoming edges fit a tile; None: unless blocks queue for the SMs (Spec.many_blocks)."""
         self.device = wp.get_device(device)
         self.weights = w = weights if weights is not None else pack(model, self.device)
         if not node_rows:  # by the graph's size, a divisor of tile_rows
@@ -115,8 +117,10 @@ class Network:
         self.shipped_module = shipped.load(self.spec, self.device, self.block_dim)  # else Warp compiles it
         if self.spec.sm90a and self.device.is_cuda and not self.shipped_module:
             load_sm90a(self.spec, self.device, self.block_dim)
-        self.graph = build(topology, tile_rows, w.actuator_graphs, w.kind == "hybrid", self.device,
-                           self.spec.edge_tile)
+        hybrid = w.kind == "hybrid"
+        groups = not self.spec.many_blocks if receiver_groups is None else receiver_groups
+        self.graph = build(topology, tile_rows, w.actuator_graphs, hybrid, self.device, self.spec.edge_tile,
+                           self.spec.edges("hybrid_fields").tile_rows if groups and hybrid else 0)
         self.layout = lay = self.graph.layout
         n, k, F = lay.n_nodes, topology.n_tools, w.latent
 
@@ -133,15 +137,16 @@ class Network:
         self.feat_groups = row_view(self.feat, FEATURE_WIDTH)  # the same rows, 4 floats an item (kernels.features)
         self.lat = zeros(lay.rows, F)
         self.lat_rows = row_view(self.lat, F)  # the same rows as vectors, for the node pass's CSR sums
-        hybrid = w.kind == "hybrid"
         self.products = zeros(lay.nodes_pad + w.passes * lay.tools_pad, 3 * F)
         self.product_rows = row_view(self.products, F)  # as vectors, for the edge MLPs' gathers
         self.self_loop = w.self_loop if hybrid else zeros(1, F)
         # the hybrid's (dE, dS) a node, port terms L dE + M dS a mesh edge and self-loop, and each node's
-        # per-component shares of its degeneracy residual and entropy production (generic_tail)
+        # per-component shares of its degeneracy residual and entropy production (generic_tail; in shared memory
+        # where the tail runs in the decoder's blocks: receiver groups)
         self.grads = zeros(lay.nodes_pad, N_GRAD) if hybrid else None
-        self.ports = zeros(lay.edges_pad + lay.self_pad, STATE) if hybrid else None
-        self.node_terms = zeros(lay.self_pad, 2 * STATE) if hybrid else None
+        apart = hybrid and not self.graph.groups
+        self.ports = zeros(lay.edges_pad + lay.self_pad, STATE) if apart else None
+        self.node_terms = zeros(lay.self_pad, 2 * STATE) if apart else None
         placeholder = zeros(1, 1)  # the vanilla's node pass has no delta_v
         self.node_decoder_args = ((w.dv_b1, w.dv_w2, w.dv_b2, self.grads) if hybrid
                                   else (placeholder,) * 4)

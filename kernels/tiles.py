@@ -889,11 +889,50 @@ STAGE_OFFSETS = r"""
 """
 
 
+# dst[r] = src[ids[which, r]] for every row r of a shared tile (ids: a tile's graph indices, stage_ids): on CUDA
+# 16-byte asynchronous copies, complete once the next tiles.staged wait (cp.async.wait_all and a barrier) has passed,
+# so in flight with the launch's other row copies and gathers; src's rows and base 16-byte aligned (every buffer the
+# Network allocates is: widths F and 24). Elsewhere element copies.
+GATHER_ROWS = ROW_PTR + r"""
+    using L = typename tile_dst::Layout;
+    constexpr int R = L::Shape::dim(0), C = L::Shape::dim(1), S = L::Stride::dim(0);
+    const int* at = ids.data.ptr + which * tile_ids::Layout::Stride::dim(0);
+    bool done = false;
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
+    if constexpr (C % 4 == 0 && S % 4 == 0) {
+        constexpr int C4 = C / 4;
+        const unsigned d0 = static_cast<unsigned>(__cvta_generic_to_shared(dst.data.ptr));
+        for (int i = WP_TILE_THREAD_IDX; i < R * C4; i += WP_TILE_BLOCK_DIM) {
+            const int r = i / C4, c = i - r * C4;
+            const char* from = reinterpret_cast<const char*>(row_ptr(src, at[r])) + 16 * c;
+            asm volatile("cp.async.cg.shared.global [%0], [%1], 16;\n" :: "r"(d0 + (r * S + 4 * c) * 4), "l"(from));
+        }
+        asm volatile("cp.async.commit_group;\n" ::);
+        done = true;
+    }
+#endif
+    if (!done)
+        for (int i = WP_TILE_THREAD_IDX; i < R * C; i += WP_TILE_BLOCK_DIM)
+            dst.data(wp::tile_coord(i / C, i % C)) = wp::index(src, at[i / C], i % C);
+"""
+
+
+@functools.cache
+def gather_rows(rows: int, cols: int, owner: str):
+    """gather(dst, src, ids, which): starts copying src[ids[which, r]] into row r of the shared (rows, cols) tile dst
+    (GATHER_ROWS; on CUDA asynchronous: the next ``staged`` wait waits for them too)."""
+    @wp.func_native(GATHER_ROWS)
+    def gather(dst: wp.tile(dtype=float, shape=(rows, cols)), src: wp.array2d(dtype=float),
+               ids: wp.tile(dtype=wp.int32, shape=(2, rows)), which: int): ...
+
+    return gather
+
+
 @functools.cache
 def index_steps(rows: int, owner: str):
     """stage_ids(ids (2, rows), recv, send, row0) and stage_offsets(offs (2, rows + 1), mesh_off, act_off, node0,
     n_nodes, actuators): a tile's graph indices into shared memory (STAGE_IDS, STAGE_OFFSETS), for gather_pair,
-    sender_grads and staged_segment_sums."""
+    gather_rows and staged_segment_sums."""
     @wp.func_native(STAGE_IDS)
     def stage_ids(ids: wp.tile(dtype=wp.int32, shape=(2, rows)), recv: wp.array(dtype=wp.int32),
                   send: wp.array(dtype=wp.int32), row0: int): ...

@@ -129,8 +129,62 @@ def check(model, top, seed=0, **kw):
 def test_forward_and_step_match_reference(kind, actuator_graphs, passes, latent):
     model = random_model(kind, passes, latent, actuator_graphs)
     net, _ = check(model, tool_topology(box((3, 3, 2)), 2))
-    # small graphs: the encoder computes the raw features (Spec.features_in_encoder)
-    assert net.spec.features_in_encoder and net.n_launches == 2 * passes + (3 if kind == "hybrid" else 2)
+    # small graphs: the encoder computes the raw features (Spec.features_in_encoder), the hybrid decoder its tail too
+    # (receiver groups): 2 P + 2 launches
+    assert net.spec.features_in_encoder and net.n_launches == 2 * passes + 2
+    assert (net.graph.groups > 0) == (kind == "hybrid")
+
+
+@pytest.mark.parametrize("groups", [True, False], ids=["receiver-groups", "edge-tiles-and-tail"])
+@pytest.mark.parametrize("cells,tile_rows,threads", [((3, 3, 2), 32, 5), ((5, 4, 3), 32, 5), ((4, 3, 2), 16, 5),
+                                                     ((4, 3, 2), 16, 64)])
+def test_hybrid_decoder_with_and_without_its_tail(cells, tile_rows, threads, groups):
+    """The hybrid decoder on receiver-owned tiles, each node's port terms summed and its Euler step taken in the same
+    block (decoders.hybrid_step), and on tiles of contiguous edge rows with the tail's launch after
+    (hybrid_fields, generic_tail): both the reference's answer, on graphs of one and of many groups, with 5 threads
+    a block (CPU fibers: a thread several of a group's (node, component) items) or 64 for the decoder (a thread an
+    item, its loads before the wait, as on a GPU)."""
+    wp.config.enable_cpu_blocks, before = True, wp.config.enable_cpu_blocks
+    try:
+        top, model, kw = tool_topology(box(cells), 3, seed=4), random_model("hybrid", 2, 16, seed=4), {
+            "tile_rows": tile_rows, "node_rows": 8, "block_dim": 5, "threads": {"hybrid_fields": threads}}
+        net, out = check(model, top, seed=4, receiver_groups=groups, **kw)
+        # the same sums in the same order: equal bit for bit to the other form
+        other = run(Network(model, top, device="cpu", receiver_groups=not groups, **kw), *random_inputs(top, 4))
+    finally:
+        wp.config.enable_cpu_blocks = before
+    for name, value in out.items():
+        assert np.array_equal(value, other[name]), name
+    rows = np.diff(net.graph.mesh_off.numpy()) + 1  # each node's incoming edges and self-loop
+    if groups:
+        starts = net.graph.group_node.numpy()
+        sizes = np.add.reduceat(rows, starts[:-1])
+        assert starts[0] == 0 and starts[-1] == top.n_nodes and sizes.max() <= tile_rows
+        assert net.graph.groups == len(starts) - 1 and (net.graph.groups > 1) == (rows.sum() > tile_rows)
+        assert net.ports is None and net.n_launches == 2 * 2 + 2
+    else:
+        assert net.graph.groups == 0 and net.n_launches == 2 * 2 + 3
+
+
+def test_vanilla_tail_a_thread_an_item(monkeypatch):
+    """The vanilla decoder's tail with a thread for each (node, component) item of its node tile (8 x 12 on 96
+    threads, as node tiles of 8 on a GPU's 128): its state and boundary values loaded before the products, the
+    reference's answer."""
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    net, _ = check(random_model("vanilla", 2, 16, seed=6), tool_topology(box((4, 3, 2)), 2, seed=6), seed=6,
+                   node_rows=8, block_dim=5, threads={"vanilla_tail": 96})
+    assert net.block_dim_of("vanilla_tail") == 8 * 12
+
+
+def test_receiver_groups_greedy_and_none_when_a_node_overflows():
+    """receiver_groups: consecutive nodes while their rows (in-degree + 1) fit, a new group at the first that does
+    not; None when one node alone needs more than a tile (the Network then takes the decoder's edge tiles)."""
+    from warpgnn.kernels.graph import receiver_groups
+
+    off = np.cumsum([0, 3, 4, 2, 6, 1])  # rows 4, 5, 3, 7, 2
+    assert receiver_groups(off, 9).tolist() == [0, 2, 3, 5]  # 4 + 5 | 3 (+ 7 is 10) | 7 + 2
+    assert receiver_groups(off, 12).tolist() == [0, 3, 5]  # 4 + 5 + 3 | 7 + 2
+    assert receiver_groups(off, 6) is None  # 7 rows
 
 
 @pytest.mark.parametrize("cells,tools", [((2, 2, 1), 1), ((3, 3, 2), 2), ((5, 4, 3), 3), ((7, 6, 3), 4)])
@@ -441,7 +495,7 @@ def test_port_terms_against_dense_operators(monkeypatch, device, self_loops):
     monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)  # on the CPU several threads a block (fibers)
     T, S, owner = 32, STATE, "test_port_terms"
     S2 = 2 * S
-    _, port_terms = row_operators(Spec(16, tile_rows=T), owner)
+    port_terms, _to_tile = row_operators(Spec(16, tile_rows=T), owner)
 
     @wp.kernel(enable_backward=False, module=owner)
     def apply(lm: wp.array2d(dtype=float), x: wp.array2d(dtype=float), self_loops: int,
