@@ -2,13 +2,13 @@
 
 * ``node_fields`` (a function the last node pass runs, message_passing): delta_v on a tile of nodes ->
   (dE, dS), from the node latents still in shared memory, so that they exist before the edge launch.
-* ``hybrid_step`` (where blocks do not queue for the SMs: graph.receiver_groups): delta_e on a receiver
+* ``hybrid_step`` (on small graphs, where blocks do not queue for the SMs: graph.receiver_groups): delta_e on a receiver
   group's rows, the incoming mesh edges and self-loops of a few consecutive nodes (one tile) -> (l, m), 144
   values a row, its first layer's per-node products computed by the last node pass (each row costs e W_e +
   two gathers); then, with (l, m) still in shared memory and the senders' (dE, dS) from the node pass, each
   row's port term L dE + M dS (generic_tail.PORT_TERMS) into a shared tile, and each of the group's nodes'
   sum of them, zdot and Euler step in the same block: the hybrid's decoder and GENERIC tail in one launch.
-* ``hybrid_fields`` (large graphs; a graph with a node of more incoming edges than a tile): the same on tiles
+* ``hybrid_fields`` (large graphs; a graph with a node of as many incoming edges as a tile has rows): the same on tiles
   of contiguous edge rows (mesh edges, then self-loops, see graph.Layout), the port terms into a buffer, 12
   values a row instead of 144, which generic_tail's launch sums per node.
 * ``vanilla_tail``: delta on every node, zdot (standardised and physical), the Euler update and

@@ -1,5 +1,5 @@
 """The hybrid decoder's GENERIC combination (paper Eq. Gen12, port_metriplectic.py), in two parts (both inside
-decoders.hybrid_step's blocks on small graphs, receiver groups; else the second as a launch of its own):
+decoders.hybrid_step's blocks on receiver groups, small graphs; else the second as a launch of its own):
 
     zdot_i = L_ii dE_i + M_ii dS_i - sum_{j -> i} (L_ij dE_j + M_ij dS_j)
 

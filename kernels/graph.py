@@ -152,13 +152,14 @@ class Graph:
 def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = True, device=None,
           edge_rows: int = 0, group_rows: int = 0) -> Graph:
     """The kernels' view of a ``warpgnn.graphs.Topology`` (one simulation or a stacked batch) on the Warp ``device``,
-    computed by torch where the topology lives and never copied to the host: a copy from the device would wait for
-    the GPU's work in flight (eval builds a chunk's Network while the one before rolls out). A topology on the CPU
+    computed by torch where the topology lives and not copied to the host (but for receiver groups, below): a copy
+    from the device would wait for the GPU's work in flight (eval builds a chunk's Network while the one before rolls out). A topology on the CPU
     (eval's, as the dataset gave it) is built there, the results sent on through pinned memory without waiting: on
     the H200 the first chunk's build took 111 ms on the device, most of it torch loading its sort, search and scatter
     kernels on first use, against ~20 ms on the host (bench/results/warp_rollout_l5_h200.json). ``group_rows``
     (self-loops only): the receiver groups of tiles of that many rows (receiver_groups), formed on the host (from a
-    topology on a GPU a copy that waits for its work in flight) where every node's rows fit one."""
+    topology on a GPU a copy that waits for its work in flight: a Network forms them on small graphs only) where
+    every node's rows fit one (its in-degree + 1 at most ``group_rows``)."""
     device = wp.get_device(device)
     dev = top.senders.device
     target = torch.device(wp.device_to_torch(device))
@@ -215,11 +216,11 @@ def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = 
         "tool_off": ints(tool_off), "tool_list": ints(t_order),
         "row_recv": ints(row_recv), "row_send": ints(row_send),
         "presc_tool": ints(presc_tool), "presc_weight": view(presc_weight, wp.float32)}
-    starts = receiver_groups(mesh_off.cpu().numpy(), group_rows) if group_rows and self_loops else None
+    host_off = mesh_off.cpu().numpy() if group_rows and self_loops else None
+    starts = receiver_groups(host_off, group_rows) if host_off is not None else None
     if starts is None:
         return Graph(lay, arrays)
-    host = [x.cpu().numpy() for x in (mesh_off, mesh_recv, mesh_send)]
-    slots = group_slots(starts, host[0], lay, group_rows, *host[1:])
+    slots = group_slots(starts, host_off, lay, group_rows, mesh_recv.cpu().numpy(), mesh_send.cpu().numpy())
     for name, x in zip(("group_node", "slot_row", "slot_recv", "slot_send"), (starts, *slots)):
         arrays[name] = ints(torch.from_numpy(x))
     return Graph(lay, arrays, len(starts) - 1)

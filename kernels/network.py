@@ -9,9 +9,10 @@ whole step can be captured once as a CUDA graph (``capture()``) and replayed.
 
 Launches per step: encoders 1 (the raw features computed there; with K chunks at F <= 64, a Network's
 pick for large graphs, a features launch before: Spec.features_in_encoder), 2 per pass, then the hybrid's
-decoder and GENERIC tail 1 (Euler and boundary conditions included; on receiver groups, decoders.hybrid_step;
-on those large graphs the decoder fields 1 and the tail 1), or the vanilla decoder-and-tail 1; ``step()`` adds
-one device copy. 2 P + 2 kernels on small graphs; 2 P + 4 (hybrid) or 2 P + 3 (vanilla) on large ones.
+decoder and GENERIC tail 1 (Euler and boundary conditions included: decoders.hybrid_step on receiver groups,
+small graphs; on large ones, or where a node has as many incoming edges as a tile has rows, the decoder fields 1
+and the tail 1), or the vanilla decoder-and-tail 1; ``step()`` adds one device copy. On small graphs 2 P + 2
+kernels.
 """
 
 from __future__ import annotations
@@ -95,7 +96,8 @@ class Network:
         launches take another (Spec.threads; None: by the K chunk, spec.threads_for). ``weights``: the
         model already packed on ``device`` (weights.pack), so Networks of many topologies share one copy.
         ``receiver_groups``: the hybrid decoder and tail in one launch on receiver-owned tiles (decoders.hybrid_step)
-        where every node's incoming edges fit a tile; None: unless blocks queue for the SMs (Spec.many_blocks)."""
+        where every node's incoming edges and self-loop fit a tile; None: on small graphs (a node tile an SM at most,
+        not Spec.many_blocks: where blocks do not queue for the SMs; measured there only)."""
         self.device = wp.get_device(device)
         self.weights = w = weights if weights is not None else pack(model, self.device)
         if not node_rows:  # by the graph's size, a divisor of tile_rows
@@ -118,7 +120,7 @@ class Network:
         if self.spec.sm90a and self.device.is_cuda and not self.shipped_module:
             load_sm90a(self.spec, self.device, self.block_dim)
         hybrid = w.kind == "hybrid"
-        groups = not self.spec.many_blocks if receiver_groups is None else receiver_groups
+        groups = small and not self.spec.many_blocks if receiver_groups is None else receiver_groups
         self.graph = build(topology, tile_rows, w.actuator_graphs, hybrid, self.device, self.spec.edge_tile,
                            self.spec.edges("hybrid_fields").tile_rows if groups and hybrid else 0)
         self.layout = lay = self.graph.layout

@@ -135,35 +135,61 @@ def test_forward_and_step_match_reference(kind, actuator_graphs, passes, latent)
     assert (net.graph.groups > 0) == (kind == "hybrid")
 
 
-@pytest.mark.parametrize("groups", [True, False], ids=["receiver-groups", "edge-tiles-and-tail"])
-@pytest.mark.parametrize("cells,tile_rows,threads", [((3, 3, 2), 32, 5), ((5, 4, 3), 32, 5), ((4, 3, 2), 16, 5),
-                                                     ((4, 3, 2), 16, 64)])
-def test_hybrid_decoder_with_and_without_its_tail(cells, tile_rows, threads, groups):
-    """The hybrid decoder on receiver-owned tiles, each node's port terms summed and its Euler step taken in the same
-    block (decoders.hybrid_step), and on tiles of contiguous edge rows with the tail's launch after
-    (hybrid_fields, generic_tail): both the reference's answer, on graphs of one and of many groups, with 5 threads
-    a block (CPU fibers: a thread several of a group's (node, component) items) or 64 for the decoder (a thread an
-    item, its loads before the wait, as on a GPU)."""
+def both_decoder_forms(model, top, seed, **kw):
+    """The hybrid's decoder on receiver groups and on edge tiles with the tail's launch after: each the reference's
+    answer, the two equal bit for bit (the same sums in the same order). Returns the two Networks."""
     wp.config.enable_cpu_blocks, before = True, wp.config.enable_cpu_blocks
     try:
-        top, model, kw = tool_topology(box(cells), 3, seed=4), random_model("hybrid", 2, 16, seed=4), {
-            "tile_rows": tile_rows, "node_rows": 8, "block_dim": 5, "threads": {"hybrid_fields": threads}}
-        net, out = check(model, top, seed=4, receiver_groups=groups, **kw)
-        # the same sums in the same order: equal bit for bit to the other form
-        other = run(Network(model, top, device="cpu", receiver_groups=not groups, **kw), *random_inputs(top, 4))
+        nets, outs = zip(*(check(model, top, seed=seed, receiver_groups=groups, **kw) for groups in (True, False)))
     finally:
         wp.config.enable_cpu_blocks = before
-    for name, value in out.items():
-        assert np.array_equal(value, other[name]), name
-    rows = np.diff(net.graph.mesh_off.numpy()) + 1  # each node's incoming edges and self-loop
-    if groups:
-        starts = net.graph.group_node.numpy()
-        sizes = np.add.reduceat(rows, starts[:-1])
-        assert starts[0] == 0 and starts[-1] == top.n_nodes and sizes.max() <= tile_rows
-        assert net.graph.groups == len(starts) - 1 and (net.graph.groups > 1) == (rows.sum() > tile_rows)
-        assert net.ports is None and net.n_launches == 2 * 2 + 2
-    else:
-        assert net.graph.groups == 0 and net.n_launches == 2 * 2 + 3
+    for name, value in outs[0].items():
+        assert np.array_equal(value, outs[1][name]), name
+    return nets
+
+
+@pytest.mark.parametrize("cells,tile_rows,threads", [((3, 3, 2), 32, 5), ((5, 4, 3), 32, 5), ((4, 3, 2), 16, 5),
+                                                     ((4, 3, 2), 16, 64)])
+def test_hybrid_decoder_with_and_without_its_tail(cells, tile_rows, threads):
+    """The hybrid decoder on receiver-owned tiles, each node's port terms summed and its Euler step taken in the same
+    block (decoders.hybrid_step), and on tiles of contiguous edge rows with the tail's launch after
+    (hybrid_fields, generic_tail), with 5 threads a block (CPU fibers: a thread several of a group's (node,
+    component) items) or 64 for the decoder (a thread an item, its loads before the wait, as on a GPU)."""
+    top = tool_topology(box(cells), 3, seed=4)
+    grouped, apart = both_decoder_forms(random_model("hybrid", 2, 16, seed=4), top, 4, tile_rows=tile_rows,
+                                        node_rows=8, block_dim=5, threads={"hybrid_fields": threads})
+    rows = np.diff(grouped.graph.mesh_off.numpy()) + 1  # each node's incoming edges and self-loop
+    starts = grouped.graph.group_node.numpy()
+    assert starts[0] == 0 and starts[-1] == top.n_nodes and np.add.reduceat(rows, starts[:-1]).max() <= tile_rows
+    assert grouped.graph.groups == len(starts) - 1 > 1 and grouped.ports is None
+    assert (grouped.n_launches, apart.n_launches, apart.graph.groups) == (2 * 2 + 2, 2 * 2 + 3, 0)
+
+
+def test_receiver_groups_on_irregular_graphs():
+    """Receiver groups with nodes of no incoming edge, on a batch of two meshes, and the fallback to edge tiles and
+    the tail's launch where a node's incoming edges and self-loop exceed a tile (tiles of 16 rows: in-degree 16)."""
+    mesh = box((4, 3, 2))
+    model, n, edges = random_model("hybrid", 2, 16, seed=4), len(mesh.nodes), mesh.edges()
+    base = tool_topology(mesh, 2)
+
+    def with_edges(e):
+        return make_topology(mesh, base.loaded.numpy(), base.prescribed.numpy(), base.prescribed_tool.numpy(),
+                             base.prescribed_weight.numpy(), edges=e)
+
+    kw = {"tile_rows": 16, "node_rows": 8, "block_dim": 5, "threads": {"hybrid_fields": 64}}
+    isolated = with_edges(edges[~np.isin(edges, [0, 1, 2, n - 1]).any(1)])
+    grouped, _ = both_decoder_forms(model, isolated, 1, **kw)
+    assert grouped.graph.groups > 0 and (np.diff(grouped.graph.mesh_off.numpy()) == 0).sum() == 4
+    hub = 10  # joined to every other node it is not joined to, up to in-degree 16
+    known = {tuple(sorted(e)) for e in edges.tolist()}
+    extra = [(hub, j) for j in range(n) if j != hub and tuple(sorted((hub, j))) not in known]
+    degree = int(np.isin(edges, hub).any(1).sum())
+    overflow = with_edges(np.concatenate([edges, np.array(extra[:16 - degree])]))
+    fallback, _ = both_decoder_forms(model, overflow, 2, **kw)
+    assert fallback.graph.groups == 0 and fallback.n_launches == 2 * 2 + 3  # asked for, not possible
+    two = batch([tool_topology(box((3, 3, 2)), 2, 1), tool_topology(mesh, 3, 2)])
+    grouped, _ = both_decoder_forms(model, two, 3, **dict(kw, tile_rows=32, threads={"hybrid_fields": 5}))
+    assert grouped.graph.groups > 0
 
 
 def test_vanilla_tail_a_thread_an_item(monkeypatch):

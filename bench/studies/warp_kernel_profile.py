@@ -105,7 +105,7 @@ def main():
                     "Network's pick, spec.threads_for)")
     ap.add_argument("--repeats", type=int, default=300, help="captured steps timed a case")
     ap.add_argument("--without", default="", help="kernels whose launches each step leaves out, comma-separated "
-                    "(timing only: the outputs are then wrong), e.g. generic_tail: what a launch costs the step")
+                    "(timing only: the outputs are then wrong), e.g. node_pass: what a launch costs the step")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
