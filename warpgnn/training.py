@@ -547,8 +547,8 @@ def train(cfg: TrainConfig, log=print) -> dict:
                 log(f"time limit reached after epoch {epoch}; --resume continues")
             break
     if world > 1:
-        # tear down together: in CI a rank once aborted in teardown ("terminate called without an
-        # active exception"), likely from leaving while rank 0 was still writing checkpoints
+        # tear down together (rank 0 may still be writing checkpoints); `warpgnn train` then leaves
+        # without the interpreter's teardown, where a gloo rank aborted twice in CI (cli.cmd_train)
         dist.barrier()
         dist.destroy_process_group()
     return {"best": best, "best_epoch": best_epoch, "epochs": len(history), "history": history}
