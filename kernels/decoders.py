@@ -1,4 +1,4 @@
-"""The decoders' MLPs, as tile kernels (one launch each).
+"""The decoders' MLPs, as tile kernels and as functions of the last node pass.
 
 * ``node_fields`` (a function the last node pass runs, message_passing): delta_v on a tile of nodes ->
   (dE, dS), from the node latents still in shared memory, so that they exist before the edge launch.
@@ -11,9 +11,9 @@
 * ``hybrid_fields`` (large graphs; a graph with a node of as many incoming edges as a tile has rows): the same on tiles
   of contiguous edge rows (mesh edges, then self-loops, see graph.Layout), the port terms into a buffer, 12
   values a row instead of 144, which generic_tail's launch sums per node.
-* ``vanilla_tail``: delta on every node, zdot (standardised and physical), the Euler update and
-  the boundary conditions, in one launch: the (rows, 12) output tile stays in shared memory and
-  each thread takes (node, component) items of it.
+* ``node_state`` (a function the vanilla's last node pass runs): its decoder on a tile of nodes, zdot
+  (standardised and physical), the Euler update and the boundary conditions, each thread a (node, component)
+  item of the (rows, 12) output tile: the vanilla's decoder and tail take no launch of their own.
 """
 
 # No `from __future__ import annotations`: row_vector(F) in signatures is evaluated when defined.
@@ -32,26 +32,61 @@ from .tiles import gather_rows, grid_step, helpers, index_steps, matmul, matmul_
 
 @functools.cache
 def node_decoder(spec: Spec, owner: str):
-    """The hybrid's delta_v on a tile of node latents, for the last node pass (message_passing)."""
+    """(node_fields, node_state): the decoders' MLPs on a tile of node latents, for the last node pass
+    (message_passing), from their first layer's product ``pre`` (y W1, the third block of the node products that
+    the last node pass computes anyway: weights.proj)."""
     T, F = spec.tile_rows, spec.latent
     _fill, activate, _second_layer, _sums, _project, _gather, _ahead = helpers(spec, owner)
-    mm_grad = matmul(T, F, spec.kc, N_GRAD, spec.gemm, owner)
-    fill_grad, _activate_grad = row_steps(T, N_GRAD, owner)
+
+    def mlp_of(n: int):
+        mm = matmul(T, F, spec.kc, n, spec.gemm, owner)
+        fill_n, _activate_n = row_steps(T, n, owner)
+
+        @wp.func
+        def mlp(pre: wp.tile(dtype=float, shape=(T, F)), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
+                b2: wp.array2d(dtype=float), o: wp.tile(dtype=float, shape=(T, n))):
+            """o = silu(pre + b1) W2 + b2."""
+            hs = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+            wp.tile_assign(hs, pre)  # a copy: the products' sub-views of a view would take its strides as (F, 1)
+            activate(hs, b1, 0, 1)
+            fill_n(o, b2, 0)
+            mm(hs, w2, 0, 0, o)
+
+        return mlp
+
+    grads_mlp, state_mlp = mlp_of(N_GRAD), mlp_of(STATE)
 
     @wp.func
     def node_fields(pre: wp.tile(dtype=float, shape=(T, F)), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
                     b2: wp.array2d(dtype=float), row0: int, grads: wp.array2d(dtype=float)):
-        """delta_v on a tile of node latents -> (dE, dS), from its first layer's product ``pre`` (y W1, the third block
-        of the node products that the last node pass computes anyway: weights.proj)."""
-        hs = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        wp.tile_assign(hs, pre)  # a copy: the products' sub-views of a view would take the view's strides as (F, 1)
-        activate(hs, b1, 0, 1)
+        """The hybrid's delta_v -> (dE, dS) into grads, so that they exist before the decoder's edge launch."""
         o = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
-        fill_grad(o, b2, 0)
-        mm_grad(hs, w2, 0, 0, o)
+        grads_mlp(pre, b1, w2, b2, o)
         wp.tile_store(grads, o, offset=(row0, 0))
 
-    return node_fields
+    @wp.func
+    def node_state(pre: wp.tile(dtype=float, shape=(T, F)), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
+                   b2: wp.array2d(dtype=float), row0: int, n_nodes: int, lane: int, zc: float, dti: float,
+                   kind: wp.int32, tool: wp.int32, weight: float, rest_c: float, tail: Tail):
+        """The vanilla's decoder -> zdot (standardised and physical) and the Euler step with the boundary conditions,
+        a thread a (node, component) item: where the block has enough (node tiles of 8 on a GPU) lane's item, its
+        values (generic_tail.step_values) loaded by the caller before its wait; else a loop loading them."""
+        o = wp.tile_empty(shape=(T, STATE), dtype=float, storage="shared")
+        state_mlp(pre, b1, w2, b2, o)
+        if T * STATE <= wp.block_dim():
+            r = lane // STATE
+            c = lane - r * STATE
+            if lane < T * STATE and row0 + r < n_nodes:
+                settle(row0 + r, c, o[r, c], hold(c, zc, dti, kind, tool, weight, rest_c, tail.u_next), tail)
+        else:
+            for idx in range(lane, T * STATE, wp.block_dim()):
+                r = idx // STATE
+                c = idx - r * STATE
+                if row0 + r < n_nodes:
+                    zc, dti, kind, tool, weight, rest_c = step_values(row0 + r, c, tail)
+                    settle(row0 + r, c, o[r, c], hold(c, zc, dti, kind, tool, weight, rest_c, tail.u_next), tail)
+
+    return node_fields, node_state
 
 
 EO_ALIGN = 4  # floats: the row length of the decoder's shared e / o tile, a multiple of this
@@ -222,67 +257,22 @@ def kernels(spec: Spec):
     return hybrid_fields, hybrid_step
 
 
-@functools.cache
-def vanilla_kernel(spec: Spec):
-    """vanilla_tail on the node tiles (spec.nodes), in spec.module_of("vanilla_tail")."""
-    owner = spec.module_of("vanilla_tail")
-    T, F = spec.node_tile, spec.latent
-    _fill, activate, _second_layer, _sums, _project, _gather, _ahead = helpers(spec.nodes, owner)
-    mm_state = matmul(T, F, spec.kc, STATE, spec.gemm, owner)
-    fill_state, _activate_state = row_steps(T, STATE, owner)
-    load_products, loaded = stage(T, F, owner)
-
-    @wp.kernel(enable_backward=False, module=owner)
-    def vanilla_tail(products: wp.array2d(dtype=float), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
-                     b2: wp.array2d(dtype=float), n_nodes: int, t: Tail):
-        blk, lane = wp.tid()
-        grid_step(0)
-        row0 = blk * T
-        # a thread a (node, component) item where the block has enough (node tiles of 8 on a GPU): its state and
-        # boundary values loaded before the wait (clamped: no branch waits for them)
-        r = lane // STATE
-        c = lane - r * STATE
-        zc, dti, kind, tool, weight, rest_c = step_values(wp.min(row0 + r, n_nodes - 1), c, t)
-        grid_step(1)
-        h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        load_products(h, products, row0, 0)
-        loaded(h)
-        activate(h, b1, 0, 1)
-        o = wp.tile_empty(shape=(T, STATE), dtype=float, storage="shared")
-        fill_state(o, b2, 0)
-        mm_state(h, w2, 0, 0, o)
-        if T * STATE <= wp.block_dim():
-            if lane < T * STATE and row0 + r < n_nodes:
-                settle(row0 + r, c, o[r, c], hold(c, zc, dti, kind, tool, weight, rest_c, t.u_next), t)
-        else:
-            for idx in range(lane, T * STATE, wp.block_dim()):  # per-thread epilogue, reads of a shared tile
-                r = idx // STATE
-                c = idx - r * STATE
-                if row0 + r < n_nodes:
-                    zc, dti, kind, tool, weight, rest_c = step_values(row0 + r, c, t)
-                    settle(row0 + r, c, o[r, c], hold(c, zc, dti, kind, tool, weight, rest_c, t.u_next), t)
-
-    return vanilla_tail
-
-
 def launches(net) -> list:
+    """The hybrid decoder's launch (the vanilla's decoder runs in its last node pass: message_passing)."""
     hybrid_fields, hybrid_step = kernels(net.spec)
     lay, w, g, dev = net.layout, net.weights, net.graph, net.device
-    if w.kind == "hybrid":
-        edges = net.spec.edges("hybrid_fields")  # its tiles and products (within the layout's edge_tile padding)
-        T = edges.tile_rows
-        de_e, de_w2 = w.for_products(edges.gemm, "de_e", "de_w2")
-        weights = [net.product_rows, de_e, w.de_b1, de_w2, w.de_b2, net.grads]
-        if g.groups:  # receiver-owned tiles, the tail in the same launch
-            return [wp.launch_tiled(
-                hybrid_step, dim=[g.groups], block_dim=net.block_dim_of("hybrid_fields"), device=dev, record_cmd=True,
-                inputs=[net.lat, g.slot_row, g.slot_recv, g.slot_send, *weights, generic_tail.tail(net)])]
+    if w.kind != "hybrid":
+        return []
+    edges = net.spec.edges("hybrid_fields")  # its tiles and products (within the layout's edge_tile padding)
+    T = edges.tile_rows
+    de_e, de_w2 = w.for_products(edges.gemm, "de_e", "de_w2")
+    weights = [net.product_rows, de_e, w.de_b1, de_w2, w.de_b2, net.grads]
+    if g.groups:  # receiver-owned tiles, the tail in the same launch
         return [wp.launch_tiled(
-            hybrid_fields, dim=[(lay.edges_pad + lay.self_pad) // T], block_dim=net.block_dim_of("hybrid_fields"),
-            device=dev, record_cmd=True,
-            inputs=[net.lat, g.row_recv, g.row_send, *weights, lay.mesh_row, lay.edges_pad // T, net.ports,
-                    net.node_terms])]
+            hybrid_step, dim=[g.groups], block_dim=net.block_dim_of("hybrid_fields"), device=dev, record_cmd=True,
+            inputs=[net.lat, g.slot_row, g.slot_recv, g.slot_send, *weights, generic_tail.tail(net)])]
     return [wp.launch_tiled(
-        vanilla_kernel(net.spec), dim=[lay.nodes_pad // net.spec.node_tile], block_dim=net.block_dim_of("vanilla_tail"),
+        hybrid_fields, dim=[(lay.edges_pad + lay.self_pad) // T], block_dim=net.block_dim_of("hybrid_fields"),
         device=dev, record_cmd=True,
-        inputs=[net.products, w.vd_b1, w.vd_w2, w.vd_b2, lay.n_nodes, generic_tail.tail(net)])]
+        inputs=[net.lat, g.row_recv, g.row_send, *weights, lay.mesh_row, lay.edges_pad // T, net.ports,
+                net.node_terms])]

@@ -153,10 +153,11 @@ def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = 
           edge_rows: int = 0, group_rows: int = 0) -> Graph:
     """The kernels' view of a ``warpgnn.graphs.Topology`` (one simulation or a stacked batch) on the Warp ``device``,
     computed by torch where the topology lives and not copied to the host (but for receiver groups, below): a copy
-    from the device would wait for the GPU's work in flight (eval builds a chunk's Network while the one before rolls out). A topology on the CPU
-    (eval's, as the dataset gave it) is built there, the results sent on through pinned memory without waiting: on
-    the H200 the first chunk's build took 111 ms on the device, most of it torch loading its sort, search and scatter
-    kernels on first use, against ~20 ms on the host (bench/results/warp_rollout_l5_h200.json). ``group_rows``
+    from the device would wait for the GPU's work in flight (eval builds a chunk's Network while the one before
+    rolls out). A topology on the CPU (eval's, as the dataset gave it) is built there, the results sent on through
+    pinned memory without waiting: on the H200 the first chunk's build took 111 ms on the device, most of it torch
+    loading its sort, search and scatter kernels on first use, against ~20 ms on the host
+    (bench/results/warp_rollout_l5_h200.json). ``group_rows``
     (self-loops only): the receiver groups of tiles of that many rows (receiver_groups), formed on the host (from a
     topology on a GPU a copy that waits for its work in flight: a Network forms them on small graphs only) where
     every node's rows fit one (its in-degree + 1 at most ``group_rows``)."""

@@ -11,8 +11,9 @@ Launches: one for the four encoders, then two per pass:
   f_v's first layer as one product over the shared tile [x | sum_j x'_ij | sum_k w'_kj] (T, 3F),
   LayerNorm, residual, and then the node products of the next stage as one (F, 3F) product (next pass's
   f_m receiver and sender and f_w receiver, or the decoder's first layers), so no separate projection
-  launch; on the hybrid's last pass also its node decoder delta_v -> (dE, dS) from that product's third
-  block (decoders.node_decoder).
+  launch; on the last pass (a kernel of its own) also the decoder's node MLP from that product's third block
+  (decoders.node_decoder): the hybrid's delta_v -> (dE, dS), or the vanilla's decoder, zdot and the Euler
+  step with the boundary conditions (no launch of its own).
 
 The encoder launch also writes the pass-0 node products, every pass's tool products (actuator latents
 never change, so a @ W_s(f_w) of all passes is computed once per step, each pass's by blocks of its own
@@ -24,9 +25,10 @@ import functools
 
 import warp as wp
 
-from . import features
+from . import features, generic_tail
 from .decoders import node_decoder
-from .spec import FEATURE_WIDTH, Spec
+from .generic_tail import Tail, step_values
+from .spec import FEATURE_WIDTH, STATE, Spec
 from .tiles import grid_step, helpers, index_steps, matmul, matmul_ahead, row_vector, stage, store
 
 FW = FEATURE_WIDTH
@@ -40,6 +42,7 @@ EDGE_PASS_SHARED = 80 * 1024
 # 127 registers, 4 encoder blocks of 52 KiB instead of 3 at 129): batch 64 edge pass 390 -> 373 us, encoders 404 ->
 # 372 (bench/results/warp_occupancy_h200.json)
 MANY_BLOCKS_REGISTERS = {"edge_pass": 96, "encode": 128}
+DECODE_FIELDS, DECODE_STATE = 1, 2  # node_kernel's decode on the last pass: the hybrid's delta_v, the vanilla's decoder
 
 
 def _options(spec: Spec, kernel: str) -> dict:
@@ -208,14 +211,17 @@ def edge_kernel(spec: Spec):
 
 
 @functools.cache
-def node_kernel(spec: Spec):
-    """node_pass on the node tiles (spec.nodes: they may be smaller than the edges'), in spec.module_of("node_pass")."""
+def node_kernel(spec: Spec, decode: int = 0):
+    """node_pass on the node tiles (spec.nodes: they may be smaller than the edges'), in spec.module_of("node_pass");
+    ``decode`` adds the decoder's node MLP on the last pass (DECODE_FIELDS: the hybrid's delta_v; DECODE_STATE: the
+    vanilla's decoder, zdot and Euler step), in a kernel of its own so that the other passes' carry none of its
+    code."""
     owner = spec.module_of("node_pass")
     T, F = spec.node_tile, spec.latent
     fill, _activate, second_layer, sums, _project, _gather, ahead_parts = helpers(spec.nodes, owner)
     segment_sums, staged_segment_sums = sums
     w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
-    node_fields = node_decoder(spec.nodes, owner)
+    node_fields, node_state = node_decoder(spec.nodes, owner)
     F3 = 3 * F
     mm_in, mm_out = matmul(T, F3, spec.kc, F, spec.gemm, owner), matmul(T, F, spec.kc, F3, spec.gemm, owner)
     ahead = spec.kc == F  # as the edge pass: weight copies first with whole weights
@@ -235,9 +241,10 @@ def node_kernel(spec: Spec):
                   w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float), gain: wp.array2d(dtype=float),
                   shift: wp.array2d(dtype=float), proj: wp.array2d(dtype=float), eps: float, p: int,
                   mesh_row: int, act_row: int, n_nodes: int, actuators: int,
-                  products: wp.array2d(dtype=float), decode: int, dv_b1: wp.array2d(dtype=float),
-                  dv_w2: wp.array2d(dtype=float), dv_b2: wp.array2d(dtype=float), grads: wp.array2d(dtype=float)):
-        blk, _lane = wp.tid()
+                  products: wp.array2d(dtype=float), dv_b1: wp.array2d(dtype=float),
+                  dv_w2: wp.array2d(dtype=float), dv_b2: wp.array2d(dtype=float), grads: wp.array2d(dtype=float),
+                  tail: Tail):
+        blk, lane = wp.tid()
         row0 = blk * T
         grid_step(0)
         # f_v's input [x | sum of mesh messages | sum of actuator messages] as one (T, 3F) tile, so its first layer is
@@ -254,6 +261,9 @@ def node_kernel(spec: Spec):
             # batch 64 and F = 128, staging them cost the launch 5-14 %: they are read where they are summed)
             offs = wp.tile_empty(shape=(2, T1), dtype=wp.int32, storage="shared")
             stage_offsets(offs, mesh_off, act_off, row0, n_nodes, actuators)
+        if wp.static(decode == DECODE_STATE):  # lane's (node, component) item's values for its Euler step
+            zc, dti, kind, tool, weight, rest_c = step_values(wp.min(row0 + lane // STATE, n_nodes - 1),
+                                                              lane - lane // STATE * STATE, tail)
         grid_step(1)
         xin = wp.tile_zeros(shape=(T, F3), dtype=float, storage="shared")
         x = wp.tile_view(xin, offset=(0, 0), shape=(T, F))
@@ -280,8 +290,13 @@ def node_kernel(spec: Spec):
             finish_out(y, proj, (p + 1) * F, 0, proj_buf, nxt)
         else:
             mm_out(y, proj, (p + 1) * F, 0, nxt)
-        store_products(nxt, products, row0, 0)
-        if decode != 0:  # the hybrid's last pass: delta_v here, so (dE, dS) exist before the decoder's edge launch
+        if wp.static(decode != DECODE_STATE):  # the vanilla's last products are read here only
+            store_products(nxt, products, row0, 0)
+        if wp.static(decode == DECODE_STATE):  # the vanilla's last pass: its decoder, zdot and the Euler step
+            node_state(wp.tile_view(nxt, offset=(0, 2 * F), shape=(T, F)), dv_b1, dv_w2, dv_b2, row0, n_nodes, lane,
+                       zc, dti, kind, tool, weight, rest_c, tail)
+        if wp.static(decode == DECODE_FIELDS):  # the hybrid's last pass: delta_v here, so (dE, dS) exist before its
+            # decoder's edge launch
             node_fields(wp.tile_view(nxt, offset=(0, 2 * F), shape=(T, F)), dv_b1, dv_w2, dv_b2, row0, grads)
 
     return node_pass
@@ -289,7 +304,7 @@ def node_kernel(spec: Spec):
 
 def launches(net) -> list:
     """The encoder launch and two launches per pass, recorded (wp.Launch) for replay."""
-    encode, edge_pass, node_pass = encoder_kernel(net.spec), edge_kernel(net.spec), node_kernel(net.spec)
+    encode, edge_pass = encoder_kernel(net.spec), edge_kernel(net.spec)
     lay, w, dev = net.layout, net.weights, net.device
     A = 1 if w.actuator_graphs else 0
     pass_chunks = 3 if A else 2
@@ -315,12 +330,12 @@ def launches(net) -> list:
             edge_pass, dim=[edge_tiles], block_dim=net.block_dim_of("edge_pass"), device=dev, record_cmd=True,
             inputs=[net.lat, net.graph.row_recv, net.graph.row_send, net.product_rows, ew_e, w.ew_b1, ew_w2,
                     w.ew_b2, w.ew_g, w.ew_be, w.eps, p, lay.mesh_row, mesh_tiles, lay.act_row, lay.tools_pad]))
-        last = p == w.passes - 1
-        decode = 1 if last and w.kind == "hybrid" else 0  # then (dE, dS) too, from the third block of proj
+        last = p == w.passes - 1  # then the decoder's node MLP too, on the third block of proj
+        node_pass = node_kernel(net.spec, (DECODE_FIELDS if w.kind == "hybrid" else DECODE_STATE) if last else 0)
         out.append(wp.launch_tiled(
             node_pass, dim=[lay.nodes_pad // net.spec.node_tile], block_dim=net.block_dim_of("node_pass"), device=dev,
             record_cmd=True,
             inputs=[net.lat, net.lat_rows, net.graph.mesh_off, net.graph.act_off, w.nv_w1, w.nv_b1, w.nv_w2, w.nv_b2,
                     w.nv_g, w.nv_be, w.proj, w.eps, p, lay.mesh_row, lay.act_row, lay.n_nodes, A,
-                    net.products, decode, *net.node_decoder_args]))
+                    net.products, *net.node_decoder_args, generic_tail.tail(net)]))
     return out

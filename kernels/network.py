@@ -11,8 +11,8 @@ Launches per step: encoders 1 (the raw features computed there; with K chunks at
 pick for large graphs, a features launch before: Spec.features_in_encoder), 2 per pass, then the hybrid's
 decoder and GENERIC tail 1 (Euler and boundary conditions included: decoders.hybrid_step on receiver groups,
 small graphs; on large ones, or where a node has as many incoming edges as a tile has rows, the decoder fields 1
-and the tail 1), or the vanilla decoder-and-tail 1; ``step()`` adds one device copy. On small graphs 2 P + 2
-kernels.
+and the tail 1); the vanilla's decoder and tail run in its last node pass. ``step()`` adds one device copy. On
+small graphs 2 P + 2 kernels (hybrid) or 2 P + 1 (vanilla).
 """
 
 from __future__ import annotations
@@ -46,8 +46,8 @@ def build_kernels(spec: Spec) -> None:
         module.kernels(spec)
     message_passing.encoder_kernel(spec)
     message_passing.edge_kernel(spec)
-    message_passing.node_kernel(spec)
-    decoders.vanilla_kernel(spec)
+    for decode in (0, message_passing.DECODE_FIELDS, message_passing.DECODE_STATE):
+        message_passing.node_kernel(spec, decode)
     for module in spec.modules:
         wp.get_module(module).options["enable_mathdx_gemm"] = spec.gemm == "mathdx"  # part of the module's hash
 
@@ -149,9 +149,9 @@ class Network:
         apart = hybrid and not self.graph.groups
         self.ports = zeros(lay.edges_pad + lay.self_pad, STATE) if apart else None
         self.node_terms = zeros(lay.self_pad, 2 * STATE) if apart else None
-        placeholder = zeros(1, 1)  # the vanilla's node pass has no delta_v
+        # the last node pass's decoder MLP: the hybrid's delta_v into grads, or the vanilla's decoder (grads unused)
         self.node_decoder_args = ((w.dv_b1, w.dv_w2, w.dv_b2, self.grads) if hybrid
-                                  else (placeholder,) * 4)
+                                  else (w.vd_b1, w.vd_w2, w.vd_b2, zeros(1, 1)))
         # outputs
         self.zdot, self.zdot_std, self.z_next = zeros(n, STATE), zeros(n, STATE), zeros(n, STATE)
         self.degeneracy = zeros(n) if hybrid else None

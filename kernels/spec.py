@@ -20,7 +20,7 @@ N_GRAD = 2 * STATE  # delta_v's outputs per node: dE, dS
 FEATURE_WIDTH = 24  # widest encoder input (18: the single-graph node features) padded to a multiple of 8
 STAT_WIDTH = 9  # widest standardised raw feature set (the node's v, sigma)
 GEMMS = ("native", "scalar", "mathdx", "fp16", "wgmma")  # the first is the default
-TILE_KERNELS = ("encode", "edge_pass", "node_pass", "hybrid_fields", "vanilla_tail")  # Spec.threads may name them
+TILE_KERNELS = ("encode", "edge_pass", "node_pass", "hybrid_fields")  # Spec.threads may name them
 EDGE_KERNELS = ("edge_pass", "hybrid_fields")  # the edge-row launches (Spec.edge_kernels may name them)
 
 

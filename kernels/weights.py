@@ -164,7 +164,7 @@ def pack(model, device=None) -> Weights:
             dv_b2=_v(sd[f"{d}.delta_v.2.bias"])[None], self_loop=_v(sd[f"{d}.self_loop"])[None])
         assert arrays["de_w2"].shape == (F, N_LM) and arrays["dv_w2"].shape == (F, N_GRAD)
     else:
-        proj[P * F:, :F] = _t(sd["decoder.0.weight"])
+        proj[P * F:, 2 * F:] = _t(sd["decoder.0.weight"])  # the third block, as delta_v's (decoders.node_decoder)
         arrays.update(vd_b1=_v(sd["decoder.0.bias"])[None], vd_w2=_t(sd["decoder.2.weight"]),
                       vd_b2=_v(sd["decoder.2.bias"])[None])
         assert arrays["vd_w2"].shape == (F, STATE)

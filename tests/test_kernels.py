@@ -130,8 +130,8 @@ def test_forward_and_step_match_reference(kind, actuator_graphs, passes, latent)
     model = random_model(kind, passes, latent, actuator_graphs)
     net, _ = check(model, tool_topology(box((3, 3, 2)), 2))
     # small graphs: the encoder computes the raw features (Spec.features_in_encoder), the hybrid decoder its tail too
-    # (receiver groups): 2 P + 2 launches
-    assert net.spec.features_in_encoder and net.n_launches == 2 * passes + 2
+    # (receiver groups), the vanilla's decoder and tail run in the last node pass: 2 P + 2 and 2 P + 1 launches
+    assert net.spec.features_in_encoder and net.n_launches == 2 * passes + (2 if kind == "hybrid" else 1)
     assert (net.graph.groups > 0) == (kind == "hybrid")
 
 
@@ -192,14 +192,14 @@ def test_receiver_groups_on_irregular_graphs():
     assert grouped.graph.groups > 0
 
 
-def test_vanilla_tail_a_thread_an_item(monkeypatch):
-    """The vanilla decoder's tail with a thread for each (node, component) item of its node tile (8 x 12 on 96
-    threads, as node tiles of 8 on a GPU's 128): its state and boundary values loaded before the products, the
-    reference's answer."""
+def test_vanilla_decoder_a_thread_an_item(monkeypatch):
+    """The vanilla's decoder and tail in its last node pass with a thread for each (node, component) item of a node
+    tile (8 x 12 on 96 threads, as node tiles of 8 on a GPU's 256): its state and boundary values loaded before the
+    pass's wait, the reference's answer; no decoder launch."""
     monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
     net, _ = check(random_model("vanilla", 2, 16, seed=6), tool_topology(box((4, 3, 2)), 2, seed=6), seed=6,
-                   node_rows=8, block_dim=5, threads={"vanilla_tail": 96})
-    assert net.block_dim_of("vanilla_tail") == 8 * 12
+                   node_rows=8, block_dim=5, threads={"node_pass": 96})
+    assert net.block_dim_of("node_pass") == 8 * 12 and net.n_launches == 2 * 2 + 1
 
 
 def test_receiver_groups_greedy_and_none_when_a_node_overflows():
@@ -302,11 +302,10 @@ def test_kernels_on_blocks_of_their_own_size(monkeypatch, kind, k_chunk):
     reference's answer."""
     monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
     top = tool_topology(box((4, 3, 2)), 2, seed=5)
-    decoder = "hybrid_fields" if kind == "hybrid" else "vanilla_tail"
     net, _ = check(random_model(kind, 2, 16, seed=5), top, seed=5, node_rows=8, k_chunk=k_chunk, block_dim=5,
-                   threads={"node_pass": 64, decoder: 64})
-    assert [net.block_dim_of(k) for k in ("edge_pass", "node_pass", decoder)] == [5, 64, 64]
-    assert net.spec.module_of("node_pass") == net.spec.module_of(decoder) != net.spec.module_of("edge_pass")
+                   threads={"node_pass": 64, "hybrid_fields": 64})  # the vanilla's decoder: in the node pass
+    assert [net.block_dim_of(k) for k in ("edge_pass", "node_pass", "hybrid_fields")] == [5, 64, 64]
+    assert net.spec.module_of("node_pass") == net.spec.module_of("hybrid_fields") != net.spec.module_of("edge_pass")
     with pytest.raises(ValueError, match="unknown kernel 'node'"):
         Network(random_model(kind, 1, 16), top, device="cpu", threads={"node": 64})
 
