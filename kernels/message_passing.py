@@ -43,6 +43,7 @@ EDGE_PASS_SHARED = 80 * 1024
 # 372 (bench/results/warp_occupancy_h200.json)
 MANY_BLOCKS_REGISTERS = {"edge_pass": 96, "encode": 128}
 DECODE_FIELDS, DECODE_STATE = 1, 2  # node_kernel's decode on the last pass: the hybrid's delta_v, the vanilla's decoder
+NODE_PASS_NAMES = ("node_pass", "node_pass_fields", "node_pass_state")  # by decode
 
 
 def _options(spec: Spec, kernel: str) -> dict:
@@ -234,7 +235,9 @@ def node_kernel(spec: Spec, decode: int = 0):
     _stage_ids, stage_offsets = index_steps(T, owner)
     T1 = T + 1  # a tile's CSR offsets: its nodes' and the next one's
 
-    @wp.kernel(enable_backward=False, module=owner)
+    # a name a variant: Warp's CPU graphs (WarpModel's captured steps there) ran one variant for all three when they
+    # shared a key
+    @wp.kernel(enable_backward=False, module=owner, name=NODE_PASS_NAMES[decode])
     def node_pass(lat: wp.array2d(dtype=float), lat_rows: wp.array2d(dtype=row_vector(F)),
                   mesh_off: wp.array(dtype=wp.int32),
                   act_off: wp.array(dtype=wp.int32), w1: wp.array2d(dtype=float), b1: wp.array2d(dtype=float),
