@@ -43,7 +43,9 @@ EDGE_PASS_SHARED = 80 * 1024
 # 372 (bench/results/warp_occupancy_h200.json)
 MANY_BLOCKS_REGISTERS = {"edge_pass": 96, "encode": 128}
 DECODE_FIELDS, DECODE_STATE = 1, 2  # node_kernel's decode on the last pass: the hybrid's delta_v, the vanilla's decoder
-NODE_PASS_NAMES = ("node_pass", "node_pass_fields", "node_pass_state")  # by decode
+# Warp keys by decode, each ending in __node_pass as a key Warp derives (factory__locals__name), so that studies and
+# Network.overlap's names take all three as the node pass
+NODE_PASS_NAMES = tuple(f"node_kernel{v}__locals__node_pass" for v in ("", "_fields", "_state"))
 
 
 def _options(spec: Spec, kernel: str) -> dict:

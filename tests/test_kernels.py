@@ -194,12 +194,13 @@ def test_receiver_groups_on_irregular_graphs():
 
 def test_vanilla_decoder_a_thread_an_item(monkeypatch):
     """The vanilla's decoder and tail in its last node pass with a thread for each (node, component) item of a node
-    tile (8 x 12 on 96 threads, as node tiles of 8 on a GPU's 256): its state and boundary values loaded before the
-    pass's wait, the reference's answer; no decoder launch."""
+    tile (8 x 12 items on 128 threads, as node tiles of 8 on a GPU's 256; 60 nodes: the last tile half full): its
+    state and boundary values loaded before the pass's wait (clamped where a thread has no item), the reference's
+    answer; no decoder launch."""
     monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
     net, _ = check(random_model("vanilla", 2, 16, seed=6), tool_topology(box((4, 3, 2)), 2, seed=6), seed=6,
-                   node_rows=8, block_dim=5, threads={"node_pass": 96})
-    assert net.block_dim_of("node_pass") == 8 * 12 and net.n_launches == 2 * 2 + 1
+                   node_rows=8, block_dim=5, threads={"node_pass": 128})
+    assert net.layout.n_nodes % 8 and net.block_dim_of("node_pass") > 8 * 12 and net.n_launches == 2 * 2 + 1
 
 
 def test_receiver_groups_greedy_and_none_when_a_node_overflows():
