@@ -23,7 +23,6 @@ from typing import Any
 
 import warp as wp
 
-from . import generic_tail
 from .generic_tail import Tail, row_operators, settle, step_values
 from .integrate import hold
 from .spec import N_GRAD, N_LM, STATE, Spec
@@ -270,7 +269,7 @@ def launches(net) -> list:
     if g.groups:  # receiver-owned tiles, the tail in the same launch
         return [wp.launch_tiled(
             hybrid_step, dim=[g.groups], block_dim=net.block_dim_of("hybrid_fields"), device=dev, record_cmd=True,
-            inputs=[net.lat, g.slot_row, g.slot_recv, g.slot_send, *weights, generic_tail.tail(net)])]
+            inputs=[net.lat, g.slot_row, g.slot_recv, g.slot_send, *weights, net.tail])]
     return [wp.launch_tiled(
         hybrid_fields, dim=[(lay.edges_pad + lay.self_pad) // T], block_dim=net.block_dim_of("hybrid_fields"),
         device=dev, record_cmd=True,

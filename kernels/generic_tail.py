@@ -24,7 +24,7 @@ import functools
 
 import warp as wp
 
-from .integrate import euler, hold
+from .integrate import euler, hold, step_inputs
 from .spec import N_GRAD, N_LM, STATE, Spec
 from .tiles import grid_step
 
@@ -176,11 +176,8 @@ def tail(net) -> Tail:
 
 @wp.func
 def step_values(i: int, c: int, tail: Tail):
-    """Node i's z[i, c], dt[i], node type, tool and weight (presc_tool, presc_weight) and rest[i, min(c, 2)]: what
-    integrate.hold needs besides u_next, inputs of the step and the graph's only, so a kernel loads them before it
-    waits for the launch before (plain loads: nothing waits for them until hold)."""
-    return (tail.z[i, c], tail.dt[i], tail.node_type[i], tail.presc_tool[i], tail.presc_weight[i],
-            tail.rest[i, wp.min(c, 2)])
+    """integrate.step_inputs from a Tail's arrays: a kernel loads them before it waits for the launch before."""
+    return step_inputs(i, c, tail.z, tail.dt, tail.rest, tail.node_type, tail.presc_tool, tail.presc_weight)
 
 
 @wp.func
@@ -225,4 +222,4 @@ def launches(net) -> list:
     lay = net.layout
     return [wp.launch(
         kernels(net.spec), dim=(lay.n_nodes, STATE), block_dim=net.block_dim, device=net.device, record_cmd=True,
-        inputs=[net.ports, net.node_terms, lay.edges_pad, tail(net)])]
+        inputs=[net.ports, net.node_terms, lay.edges_pad, net.tail])]

@@ -35,11 +35,21 @@ def hold(c: int, zc: float, dti: float, kind: wp.int32, tool: wp.int32, weight: 
 
 
 @wp.func
+def step_inputs(i: int, c: int, z: wp.array2d(dtype=float), dt: wp.array(dtype=float), rest: wp.array2d(dtype=float),
+                node_type: wp.array(dtype=wp.int32), presc_tool: wp.array(dtype=wp.int32),
+                presc_weight: wp.array(dtype=float)):
+    """Node i's z[i, c], dt[i], node type, tool and weight and rest[i, min(c, 2)]: what hold needs besides u_next,
+    inputs of the step and the graph's only (plain loads: nothing waits for them until hold)."""
+    return z[i, c], dt[i], node_type[i], presc_tool[i], presc_weight[i], rest[i, wp.min(c, 2)]
+
+
+@wp.func
 def boundary(i: int, c: int, z: wp.array2d(dtype=float), dt: wp.array(dtype=float), rest: wp.array2d(dtype=float),
              node_type: wp.array(dtype=wp.int32), presc_tool: wp.array(dtype=wp.int32),
              presc_weight: wp.array(dtype=float), u_next: wp.array2d(dtype=float)):
     """hold's values of node i, component c, read from the step's inputs and the graph."""
-    return hold(c, z[i, c], dt[i], node_type[i], presc_tool[i], presc_weight[i], rest[i, wp.min(c, 2)], u_next)
+    zc, dti, kind, tool, weight, rest_c = step_inputs(i, c, z, dt, rest, node_type, presc_tool, presc_weight)
+    return hold(c, zc, dti, kind, tool, weight, rest_c, u_next)
 
 
 @wp.func

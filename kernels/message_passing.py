@@ -25,7 +25,7 @@ import functools
 
 import warp as wp
 
-from . import features, generic_tail
+from . import features
 from .decoders import node_decoder
 from .generic_tail import Tail, step_values
 from .spec import FEATURE_WIDTH, STATE, Spec
@@ -342,5 +342,5 @@ def launches(net) -> list:
             record_cmd=True,
             inputs=[net.lat, net.lat_rows, net.graph.mesh_off, net.graph.act_off, w.nv_w1, w.nv_b1, w.nv_w2, w.nv_b2,
                     w.nv_g, w.nv_be, w.proj, w.eps, p, lay.mesh_row, lay.act_row, lay.n_nodes, A,
-                    net.products, *net.node_decoder_args, generic_tail.tail(net)]))
+                    net.products, *net.node_decoder_args, net.tail]))
     return out

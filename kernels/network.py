@@ -156,6 +156,7 @@ class Network:
         self.zdot, self.zdot_std, self.z_next = zeros(n, STATE), zeros(n, STATE), zeros(n, STATE)
         self.degeneracy = zeros(n) if hybrid else None
         self.entropy = zeros(n) if hybrid else None
+        self.tail = generic_tail.tail(self)  # what the decoders' last step reads and writes, for their launches
 
         self._launches = (features.launches(self) + message_passing.launches(self)
                           + decoders.launches(self) + generic_tail.launches(self))
