@@ -31,47 +31,58 @@ from .tiles import gather_rows, grid_step, helpers, index_steps, matmul, matmul_
 
 @functools.cache
 def node_decoder(spec: Spec, owner: str):
-    """(node_fields, node_state): the decoders' MLPs on a tile of node latents, for the last node pass
-    (message_passing), from their first layer's product ``pre`` (y W1, the third block of the node products that
-    the last node pass computes anyway: weights.proj)."""
+    """The decoders' MLPs on a tile of node latents, for the last node pass (message_passing), from their first
+    layer's product ``pre`` (y W1, the third block of the node products that the last node pass computes anyway:
+    weights.proj): ((buf_rows, begin) of each one's second-layer weight, node_fields, node_state, node_fields_staged,
+    node_state_staged). With whole weights the caller allocates the weight's buffer (buf_rows, width) and begins its
+    copy (begin(buf, W2, 0, 0)) with its own weights' copies, so the decoder's product does not wait for a load of its
+    own (``width`` N_GRAD for node_fields, STATE for node_state); with K chunks the *_staged forms allocate it in their
+    own scope, where the product is (held from the launch's start, its 3 KiB took the batch-64 last node pass from two
+    blocks an SM to one: the node pass 179 -> 195 us a launch on average)."""
     T, F = spec.tile_rows, spec.latent
     _fill, activate, _second_layer, _sums, _project, _gather, _ahead = helpers(spec, owner)
 
     def mlp_of(n: int):
-        mm = matmul(T, F, spec.kc, n, spec.gemm, owner)
+        buf_rows, begin, finish = matmul_ahead(T, F, spec.kc, n, spec.gemm, owner)
         fill_n, _activate_n = row_steps(T, n, owner)
 
         @wp.func
         def mlp(pre: wp.tile(dtype=float, shape=(T, F)), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
-                b2: wp.array2d(dtype=float), o: wp.tile(dtype=float, shape=(T, n))):
-            """o = silu(pre + b1) W2 + b2."""
-            hs = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-            wp.tile_assign(hs, pre)  # a copy: the products' sub-views of a view would take its strides as (F, 1)
-            activate(hs, b1, 0, 1)
+                b2: wp.array2d(dtype=float), buf: wp.tile(dtype=float, shape=(buf_rows, n)),
+                o: wp.tile(dtype=float, shape=(T, n))):
+            """o = silu(pre + b1) W2 + b2, pre overwritten (W2's copy begun into buf)."""
+            activate(pre, b1, 0, 1)
             fill_n(o, b2, 0)
-            mm(hs, w2, 0, 0, o)
+            finish(pre, w2, 0, 0, buf, o)
 
-        return mlp
+        return (buf_rows, begin), mlp
 
-    grads_mlp, state_mlp = mlp_of(N_GRAD), mlp_of(STATE)
+    (grads_ahead, grads_mlp), (state_ahead, state_mlp) = mlp_of(N_GRAD), mlp_of(STATE)
+    (grads_rows, grads_begin), (state_rows, state_begin) = grads_ahead, state_ahead
 
     @wp.func
     def node_fields(pre: wp.tile(dtype=float, shape=(T, F)), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
-                    b2: wp.array2d(dtype=float), row0: int, grads: wp.array2d(dtype=float)):
-        """The hybrid's delta_v -> (dE, dS) into grads, so that they exist before the decoder's edge launch."""
+                    b2: wp.array2d(dtype=float), buf: wp.tile(dtype=float, shape=(grads_rows, N_GRAD)), row0: int,
+                    grads: wp.array2d(dtype=float)):
+        """The hybrid's delta_v -> (dE, dS) into grads, so that they exist before the decoder's edge launch; ``pre``
+        a view of the products' tile (copied: the products' sub-views of a view would take its strides as (F, 1))."""
+        hs = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+        wp.tile_assign(hs, pre)
         o = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
-        grads_mlp(pre, b1, w2, b2, o)
+        grads_mlp(hs, b1, w2, b2, buf, o)
         wp.tile_store(grads, o, offset=(row0, 0))
 
     @wp.func
     def node_state(pre: wp.tile(dtype=float, shape=(T, F)), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
-                   b2: wp.array2d(dtype=float), row0: int, n_nodes: int, lane: int, zc: float, dti: float,
-                   kind: wp.int32, tool: wp.int32, weight: float, rest_c: float, tail: Tail):
+                   b2: wp.array2d(dtype=float), buf: wp.tile(dtype=float, shape=(state_rows, STATE)), row0: int,
+                   n_nodes: int, lane: int, zc: float, dti: float, kind: wp.int32, tool: wp.int32, weight: float,
+                   rest_c: float, tail: Tail):
         """The vanilla's decoder -> zdot (standardised and physical) and the Euler step with the boundary conditions,
         a thread a (node, component) item: where the block has enough (node tiles of 8 on a GPU) lane's item, its
-        values (generic_tail.step_values) loaded by the caller before its wait; else a loop loading them."""
+        values (generic_tail.step_values) loaded by the caller before its wait; else a loop loading them. ``pre`` a
+        tile of its own (overwritten)."""
         o = wp.tile_empty(shape=(T, STATE), dtype=float, storage="shared")
-        state_mlp(pre, b1, w2, b2, o)
+        state_mlp(pre, b1, w2, b2, buf, o)
         if T * STATE <= wp.block_dim():
             r = lane // STATE
             c = lane - r * STATE
@@ -85,7 +96,29 @@ def node_decoder(spec: Spec, owner: str):
                     zc, dti, kind, tool, weight, rest_c = step_values(row0 + r, c, tail)
                     settle(row0 + r, c, o[r, c], hold(c, zc, dti, kind, tool, weight, rest_c, tail.u_next), tail)
 
-    return node_fields, node_state
+    @wp.func
+    def node_fields_staged(pre: wp.tile(dtype=float, shape=(T, F)), b1: wp.array2d(dtype=float),
+                           w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float), row0: int,
+                           grads: wp.array2d(dtype=float)):
+        """node_fields, its weight's buffer in this function's scope."""
+        buf = wp.tile_empty(shape=(grads_rows, N_GRAD), dtype=float, storage="shared")
+        grads_begin(buf, w2, 0, 0)
+        node_fields(pre, b1, w2, b2, buf, row0, grads)
+
+    @wp.func
+    def node_state_staged(pre: wp.tile(dtype=float, shape=(T, F)), b1: wp.array2d(dtype=float),
+                          w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float), row0: int, n_nodes: int, lane: int,
+                          zc: float, dti: float, kind: wp.int32, tool: wp.int32, weight: float, rest_c: float,
+                          tail: Tail):
+        """node_state on a view of the products' tile (copied, as node_fields), its weight's buffer in this
+        function's scope."""
+        hs = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+        wp.tile_assign(hs, pre)
+        buf = wp.tile_empty(shape=(state_rows, STATE), dtype=float, storage="shared")
+        state_begin(buf, w2, 0, 0)
+        node_state(hs, b1, w2, b2, buf, row0, n_nodes, lane, zc, dti, kind, tool, weight, rest_c, tail)
+
+    return (grads_ahead, state_ahead), node_fields, node_state, node_fields_staged, node_state_staged
 
 
 EO_ALIGN = 4  # floats: the row length of the decoder's shared e / o tile, a multiple of this

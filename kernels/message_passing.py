@@ -28,7 +28,7 @@ import warp as wp
 from . import features
 from .decoders import node_decoder
 from .generic_tail import Tail, step_values
-from .spec import FEATURE_WIDTH, STATE, Spec
+from .spec import FEATURE_WIDTH, N_GRAD, STATE, Spec
 from .tiles import grid_step, helpers, index_steps, matmul, matmul_ahead, row_vector, stage, store
 
 FW = FEATURE_WIDTH
@@ -224,14 +224,26 @@ def node_kernel(spec: Spec, decode: int = 0):
     fill, _activate, second_layer, sums, _project, _gather, ahead_parts = helpers(spec.nodes, owner)
     segment_sums, staged_segment_sums = sums
     w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
-    node_fields, node_state = node_decoder(spec.nodes, owner)
+    decoder_ahead, node_fields, node_state, node_fields_staged, node_state_staged = node_decoder(spec.nodes, owner)
+    # the last pass's decoder weight (F, width): with whole weights its copy begun with the kernel's others, so its
+    # product does not wait for a load of its own (DECODE_FIELDS's on the other passes, never used)
+    which = DECODE_STATE if decode == DECODE_STATE else DECODE_FIELDS
+    (dec_rows, begin_dec), dec_cols = decoder_ahead[which - 1], (N_GRAD, STATE)[which - 1]
     F3 = 3 * F
-    mm_in, mm_out = matmul(T, F3, spec.kc, F, spec.gemm, owner), matmul(T, F, spec.kc, F3, spec.gemm, owner)
     ahead = spec.kc == F  # as the edge pass: weight copies first with whole weights
     # and then the first layer's (3F, F) weight as one chunk too, copied whole at the launch's start (in three chunks
     # the product waited for two copies: 2.81 -> 2.40 us a block, bench/results/warp_edge_occupancy_h200.json)
     in_rows, begin_in, finish_in = matmul_ahead(T, F3, F3 if ahead else spec.kc, F, spec.gemm, owner)
-    out_rows, begin_out, finish_out = matmul_ahead(T, F, spec.kc, F3, spec.gemm, owner)
+    # the next stage's products: all three (F, F) blocks, or on the vanilla's last pass with whole weights only the
+    # third, the one its decoder reads (a product of (F, F), not (F, 3F)): batch 1 vanilla 36.8 / 101.3 -> 36.0 /
+    # 100.4 us at 1 / 5 passes; with K chunks (F = 128) its step took 598 -> 602 us (its last node pass's blocks, a
+    # third of their shared memory smaller, then shared the SMs with the last edge pass's: kernels/pdl.py), so there
+    # it computes all three (bench/results/warp_vanilla_last_products_h200.json)
+    third_only = decode == DECODE_STATE and ahead
+    next_cols = F if third_only else F3
+    out_rows, begin_out, finish_out = matmul_ahead(T, F, spec.kc, next_cols, spec.gemm, owner)
+    out_col = 2 * F if third_only else 0  # the first column of proj's blocks this kernel computes
+    mm_in, mm_out = matmul(T, F3, spec.kc, F, spec.gemm, owner), matmul(T, F, spec.kc, next_cols, spec.gemm, owner)
     load_rows, loaded = stage(T, F, owner)
     store_rows, store_products = store(T, F, owner), store(T, F3, owner)
     _stage_ids, stage_offsets = index_steps(T, owner)
@@ -260,8 +272,11 @@ def node_kernel(spec: Spec, decode: int = 0):
             begin_in(w1_buf, w1, 3 * p * F, 0)
             w2_buf = wp.tile_empty(shape=(w2_rows, F), dtype=float, storage="shared")
             begin_second_layer(w2_buf, w2, p)
-            proj_buf = wp.tile_empty(shape=(out_rows, F3), dtype=float, storage="shared")
-            begin_out(proj_buf, proj, (p + 1) * F, 0)
+            proj_buf = wp.tile_empty(shape=(out_rows, next_cols), dtype=float, storage="shared")
+            begin_out(proj_buf, proj, (p + 1) * F, out_col)
+        if wp.static(decode != 0 and ahead):  # the decoder's second-layer weight, in flight with the others
+            dec_buf = wp.tile_empty(shape=(dec_rows, dec_cols), dtype=float, storage="shared")
+            begin_dec(dec_buf, dv_w2, 0, 0)
         if wp.static(ahead):  # few tiles an SM: the graph's CSR offsets before the wait, in its shadow (with K chunks,
             # batch 64 and F = 128, staging them cost the launch 5-14 %: they are read where they are summed)
             offs = wp.tile_empty(shape=(2, T1), dtype=wp.int32, storage="shared")
@@ -287,22 +302,30 @@ def node_kernel(spec: Spec, decode: int = 0):
         else:
             mm_in(xin, w1, 3 * p * F, 0, h)
             second_layer(h, w2, b2, gain, shift, p, eps, x, 1, y)
-        store_rows(y, lat, row0, 0)
+        # the last pass's node latents: no launch reads them (the decoders read its products)
+        if wp.static(decode == 0):
+            store_rows(y, lat, row0, 0)
         # the next stage's node products, its three (F, F) blocks as one product (blocks a stage does not use are
         # zero weights, or read by no launch)
-        nxt = wp.tile_zeros(shape=(T, F3), dtype=float, storage="shared")
+        nxt = wp.tile_zeros(shape=(T, next_cols), dtype=float, storage="shared")
         if wp.static(ahead):
-            finish_out(y, proj, (p + 1) * F, 0, proj_buf, nxt)
+            finish_out(y, proj, (p + 1) * F, out_col, proj_buf, nxt)
         else:
-            mm_out(y, proj, (p + 1) * F, 0, nxt)
+            mm_out(y, proj, (p + 1) * F, out_col, nxt)
         if wp.static(decode != DECODE_STATE):  # the vanilla's last products are read here only
             store_products(nxt, products, row0, 0)
-        if wp.static(decode == DECODE_STATE):  # the vanilla's last pass: its decoder, zdot and the Euler step
-            node_state(wp.tile_view(nxt, offset=(0, 2 * F), shape=(T, F)), dv_b1, dv_w2, dv_b2, row0, n_nodes, lane,
-                       zc, dti, kind, tool, weight, rest_c, tail)
-        if wp.static(decode == DECODE_FIELDS):  # the hybrid's last pass: delta_v here, so (dE, dS) exist before its
-            # decoder's edge launch
-            node_fields(wp.tile_view(nxt, offset=(0, 2 * F), shape=(T, F)), dv_b1, dv_w2, dv_b2, row0, grads)
+        # the last pass: the vanilla's decoder, zdot and the Euler step, or the hybrid's delta_v (so (dE, dS) exist
+        # before its decoder's edge launch); with K chunks their weight's buffer in their own scope (node_decoder)
+        if wp.static(decode == DECODE_STATE and ahead):  # third_only: nxt is the decoder's first product
+            node_state(nxt, dv_b1, dv_w2, dv_b2, dec_buf, row0, n_nodes, lane, zc, dti, kind, tool, weight, rest_c,
+                       tail)
+        if wp.static(decode == DECODE_STATE and not ahead):
+            node_state_staged(wp.tile_view(nxt, offset=(0, 2 * F), shape=(T, F)), dv_b1, dv_w2, dv_b2, row0, n_nodes,
+                              lane, zc, dti, kind, tool, weight, rest_c, tail)
+        if wp.static(decode == DECODE_FIELDS and ahead):
+            node_fields(wp.tile_view(nxt, offset=(0, 2 * F), shape=(T, F)), dv_b1, dv_w2, dv_b2, dec_buf, row0, grads)
+        if wp.static(decode == DECODE_FIELDS and not ahead):
+            node_fields_staged(wp.tile_view(nxt, offset=(0, 2 * F), shape=(T, F)), dv_b1, dv_w2, dv_b2, row0, grads)
 
     return node_pass
 
@@ -314,10 +337,10 @@ def launches(net) -> list:
     A = 1 if w.actuator_graphs else 0
     pass_chunks = 3 if A else 2
     later_tools = (w.passes - 1) * lay.tiles(lay.tools_pad)  # blocks for the later passes' tool products
-    # and for the node products' further column blocks, on small graphs (whole weights): there the longest chain
-    # bounds the launch, on large ones the recomputed layers cost more than the chain (batch 64: 451 -> 403 us
+    # and for the node products' further column blocks, on small graphs (Network.split_products): there the longest
+    # chain bounds the launch, on large ones the recomputed layers cost more than the chain (batch 64: 451 -> 403 us
     # chained, bench/results/warp_large_graphs_h200.json)
-    first_chunks = 1 if net.spec.kc == w.latent else pass_chunks
+    first_chunks = 1 if net.split_products else pass_chunks
     node_chunks = (pass_chunks - first_chunks) * lay.tiles(lay.nodes_pad)
     out = [wp.launch_tiled(
         encode, dim=[lay.tiles(lay.rows) + later_tools + node_chunks], block_dim=net.block_dim_of("encode"), device=dev,

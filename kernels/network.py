@@ -86,7 +86,8 @@ class Network:
     def __init__(self, model, topology, device=None, tile_rows: int = Spec.tile_rows, block_dim: int | None = None,
                  k_chunk: int | None = None, weights=None, node_rows: int | None = None, gemm: str = Spec.gemm,
                  threads: dict | None = None, edge_rows: int | None = None, edge_gemm: str | None = None,
-                 edge_kernels: tuple | None = None, receiver_groups: bool | None = None):
+                 edge_kernels: tuple | None = None, receiver_groups: bool | None = None,
+                 split_products: bool | None = None):
         """``model``: a warpgnn TIGNN (its config and weights are read once); ``topology``: a
         warpgnn.graphs.Topology, one simulation or a stacked batch. ``tile_rows``, ``node_rows``, ``k_chunk``,
         ``gemm``, ``edge_rows``, ``edge_gemm``, ``edge_kernels``: the kernels' Spec (node_rows and k_chunk None: by the
@@ -97,7 +98,11 @@ class Network:
         model already packed on ``device`` (weights.pack), so Networks of many topologies share one copy.
         ``receiver_groups``: the hybrid decoder and tail in one launch on receiver-owned tiles (decoders.hybrid_step)
         where every node's incoming edges and self-loop fit a tile; None: on small graphs (a node tile an SM at most,
-        not Spec.many_blocks: where blocks do not queue for the SMs; measured there only)."""
+        not Spec.many_blocks: where blocks do not queue for the SMs; measured there only). ``split_products``: the
+        encoder launch's pass-0 node products, a block for each (F, F) column block after the first (recomputing the
+        node tile's two layers) instead of one chain of three a node tile; None: with whole weights (small graphs at
+        F <= 64). Not at F = 128 (K chunks, node tiles of 8): there the encoder took 49.8 -> 51.7 us at batch 1, its
+        12-pass step 626.8 -> 628.5 (bench/results/warp_vanilla_last_products_h200.json)."""
         self.device = wp.get_device(device)
         self.weights = w = weights if weights is not None else pack(model, self.device)
         if not node_rows:  # by the graph's size, a divisor of tile_rows
@@ -119,6 +124,7 @@ class Network:
         self.shipped_module = shipped.load(self.spec, self.device, self.block_dim)  # else Warp compiles it
         if self.spec.sm90a and self.device.is_cuda and not self.shipped_module:
             load_sm90a(self.spec, self.device, self.block_dim)
+        self.split_products = self.spec.kc == w.latent if split_products is None else split_products
         hybrid = w.kind == "hybrid"
         groups = small and not self.spec.many_blocks if receiver_groups is None else receiver_groups
         self.graph = build(topology, tile_rows, w.actuator_graphs, hybrid, self.device, self.spec.edge_tile,

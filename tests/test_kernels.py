@@ -251,11 +251,13 @@ def test_every_output_written_and_runs_repeat(kind, k_chunk, actuator_graphs):
     """Outputs and every scratch buffer poisoned with NaN: the forward still equals the reference
     (nothing real reads an unwritten element), and a second run is bit for bit the first (CSR sums). With whole
     weights the encoder computes the raw features, with K chunks a features launch writes them (every row of its
-    buffer, padding and self-loop rows too: Spec.features_in_encoder), with actuator graphs or without."""
+    buffer, padding and self-loop rows too: Spec.features_in_encoder), with actuator graphs or without; with K chunks
+    the encoder's pass-0 node products one chain a node tile (as on large graphs: Network.split_products), else a
+    block a column block."""
     model = random_model(kind, 2, 16, actuator_graphs, seed=7)
     top = tool_topology(box((4, 3, 2)), 3, seed=7)
     z, u_now, u_next = random_inputs(top, 7)
-    net = Network(model, top, device="cpu", k_chunk=k_chunk)
+    net = Network(model, top, device="cpu", k_chunk=k_chunk, split_products=k_chunk is None)
     assert net.spec.features_in_encoder == (k_chunk is None)
     net.set_inputs(z, u_now, u_next, DT)
     for name in ("feat", "lat", "products", "grads", "ports", "node_terms", "zdot", "zdot_std", "degeneracy",
