@@ -13,7 +13,8 @@ Launches: one for the four encoders, then two per pass:
   f_m receiver and sender and f_w receiver, or the decoder's first layers), so no separate projection
   launch; on the last pass (a kernel of its own) also the decoder's node MLP from that product's third block
   (decoders.node_decoder): the hybrid's delta_v -> (dE, dS), or the vanilla's decoder, zdot and the Euler
-  step with the boundary conditions (no launch of its own).
+  step with the boundary conditions (no launch of its own; with whole weights its last pass computes that
+  third block only).
 
 The encoder launch also writes the pass-0 node products, every pass's tool products (actuator latents
 never change, so a @ W_s(f_w) of all passes is computed once per step, each pass's by blocks of its own
