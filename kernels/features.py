@@ -140,21 +140,23 @@ PUT = r"""
 
 
 @functools.cache
-def tile_features(rows: int, owner: str):
-    """features(x, f, row0, lane): the shared (rows, FEATURE_WIDTH) tile x = the features of latent rows [row0,
-    row0 + rows), a thread (``lane``) a (row, group of 4 columns) item, then a barrier. Cached by ``owner``
-    (tiles.py's factories)."""
+def tile_features(rows: int, owner: str, width: int = FW):
+    """features(x, f, row0, lane): the shared (rows, width) tile x = the first ``width`` feature columns of latent
+    rows [row0, row0 + rows), a thread (``lane``) a (row, group of 4 columns) item, then a barrier. Cached by
+    ``owner`` (tiles.py's factories)."""
+    groups = width // GROUP
+
     @wp.func_native(PUT)
-    def put(x: wp.tile(dtype=float, shape=(rows, FW)), r: int, c: int, v: COLUMNS): ...
+    def put(x: wp.tile(dtype=float, shape=(rows, width)), r: int, c: int, v: COLUMNS): ...
 
     @wp.func_native("    WP_TILE_SYNC();\n")
-    def sync(x: wp.tile(dtype=float, shape=(rows, FW))): ...
+    def sync(x: wp.tile(dtype=float, shape=(rows, width))): ...
 
     @wp.func
-    def features(x: wp.tile(dtype=float, shape=(rows, FW)), f: Inputs, row0: int, lane: int):
-        for idx in range(lane, rows * GROUPS, wp.block_dim()):
-            r = idx // GROUPS
-            g = idx - r * GROUPS
+    def features(x: wp.tile(dtype=float, shape=(rows, width)), f: Inputs, row0: int, lane: int):
+        for idx in range(lane, rows * groups, wp.block_dim()):
+            r = idx // groups
+            g = idx - r * groups
             put(x, r, g * GROUP, feature_group(f, row0 + r, g))
         sync(x)
 

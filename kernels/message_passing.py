@@ -1,6 +1,7 @@
 """Encoders and message-passing passes (core_model.EncodeProcess), as tile kernels.
 
-Launches: one for the four encoders, then two per pass:
+Launches: one for the four encoders (at F = 128 on small graphs two: the mesh-edge rows' encoder a launch of its own
+on the edge pass's tensor-core tiles, ``edge_encode``), then two per pass:
 
 * ``edge_pass``: both edge sets of a pass (mesh f_m, actuator f_w), a tile of edges per block:
   h = e W_e + b + P_r[receiver] + P_s[sender] (the first layer split per node as EdgeMLP: the
@@ -29,7 +30,7 @@ import warp as wp
 from . import features
 from .decoders import node_decoder
 from .generic_tail import Tail, step_values
-from .spec import FEATURE_WIDTH, N_GRAD, STATE, Spec
+from .spec import EDGE_FEATURE_WIDTH, FEATURE_WIDTH, N_GRAD, STATE, Spec
 from .tiles import grid_step, helpers, index_steps, matmul, matmul_ahead, row_vector, stage, store
 
 FW = FEATURE_WIDTH
@@ -81,7 +82,8 @@ def encoder_kernel(spec: Spec):
                shift: wp.array2d(dtype=float), self_loop: wp.array2d(dtype=float), proj: wp.array2d(dtype=float),
                tool_proj: wp.array2d(dtype=float), eps: float, mesh_row: int, self_row: int, act_row: int,
                tool_row: int, nodes_pad: int, tools_pad: int, proj_chunks: int, first_chunks: int, row_tiles: int,
-               later_tools: int, lat: wp.array2d(dtype=float), products: wp.array2d(dtype=float)):
+               later_tools: int, mesh_tile0: int, mesh_skip: int, lat: wp.array2d(dtype=float),
+               products: wp.array2d(dtype=float)):
         blk, lane = wp.tid()
         grid_step(0)
         grid_step(1)
@@ -100,6 +102,8 @@ def encoder_kernel(spec: Spec):
             tool_tiles = tools_pad // T
             tool_pass = 1 + k // tool_tiles
             blk = tool_row // T + k - (tool_pass - 1) * tool_tiles
+        elif blk >= mesh_tile0:  # the row tiles after the mesh edges' where the edge encoder's launch takes those
+            blk += mesh_skip
         row0 = blk * T
         if row0 >= self_row and row0 < act_row:
             # self-loop rows: the hybrid's learned edge latent x_ii, the same for every node
@@ -143,6 +147,48 @@ def encoder_kernel(spec: Spec):
             project(y, tool_proj, tool_pass * F, 0, products, nodes_pad + tool_pass * tools_pad + row0 - tool_row, F)
 
     return encode
+
+
+@functools.cache
+def edge_encoder_kernel(spec: Spec):
+    """edge_encode, the mesh-edge rows' encoder on the edge pass's tiles and products (spec.edges("edge_pass"): on
+    sm_90 small graphs 64-row tiles, wgmma, 256 threads), in the edge pass's module: a launch of its own beside the
+    encoder's, which then takes the other rows. Its first layer reads the features' first EDGE_FEATURE_WIDTH columns (a
+    mesh edge has 8; tensor cores take K in 16s)."""
+    owner = spec.module_of("edge_pass")
+    edges = spec.edges("edge_pass")
+    T, F, EW = edges.tile_rows, spec.latent, EDGE_FEATURE_WIDTH
+    fill, _activate, _second_layer, _sums, _project, _gather, ahead_parts = helpers(edges, owner)
+    w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
+    in_rows, begin_in, finish_in = matmul_ahead(T, EW, EW, F, edges.gemm, owner)
+    tile_features = features.tile_features(T, owner, EW)
+    store_rows = store(T, F, owner)
+    MESH = 1  # the mesh-edge encoder's block of the stacked encoder weights (weights.ENCODERS)
+
+    @wp.kernel(enable_backward=False, module=owner)
+    def edge_encode(raw: features.Inputs, w1: wp.array2d(dtype=float), b1: wp.array2d(dtype=float),
+                    w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float), gain: wp.array2d(dtype=float),
+                    shift: wp.array2d(dtype=float), eps: float, mesh_row: int, lat: wp.array2d(dtype=float)):
+        blk, lane = wp.tid()
+        grid_step(0)
+        row0 = mesh_row + blk * T
+        w1_buf = wp.tile_empty(shape=(in_rows, F), dtype=float, storage="shared")
+        begin_in(w1_buf, w1, 0, 0)
+        w2_buf = wp.tile_empty(shape=(w2_rows, F), dtype=float, storage="shared")
+        begin_second_layer(w2_buf, w2, MESH)
+        x = wp.tile_empty(shape=(T, EW), dtype=float, storage="shared")
+        tile_features(x, raw, row0, lane)  # reads the step's inputs only: no launch before writes them
+        h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+        fill(h, b1, MESH)
+        y = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+        finish_in(x, w1, 0, 0, w1_buf, h)
+        second_layer_ahead(h, w2, w2_buf, b2, gain, shift, MESH, eps, h, 0, y)
+        store_rows(y, lat, row0, 0)
+        # the encoder's launch before this one ended before this one does: the edge pass after waits on this launch
+        # alone (overlapped graphs: kernels/pdl.py)
+        grid_step(1)
+
+    return edge_encode
 
 
 @functools.cache
@@ -343,14 +389,24 @@ def launches(net) -> list:
     # chained, bench/results/warp_large_graphs_h200.json)
     first_chunks = 1 if net.split_products else pass_chunks
     node_chunks = (pass_chunks - first_chunks) * lay.tiles(lay.nodes_pad)
+    # the mesh-edge rows' encoder a launch of its own (Network.edge_encoder), the encoder's launch the other rows
+    mesh_skip = lay.tiles(lay.edges_pad) if net.edge_encoder else 0
+    row_tiles = lay.tiles(lay.rows) - mesh_skip
+    raw = features.inputs(net)
     out = [wp.launch_tiled(
-        encode, dim=[lay.tiles(lay.rows) + later_tools + node_chunks], block_dim=net.block_dim_of("encode"), device=dev,
+        encode, dim=[row_tiles + later_tools + node_chunks], block_dim=net.block_dim_of("encode"), device=dev,
         record_cmd=True,
-        inputs=[features.inputs(net), net.feat, w.enc_w1, w.enc_b1, w.enc_w2, w.enc_b2, w.enc_g, w.enc_be,
+        inputs=[raw, net.feat, w.enc_w1, w.enc_b1, w.enc_w2, w.enc_b2, w.enc_g, w.enc_be,
                 net.self_loop, w.proj, w.tool_proj, w.eps, lay.mesh_row, lay.self_row, lay.act_row,
-                lay.tool_row, lay.nodes_pad, lay.tools_pad, pass_chunks, first_chunks, lay.tiles(lay.rows),
-                later_tools, net.lat, net.products])]
+                lay.tool_row, lay.nodes_pad, lay.tools_pad, pass_chunks, first_chunks, row_tiles,
+                later_tools, lay.tiles(lay.mesh_row), mesh_skip, net.lat, net.products])]
     edges = net.spec.edges("edge_pass")  # its tiles (within the layout's edge_tile padding) and products
+    if net.edge_encoder:
+        enc_w1, enc_w2 = w.for_products(edges.gemm, "enc_edge_w1", "enc_w2")
+        out.append(wp.launch_tiled(
+            edge_encoder_kernel(net.spec), dim=[lay.edges_pad // edges.tile_rows],
+            block_dim=net.block_dim_of("edge_pass"), device=dev, record_cmd=True,
+            inputs=[raw, enc_w1, w.enc_b1, enc_w2, w.enc_b2, w.enc_g, w.enc_be, w.eps, lay.mesh_row, net.lat]))
     mesh_tiles = lay.edges_pad // edges.tile_rows
     edge_tiles = mesh_tiles + lay.act_pad // edges.tile_rows
     ew_e, ew_w2 = w.for_products(edges.gemm, "ew_e", "ew_w2")  # tensor-core products: in tf32 parts

@@ -12,7 +12,8 @@ pick for large graphs, a features launch before: Spec.features_in_encoder), 2 pe
 decoder and GENERIC tail 1 (Euler and boundary conditions included: decoders.hybrid_step on receiver groups,
 small graphs; on large ones, or where a node has as many incoming edges as a tile has rows, the decoder fields 1
 and the tail 1); the vanilla's decoder and tail run in its last node pass. ``step()`` adds one device copy. On
-small graphs 2 P + 2 kernels (hybrid) or 2 P + 1 (vanilla).
+small graphs 2 P + 2 kernels (hybrid) or 2 P + 1 (vanilla), at F = 128 one more (the mesh-edge rows' encoder a
+launch of its own: Network's edge_encoder).
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ def build_kernels(spec: Spec) -> None:
     for module in (features, decoders, generic_tail, integrate):
         module.kernels(spec)
     message_passing.encoder_kernel(spec)
+    message_passing.edge_encoder_kernel(spec)
     message_passing.edge_kernel(spec)
     for decode in (0, message_passing.DECODE_FIELDS, message_passing.DECODE_STATE):
         message_passing.node_kernel(spec, decode)
@@ -87,7 +89,7 @@ class Network:
                  k_chunk: int | None = None, weights=None, node_rows: int | None = None, gemm: str = Spec.gemm,
                  threads: dict | None = None, edge_rows: int | None = None, edge_gemm: str | None = None,
                  edge_kernels: tuple | None = None, receiver_groups: bool | None = None,
-                 split_products: bool | None = None):
+                 split_products: bool | None = None, edge_encoder: bool | None = None):
         """``model``: a warpgnn TIGNN (its config and weights are read once); ``topology``: a
         warpgnn.graphs.Topology, one simulation or a stacked batch. ``tile_rows``, ``node_rows``, ``k_chunk``,
         ``gemm``, ``edge_rows``, ``edge_gemm``, ``edge_kernels``: the kernels' Spec (node_rows and k_chunk None: by the
@@ -102,7 +104,10 @@ class Network:
         encoder launch's pass-0 node products, a block for each (F, F) column block after the first (recomputing the
         node tile's two layers) instead of one chain of three a node tile; None: with whole weights (small graphs at
         F <= 64). Not at F = 128 (K chunks, node tiles of 8): there the encoder took 49.8 -> 51.7 us at batch 1, its
-        12-pass step 626.8 -> 628.5 (bench/results/warp_vanilla_last_products_h200.json)."""
+        12-pass step 626.8 -> 628.5 (bench/results/warp_vanilla_last_products_h200.json). ``edge_encoder``: the
+        mesh-edge rows' encoder in a launch of its own on the edge pass's tiles and products
+        (message_passing.edge_encoder_kernel); None: where the edge pass runs on tensor cores with K chunks and the
+        encoder computes the features (F = 128 on small graphs on sm_90)."""
         self.device = wp.get_device(device)
         self.weights = w = weights if weights is not None else pack(model, self.device)
         if not node_rows:  # by the graph's size, a divisor of tile_rows
@@ -125,6 +130,15 @@ class Network:
         if self.spec.sm90a and self.device.is_cuda and not self.shipped_module:
             load_sm90a(self.spec, self.device, self.block_dim)
         self.split_products = self.spec.kc == w.latent if split_products is None else split_products
+        # where measured faster (H200, L5, batch 1; bench/results/warp_edge_encoder_h200.json): F = 128, 12 passes,
+        # vanilla / hybrid 598.2 / 626.1 -> 592.6 / 624.4 us (the encoder 49.5 -> 40-43 us beside the mesh edges'
+        # 20 us); not with whole weights (F = 64): 52.9 / 117.7 -> 59.8 / 124.4 us at 1 / 5 passes, the encoder's
+        # other rows alone still 15.5 us (its node rows' chain, not the mesh edges' blocks, bounds it) and the two
+        # launches not overlapping enough to gain
+        tensor = self.spec.edges("edge_pass").gemm == "wgmma" and self.spec.features_in_encoder
+        self.edge_encoder = tensor and self.spec.kc != w.latent if edge_encoder is None else edge_encoder
+        if self.edge_encoder and not self.spec.features_in_encoder:
+            raise ValueError("edge_encoder: only where the encoder computes the features (Spec.features_in_encoder)")
         hybrid = w.kind == "hybrid"
         groups = small and not self.spec.many_blocks if receiver_groups is None else receiver_groups
         self.graph = build(topology, tile_rows, w.actuator_graphs, hybrid, self.device, self.spec.edge_tile,

@@ -19,6 +19,9 @@ N_LM = N_L + N_M  # delta_e's outputs per edge and self-loop
 N_GRAD = 2 * STATE  # delta_v's outputs per node: dE, dS
 FEATURE_WIDTH = 24  # widest encoder input (18: the single-graph node features) padded to a multiple of 8
 STAT_WIDTH = 9  # widest standardised raw feature set (the node's v, sigma)
+# a mesh edge's 8 features padded to a tensor-core K (16): the mesh-edge encoder's first layer on wgmma
+# (message_passing.edge_encoder_kernel)
+EDGE_FEATURE_WIDTH = 16
 GEMMS = ("native", "scalar", "mathdx", "fp16", "wgmma")  # the first is the default
 TILE_KERNELS = ("encode", "edge_pass", "node_pass", "hybrid_fields")  # Spec.threads may name them
 EDGE_KERNELS = ("edge_pass", "hybrid_fields")  # the edge-row launches (Spec.edge_kernels may name them)

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from .spec import FEATURE_WIDTH, N_GRAD, N_LM, STAT_WIDTH, STATE, check_config
+from .spec import EDGE_FEATURE_WIDTH, FEATURE_WIDTH, N_GRAD, N_LM, STAT_WIDTH, STATE, check_config
 
 # encoder classes, in the row order of the latent buffer (graph.Layout)
 ENCODERS = ("node_encoder", "edge_encoder", "actuator_edge_encoder", "actuator_encoder")
@@ -146,10 +146,13 @@ def pack(model, device=None) -> Weights:
             proj[p * F:(p + 1) * F, 2 * F:] = _t(sd[f"{pre}.f_w.receiver.weight"])
             tool_proj[p * F:(p + 1) * F] = _t(sd[f"{pre}.f_w.sender.weight"])
 
-    arrays = {"enc_w1": enc_w1, "enc_b1": enc_b1, "enc_w2": enc_w2, "enc_b2": enc_b2, "enc_g": enc_g, "enc_be": enc_be,
-                  "ew_e": ew_e, "ew_b1": ew_b1, "ew_w2": ew_w2, "ew_b2": ew_b2, "ew_g": ew_g, "ew_be": ew_be,
-                  "nv_w1": nv_w1, "nv_b1": nv_b1, "nv_w2": nv_w2, "nv_b2": nv_b2, "nv_g": nv_g, "nv_be": nv_be,
-                  "tool_proj": tool_proj}
+    # the mesh-edge encoder's first layer alone, its K padded to EDGE_FEATURE_WIDTH (tensor cores' K: 16)
+    enc_edge_w1 = enc_w1[FEATURE_WIDTH:FEATURE_WIDTH + EDGE_FEATURE_WIDTH]
+    arrays = {"enc_w1": enc_w1, "enc_edge_w1": enc_edge_w1,
+              "enc_b1": enc_b1, "enc_w2": enc_w2, "enc_b2": enc_b2, "enc_g": enc_g, "enc_be": enc_be,
+              "ew_e": ew_e, "ew_b1": ew_b1, "ew_w2": ew_w2, "ew_b2": ew_b2, "ew_g": ew_g, "ew_be": ew_be,
+              "nv_w1": nv_w1, "nv_b1": nv_b1, "nv_w2": nv_w2, "nv_b2": nv_b2, "nv_g": nv_g, "nv_be": nv_be,
+              "tool_proj": tool_proj}
 
     # decoders: the first layer's per-node products join proj's last block (the last pass computes them)
     if c.kind == "hybrid":

@@ -572,6 +572,25 @@ def test_tensor_core_edge_pass(monkeypatch, kind, edge_kernels):
         assert (edges.tile_rows, edges.gemm) == ((64, "wgmma") if kernel in on else (32, "native"))
 
 
+@pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
+@pytest.mark.parametrize("gemm", ["wgmma", "native"])
+def test_mesh_edge_encoder_a_launch_of_its_own(monkeypatch, kind, gemm):
+    """The mesh-edge rows' encoder in a launch of its own on the edge pass's tiles and products
+    (message_passing.edge_encoder_kernel: 64-row tiles with wgmma products where the edge pass takes them, fp32
+    32-row tiles else), its first layer over the features' first 16 columns, the encoder's launch taking the other
+    rows: the reference's answer, one launch more; refused in one line where a features launch computes the
+    features."""
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    shape = {"edge_rows": 64, "edge_gemm": "wgmma", "k_chunk": 32} if gemm == "wgmma" else {}
+    net, _ = check(random_model(kind, 2, 32, seed=13), tool_topology(box((5, 4, 3)), 3, seed=13), seed=13,
+                   block_dim=5, edge_encoder=True, **shape)
+    assert net.edge_encoder and net.spec.features_in_encoder
+    assert net.n_launches == 2 * 2 + (3 if kind == "hybrid" else 2)
+    with pytest.raises(ValueError, match="edge_encoder: only where the encoder computes the features"):
+        Network(random_model(kind, 1, 16), tool_topology(box((2, 2, 2)), 1), device="cpu", k_chunk=8,
+                edge_encoder=True)
+
+
 # ----------------------------------------------------------------------------- the shipped network
 @pytest.fixture(scope="module")
 def shipped_case():
