@@ -144,6 +144,8 @@ def tile_features(rows: int, owner: str, width: int = FW):
     """features(x, f, row0, lane): the shared (rows, width) tile x = the first ``width`` feature columns of latent
     rows [row0, row0 + rows), a thread (``lane``) a (row, group of 4 columns) item, then a barrier. Cached by
     ``owner`` (tiles.py's factories)."""
+    if width % GROUP or width > FW:
+        raise ValueError(f"feature columns {width}: a multiple of {GROUP} up to {FW}")
     groups = width // GROUP
 
     @wp.func_native(PUT)

@@ -82,11 +82,18 @@ def encoder_kernel(spec: Spec):
                shift: wp.array2d(dtype=float), self_loop: wp.array2d(dtype=float), proj: wp.array2d(dtype=float),
                tool_proj: wp.array2d(dtype=float), eps: float, mesh_row: int, self_row: int, act_row: int,
                tool_row: int, nodes_pad: int, tools_pad: int, proj_chunks: int, first_chunks: int, row_tiles: int,
-               later_tools: int, mesh_tile0: int, mesh_skip: int, lat: wp.array2d(dtype=float),
+               later_tools: int, mesh_tile0: int, mesh_skip: int, wait_first: int, lat: wp.array2d(dtype=float),
                products: wp.array2d(dtype=float)):
         blk, lane = wp.tid()
+        # with the mesh-edge encoder's launch next (Network.edge_encoder), wait first and then let it start: it writes
+        # before its own wait, so it may start only once whatever came before this launch is done (a wait that
+        # returns at once where this launch comes first, as in the step's graphs); else the other way round, the next
+        # launch's prologue in flight with this one's wait (a features launch before it on large graphs)
+        if wait_first != 0:
+            grid_step(1)
         grid_step(0)
-        grid_step(1)
+        if wait_first == 0:
+            grid_step(1)
         tool_pass = wp.int32(0)  # which pass's tool products this block writes (-1: none, nor the latents)
         chunk0 = wp.int32(0)  # on node rows, the pass-0 node products' (F, F) column blocks [chunk0, chunk1)
         chunk1 = first_chunks
@@ -185,7 +192,7 @@ def edge_encoder_kernel(spec: Spec):
         second_layer_ahead(h, w2, w2_buf, b2, gain, shift, MESH, eps, h, 0, y)
         store_rows(y, lat, row0, 0)
         # the encoder's launch before this one ended before this one does: the edge pass after waits on this launch
-        # alone (overlapped graphs: kernels/pdl.py)
+        # alone (overlapped graphs: kernels/pdl.py). No block may leave before this wait
         grid_step(1)
 
     return edge_encode
@@ -378,7 +385,8 @@ def node_kernel(spec: Spec, decode: int = 0):
 
 
 def launches(net) -> list:
-    """The encoder launch and two launches per pass, recorded (wp.Launch) for replay."""
+    """The encoder launch (and the mesh-edge encoder's: Network.edge_encoder) and two launches per pass, recorded
+    (wp.Launch) for replay."""
     encode, edge_pass = encoder_kernel(net.spec), edge_kernel(net.spec)
     lay, w, dev = net.layout, net.weights, net.device
     A = 1 if w.actuator_graphs else 0
@@ -399,7 +407,7 @@ def launches(net) -> list:
         inputs=[raw, net.feat, w.enc_w1, w.enc_b1, w.enc_w2, w.enc_b2, w.enc_g, w.enc_be,
                 net.self_loop, w.proj, w.tool_proj, w.eps, lay.mesh_row, lay.self_row, lay.act_row,
                 lay.tool_row, lay.nodes_pad, lay.tools_pad, pass_chunks, first_chunks, row_tiles,
-                later_tools, lay.tiles(lay.mesh_row), mesh_skip, net.lat, net.products])]
+                later_tools, lay.tiles(lay.mesh_row), mesh_skip, int(net.edge_encoder), net.lat, net.products])]
     edges = net.spec.edges("edge_pass")  # its tiles (within the layout's edge_tile padding) and products
     if net.edge_encoder:
         enc_w1, enc_w2 = w.for_products(edges.gemm, "enc_edge_w1", "enc_w2")

@@ -2,11 +2,13 @@
 programmatic, so a launch starts while the one before it finishes and its prologue (its weight copies, which read no
 launch's output) overlaps that launch's tail. Every kernel of the module lets the next one start at its first
 instruction and waits for the one before (tiles.grid_step) before its first read of an earlier launch's output; in a
-plain graph both are no-ops. On an H200 the captured hybrid step 69.9 / 159.5 / 317.7 -> 66.1 / 152.7 / 304.8 us at
-1 / 5 / 12 passes, the outputs the same bit for bit (bench/results/warp_pdl_h200.json). Edges into the kernels named by
-the caller stay plain (Network.overlap: studies, warp_pdl_modes_h200.json, warp_edge_occupancy_h200.json). Edges are
-changed through the CUDA driver (cuGraphAddDependencies_v2, CUDA 12.3 on); where it or the GPU cannot, the graph stays
-as captured.
+plain graph both are no-ops. Two exceptions, a pair: the mesh-edge encoder (message_passing.edge_encode) reads only the
+step's inputs and waits at its end, so that the launch after it sees the encoder's outputs too, and the encoder before
+it then waits first and lets it start after (its wait_first). On an H200 the captured hybrid step 69.9 / 159.5 / 317.7
+-> 66.1 / 152.7 / 304.8 us at 1 / 5 / 12 passes, the outputs the same bit for bit (bench/results/warp_pdl_h200.json).
+Edges into the kernels named by the caller stay plain (Network.overlap: studies, warp_pdl_modes_h200.json,
+warp_edge_occupancy_h200.json). Edges are changed through the CUDA driver (cuGraphAddDependencies_v2, CUDA 12.3 on);
+where it or the GPU cannot, the graph stays as captured.
 """
 
 import ctypes

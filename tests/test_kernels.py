@@ -251,13 +251,13 @@ def test_every_output_written_and_runs_repeat(kind, k_chunk, actuator_graphs):
     """Outputs and every scratch buffer poisoned with NaN: the forward still equals the reference
     (nothing real reads an unwritten element), and a second run is bit for bit the first (CSR sums). With whole
     weights the encoder computes the raw features, with K chunks a features launch writes them (every row of its
-    buffer, padding and self-loop rows too: Spec.features_in_encoder), with actuator graphs or without; with K chunks
-    the encoder's pass-0 node products one chain a node tile (as on large graphs: Network.split_products), else a
-    block a column block."""
+    buffer, padding and self-loop rows too: Spec.features_in_encoder), with actuator graphs or without; the
+    encoder's pass-0 node products each the other way than a Network's default (Network.split_products: with K
+    chunks a block a column block, with whole weights one chain a node tile; the other tests run the defaults)."""
     model = random_model(kind, 2, 16, actuator_graphs, seed=7)
     top = tool_topology(box((4, 3, 2)), 3, seed=7)
     z, u_now, u_next = random_inputs(top, 7)
-    net = Network(model, top, device="cpu", k_chunk=k_chunk, split_products=k_chunk is None)
+    net = Network(model, top, device="cpu", k_chunk=k_chunk, split_products=k_chunk is not None)
     assert net.spec.features_in_encoder == (k_chunk is None)
     net.set_inputs(z, u_now, u_next, DT)
     for name in ("feat", "lat", "products", "grads", "ports", "node_terms", "zdot", "zdot_std", "degeneracy",
@@ -573,17 +573,21 @@ def test_tensor_core_edge_pass(monkeypatch, kind, edge_kernels):
 
 
 @pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
-@pytest.mark.parametrize("gemm", ["wgmma", "native"])
-def test_mesh_edge_encoder_a_launch_of_its_own(monkeypatch, kind, gemm):
+@pytest.mark.parametrize("latent,shape,actuator_graphs", [
+    (32, {"edge_rows": 64, "edge_gemm": "wgmma", "k_chunk": 32, "edge_encoder": True}, True),
+    (80, {"edge_rows": 64, "edge_gemm": "wgmma", "k_chunk": 16}, True),
+    (32, {"edge_encoder": True}, True), (32, {"edge_encoder": True}, False)],
+    ids=["wgmma-whole", "wgmma-chunks-default", "fp32", "fp32-single-graph"])
+def test_mesh_edge_encoder_a_launch_of_its_own(monkeypatch, kind, latent, shape, actuator_graphs):
     """The mesh-edge rows' encoder in a launch of its own on the edge pass's tiles and products
     (message_passing.edge_encoder_kernel: 64-row tiles with wgmma products where the edge pass takes them, fp32
-    32-row tiles else), its first layer over the features' first 16 columns, the encoder's launch taking the other
-    rows: the reference's answer, one launch more; refused in one line where a features launch computes the
-    features."""
+    32-row tiles else; whole weights or K chunks, a Network's default with K chunks on tensor cores), its first layer
+    over the features' first 16 columns, the encoder's launch taking the other rows (the self-loop, actuator and tool
+    tiles after the mesh edges', or none): the reference's answer, one launch more; refused in one line where a
+    features launch computes the features."""
     monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
-    shape = {"edge_rows": 64, "edge_gemm": "wgmma", "k_chunk": 32} if gemm == "wgmma" else {}
-    net, _ = check(random_model(kind, 2, 32, seed=13), tool_topology(box((5, 4, 3)), 3, seed=13), seed=13,
-                   block_dim=5, edge_encoder=True, **shape)
+    net, _ = check(random_model(kind, 2, latent, actuator_graphs, seed=13), tool_topology(box((5, 4, 3)), 3, seed=13),
+                   seed=13, block_dim=5, **shape)
     assert net.edge_encoder and net.spec.features_in_encoder
     assert net.n_launches == 2 * 2 + (3 if kind == "hybrid" else 2)
     with pytest.raises(ValueError, match="edge_encoder: only where the encoder computes the features"):
@@ -676,10 +680,12 @@ def test_tensor_core_edge_pass_on_hopper():
 
 
 @pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device")
-def test_overlapped_launches_equal_plain_graph():
+@pytest.mark.parametrize("edge_encoder", [None, True], ids=["default", "edge-encoder"])
+def test_overlapped_launches_equal_plain_graph(edge_encoder):
     """kernels/pdl.py: on sm_90+ a captured step's kernel-to-kernel edges made programmatic (every launch but the
     first, or all but those into the kernels named: Network.overlap), the replays bit for bit those of the plain
-    graph, step after step; elsewhere nothing changed."""
+    graph, step after step; elsewhere nothing changed. Also with the mesh-edge encoder's launch, which waits for the
+    encoder's only at its end (Network.edge_encoder)."""
     from warpgnn.kernels.pdl import _driver, overlap_launches
 
     model = random_model("hybrid", 3, 64, seed=17)
@@ -687,7 +693,7 @@ def test_overlapped_launches_equal_plain_graph():
     z, u_now, u_next = random_inputs(top, 17)
     results = []
     for overlap in (False, True):
-        net = Network(model, top, device="cuda:0")
+        net = Network(model, top, device="cuda:0", edge_encoder=edge_encoder)
         net.set_inputs(z, u_now, u_next, DT)
         net.capture(overlap=overlap)
         states = []
