@@ -290,9 +290,9 @@ def node_kernel(spec: Spec, decode: int = 0):
     in_rows, begin_in, finish_in = matmul_ahead(T, F3, F3 if ahead else spec.kc, F, spec.gemm, owner)
     # the next stage's products: all three (F, F) blocks, or on the vanilla's last pass with whole weights only the
     # third, the one its decoder reads (a product of (F, F), not (F, 3F)): batch 1 vanilla 36.8 / 101.3 -> 36.0 /
-    # 100.4 us at 1 / 5 passes; with K chunks (F = 128) its step took 598 -> 602 us (its last node pass's blocks, a
-    # third of their shared memory smaller, then shared the SMs with the last edge pass's: kernels/pdl.py), so there
-    # it computes all three (bench/results/warp_vanilla_last_products_h200.json)
+    # 100.4 us at 1 / 5 passes; with K chunks (F = 128) its step took 598 -> 602-604 us (cause not traced: its last
+    # node pass's blocks a third of their shared memory smaller may share SMs with the last edge pass's), so there it
+    # computes all three (bench/results/warp_vanilla_last_products_h200.json)
     third_only = decode == DECODE_STATE and ahead
     next_cols = F if third_only else F3
     out_rows, begin_out, finish_out = matmul_ahead(T, F, spec.kc, next_cols, spec.gemm, owner)
