@@ -777,11 +777,15 @@ GATHER_PAIR = vector_items("h", "products") + r"""
 # against 1.85 now, the launch 240 against 227 us at batch 64 (bench/results/warp_timeline_h200.json,
 # warp_sums_grads_h200.json).
 SEGMENT_SUMS = vector_items("agg", "lat", blocks=3) + r"""
-    constexpr int MR = 8, AR = 4;  // mesh and actuator rows in flight a round
     // two threads an item where the items leave half the block idle (node tiles of 8 on 256 threads): each sums every
     // other round of a segment, so a segment of up to 2 MR mesh rows waits for one L2 latency, not two; the second
     // thread's sums are added to the first's (a fixed order)
     constexpr int PARTS = 2 * N <= WP_TILE_BLOCK_DIM ? 2 : 1;
+    // mesh and actuator rows in flight a round: with two parts 13 mesh rows, so that a tet mesh's in-degrees (L5:
+    // 4-25; 20 of its 84 node tiles hold a node of more than 16) take one round: batch 1 hybrid 52.7 / 117.7 /
+    // 230.6 -> 52.5 / 117.0 / 229.1 us at 1 / 5 / 12 passes, vanilla 100.2 -> 99.7 at 5
+    // (bench/results/warp_segment_rounds_h200.json)
+    constexpr int MR = PARTS == 2 ? 13 : 8, AR = 4;
     // SEG_OFF
     // item idx's sums over rounds part, part + PARTS, ... of node (node0 + idx / FV)'s mesh and actuator segments
     auto segment = [&](int idx, int part, Vec& sm, Vec& sa) {
