@@ -339,7 +339,7 @@ def node_kernel(spec: Spec, decode: int = 0):
             zc, dti, kind, tool, weight, rest_c = step_values(wp.min(row0 + lane // STATE, n_nodes - 1),
                                                               lane - lane // STATE * STATE, tail)
         grid_step(1)
-        xin = wp.tile_zeros(shape=(T, F3), dtype=float, storage="shared")
+        xin = wp.tile_empty(shape=(T, F3), dtype=float, storage="shared")  # every column written below
         x = wp.tile_view(xin, offset=(0, 0), shape=(T, F))
         load_rows(x, lat, row0, 0)
         if wp.static(ahead):

@@ -828,8 +828,7 @@ SEGMENT_SUMS = vector_items("agg", "lat", blocks=3) + r"""
     auto put = [&](int idx, const Vec& sm, const Vec& sa) {
         const int r = idx / FV, c = idx - r * FV;
         put_row_vector(r, F + c * V, sm);
-        if (actuators)
-            put_row_vector(r, 2 * F + c * V, sa);
+        put_row_vector(r, 2 * F + c * V, sa);  // zeros without actuators: the caller's tile needs no zeroing
     };
     if constexpr (PARTS == 1) {
         for (int idx = WP_TILE_THREAD_IDX; idx < N; idx += WP_TILE_BLOCK_DIM) {
@@ -986,9 +985,10 @@ def helpers(spec: Spec, owner: str):
                      mesh_off: wp.array(dtype=wp.int32), mesh_row: int, act_off: wp.array(dtype=wp.int32),
                      act_row: int, actuators: int, node0: int, n_nodes: int):
         """agg[r, F:2F] = sum of lat[mesh_row + e, :] over node (node0 + r)'s mesh CSR segment e, and agg[r, 2F:3F]
-        likewise over its actuator segment (when ``actuators``; else left as it is), each in segment order.
+        likewise over its actuator segment (zeros without ``actuators``), each in segment order.
         ``lat`` is the latent buffer seen as rows of F / V vectors (row_view). Threads take (row, vector) items,
-        consecutive threads consecutive vectors (coalesced); a round loads eight mesh rows and four actuator rows
+        consecutive threads consecutive vectors (coalesced); a round loads eight mesh rows (13 with two threads an
+        item) and four actuator rows
         before its first add, so one L2 latency serves up to twelve edges (one float and four rows in flight made
         the node launch latency-bound: 56-62 us at L5 on an H100, where the bytes need ~3 us). Rows past a
         segment's end are loaded (clamped) but not added, so each sum is the plain sequential one (on a block of
