@@ -988,9 +988,9 @@ def helpers(spec: Spec, owner: str):
         likewise over its actuator segment (zeros without ``actuators``), each in segment order.
         ``lat`` is the latent buffer seen as rows of F / V vectors (row_view). Threads take (row, vector) items,
         consecutive threads consecutive vectors (coalesced); a round loads eight mesh rows (13 with two threads an
-        item) and four actuator rows
-        before its first add, so one L2 latency serves up to twelve edges (one float and four rows in flight made
-        the node launch latency-bound: 56-62 us at L5 on an H100, where the bytes need ~3 us). Rows past a
+        item) and four actuator rows before its first add, so one L2 latency serves up to 12 (17) edges (one float
+        and four rows in flight made the node launch latency-bound: 56-62 us at L5 on an H100, where the bytes need
+        ~3 us). Rows past a
         segment's end are loaded (clamped) but not added, so each sum is the plain sequential one (on a block of
         twice the items, the sum of every other round's rows plus that of the others'); the tile is written with one
         barrier (two then)."""
