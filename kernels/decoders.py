@@ -26,7 +26,18 @@ import warp as wp
 from .generic_tail import Tail, row_operators, settle, step_values
 from .integrate import hold
 from .spec import N_GRAD, N_LM, STATE, Spec
-from .tiles import gather_rows, grid_step, helpers, index_steps, matmul, matmul_ahead, row_steps, row_vector, stage
+from .tiles import (
+    activate_fill,
+    gather_rows,
+    grid_step,
+    helpers,
+    index_steps,
+    matmul,
+    matmul_ahead,
+    row_steps,
+    row_vector,
+    stage,
+)
 
 
 @functools.cache
@@ -40,19 +51,18 @@ def node_decoder(spec: Spec, owner: str):
     own scope, where the product is (held from the launch's start, its 3 KiB took the batch-64 last node pass from two
     blocks an SM to one: the node pass 179 -> 195 us a launch on average)."""
     T, F = spec.tile_rows, spec.latent
-    _fill, activate, _second_layer, _sums, _project, _gather, _ahead = helpers(spec, owner)
+    _fill, _activate, _second_layer, _sums, _project, _gather, _ahead = helpers(spec, owner)
 
     def mlp_of(n: int):
         buf_rows, begin, finish = matmul_ahead(T, F, spec.kc, n, spec.gemm, owner)
-        fill_n, _activate_n = row_steps(T, n, owner)
+        activate_fill_n = activate_fill(T, F, n, owner)
 
         @wp.func
         def mlp(pre: wp.tile(dtype=float, shape=(T, F)), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
                 b2: wp.array2d(dtype=float), buf: wp.tile(dtype=float, shape=(buf_rows, n)),
                 o: wp.tile(dtype=float, shape=(T, n))):
             """o = silu(pre + b1) W2 + b2, pre overwritten (W2's copy begun into buf)."""
-            activate(pre, b1, 0, 1)
-            fill_n(o, b2, 0)
+            activate_fill_n(pre, b1, 0, 1, o, b2, 0)
             finish(pre, w2, 0, 0, buf, o)
 
         return (buf_rows, begin), mlp
@@ -148,6 +158,7 @@ def kernels(spec: Spec):
     ff_rows, begin_ff, finish_ff = matmul_ahead(T, F, edges.kc, F, G, owner)
     lm_rows, begin_lm, finish_lm = matmul_ahead(T, F, edges.kc, N_LM, G, owner)
     fill_lm, _activate_lm = row_steps(T, N_LM, owner)
+    activate_lm = activate_fill(T, F, N_LM, owner)  # silu(h) and o's bias in one step
     port_terms, port_terms_to_tile = row_operators(edges, owner)
     gather_grads, gather_latents = gather_rows(T, N_GRAD, owner), gather_rows(T, F, owner)
     load_rows, loaded = stage(T, F, owner)
@@ -208,12 +219,13 @@ def kernels(spec: Spec):
                 finish_ff(e, w_e, 0, 0, w1_buf, h)
             else:
                 mm_ff(e, w_e, 0, 0, h)
-            activate(h, b1, 0, 0)
-            if wp.static(shared_eo):
+            if wp.static(shared_eo):  # e's rows in o's tile: o is filled after the product that reads them
+                activate(h, b1, 0, 0)
                 o = wp.tile_view(eo, offset=(0, 0), shape=(T, N_LM))
+                fill_lm(o, b2, 0)
             else:
                 o = wp.tile_empty(shape=(T, N_LM), dtype=float, storage="shared")
-            fill_lm(o, b2, 0)
+                activate_lm(h, b1, 0, 0, o, b2, 0)
             if wp.static(ahead):
                 finish_lm(h, w2, 0, 0, w2_buf, o)
             else:
