@@ -581,16 +581,28 @@ LAYER_NORM = ROW_PTR + r"""
     const wp::float32* __restrict__ pr = res.data.ptr;
     bool done = false;
 #if defined(__CUDA_ARCH__)
-    // G lanes a row (G a power of two, F / G columns each, at most 8), 32 / G rows a warp at once: the sums take
-    // log2(G) shuffles for 32 / G rows together
-    constexpr int G = F >= 256 ? 32 : F >= 128 ? 16 : F >= 64 ? 8 : F >= 32 ? 4 : F >= 16 ? 2 : 1;
+    // G lanes a row (G a power of two, F / G columns each), 32 / G rows a warp at once: the sums take log2(G)
+    // shuffles for 32 / G rows together. G0 gives a lane 8 columns; where the block's rows at once are fewer than
+    // the tile's, fewer lanes a row (up to 16 columns a lane) take the tile in fewer rounds, each a chain of loads,
+    // shuffles and stores (F = 128 611.7 -> 601.6 us at 12 passes, batch 64 3646 -> 3615: warp_bias_fills_h200.json)
+    constexpr int G0 = F >= 256 ? 32 : F >= 128 ? 16 : F >= 64 ? 8 : F >= 32 ? 4 : F >= 16 ? 2 : 1;
+    constexpr int G = [] {
+        int g = G0;
+        while (g > 1 && F / g < 16 && WP_TILE_BLOCK_DIM / 32 * (32 / g) < T)
+            g /= 2;
+        return g;
+    }();
     if constexpr (WP_TILE_BLOCK_DIM % 32 == 0 && F % G == 0) {
         constexpr int W = WP_TILE_BLOCK_DIM / 32 * (32 / G), PER = F / G;
         // a lane's columns: 16-byte vectors 4 G floats apart (a row's lanes read contiguous bytes: no bank conflict
         // from F = 64 on, where a quarter warp is one row), or PER consecutive floats where widths do not allow it
         constexpr bool VEC = PER % 4 == 0 && S % 4 == 0 && SR % 4 == 0;
         const int group = threadIdx.x / G, lane = threadIdx.x % G;
-        auto col = [&](int j) { return VEC ? 4 * (lane + G * (j / 4)) + j % 4 : lane * PER + j; };
+        // with fewer than 8 lanes a row a quarter warp holds 8 / G rows: each starts at another of its lane's
+        // vectors, so that rows F floats apart do not read the same banks at once
+        const int rot = group % (G >= 8 ? 1 : 8 / G);
+        constexpr int NV = PER >= 4 ? PER / 4 : 1;  // a lane's vectors
+        auto col = [&](int j) { return VEC ? 4 * (lane + G * ((j / 4 + rot) % NV)) + j % 4 : lane * PER + j; };
 #pragma unroll
         for (int r0 = 0; r0 < T; r0 += W) {
             const int r = r0 + group;
