@@ -583,8 +583,10 @@ LAYER_NORM = ROW_PTR + r"""
 #if defined(__CUDA_ARCH__)
     // G lanes a row (G a power of two, F / G columns each), 32 / G rows a warp at once: the sums take log2(G)
     // shuffles for 32 / G rows together. G0 gives a lane 8 columns; where the block's rows at once are fewer than
-    // the tile's, fewer lanes a row (up to 16 columns a lane) take the tile in fewer rounds, each a chain of loads,
-    // shuffles and stores (F = 128 611.7 -> 601.6 us at 12 passes, batch 64 3646 -> 3615: warp_bias_fills_h200.json)
+    // the tile's, fewer lanes a row (16 columns a lane where G0 gives 8) take the tile in fewer rounds, each a chain
+    // of loads, shuffles and stores (F = 128 611.7 -> 601.6 us at 12 passes, batch 64 3646 -> 3615:
+    // warp_bias_fills_h200.json). With the rotation below a lane sums its columns in an order that depends on its
+    // row's place in the tile: equal rows may differ in the last bits, the same inputs give the same outputs
     constexpr int G0 = F >= 256 ? 32 : F >= 128 ? 16 : F >= 64 ? 8 : F >= 32 ? 4 : F >= 16 ? 2 : 1;
     constexpr int G = [] {
         int g = G0;
@@ -692,11 +694,17 @@ ACTIVATE_FILL = ROW_PTR + r"""
     wp::float32* __restrict__ po = o.data.ptr;
     const wp::float32* __restrict__ hb = row_ptr(h_bias, h_row);
     const wp::float32* __restrict__ b = row_ptr(o_bias, o_row);
+    auto silu = [](wp::float32 v) {
+#if defined(__CUDA_ARCH__)  // as ROW_STEP: the fast exponential and division on CUDA, the exact ones on the CPU
+        return __fdividef(v, wp::float32(1) + __expf(-v));
+#else
+        return v / (wp::float32(1) + wp::exp(-v));
+#endif
+    };
     bool done = false;
 #if defined(__CUDA_ARCH__)
     if constexpr (C % 4 == 0 && CO % 4 == 0 && SH % 4 == 0 && SO % 4 == 0) {  // (row, 4 columns) items of both
         constexpr int NH = R * C / 4, NO = R * CO / 4, N = NH > NO ? NH : NO;
-        auto silu = [](wp::float32 v) { return __fdividef(v, wp::float32(1) + __expf(-v)); };  // as ROW_STEP
 #pragma unroll
         for (int k = 0; k < (N + WP_TILE_BLOCK_DIM - 1) / WP_TILE_BLOCK_DIM; ++k) {
             const unsigned i = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM;
@@ -721,8 +729,7 @@ ACTIVATE_FILL = ROW_PTR + r"""
     if (!done) {
         for (int i = WP_TILE_THREAD_IDX; i < R * C; i += WP_TILE_BLOCK_DIM) {
             const int r = i / C, c = i % C;
-            const wp::float32 v = with_bias ? ph[r * SH + c] + hb[c] : ph[r * SH + c];
-            ph[r * SH + c] = v / (wp::float32(1) + wp::exp(-v));
+            ph[r * SH + c] = silu(with_bias ? ph[r * SH + c] + hb[c] : ph[r * SH + c]);
         }
         for (int i = WP_TILE_THREAD_IDX; i < R * CO; i += WP_TILE_BLOCK_DIM)
             po[i / CO * SO + i % CO] = b[i % CO];

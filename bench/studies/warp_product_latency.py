@@ -329,8 +329,12 @@ def product_kernel(rows: int, k: int, n: int, variant: str):
         @wp.func_native(source)
         def product(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(k, n)),
                     acc: wp.tile(dtype=float, shape=(rows, n))): ...
-    ka = k + pad
+    return repeat_kernel(product, rows, k, k + pad, kb, n, owner)
 
+
+def repeat_kernel(product, rows: int, k: int, ka: int, kb: int, n: int, owner: str):
+    """The timed kernel of a tile ``product`` (a, b, acc): each block loads a (rows, ka) and b (kb, n) into shared
+    memory once, then runs ``reps`` products of a's first k columns into one accumulator."""
     @wp.kernel(enable_backward=False, module=owner)
     def products(a: wp.array2d(dtype=float), b: wp.array2d(dtype=float), reps: int, c: wp.array2d(dtype=float)):
         blk, _lane = wp.tid()
@@ -344,6 +348,25 @@ def product_kernel(rows: int, k: int, n: int, variant: str):
         wp.tile_store(c, acc, offset=(blk * rows, 0))
 
     return products
+
+
+def time_product(kernel, A_host: np.ndarray, W: np.ndarray, B, threads: int, reps: int, device) -> tuple:
+    """(max error of one block's product against float64 relative to its largest output, {blocks an SM: us a
+    product} for grids of one and two blocks an SM) of a repeat_kernel, A_host its (rows, ka) operand, W the (k, n)
+    weight of which B is the packed device copy."""
+    rows, k, n = A_host.shape[0], W.shape[0], W.shape[1]
+    A = wp.array(A_host, dtype=float, device=device)
+    C = wp.zeros((rows, n), dtype=float, device=device)  # one block, one product: against float64
+    wp.launch_tiled(kernel, dim=[1], inputs=[A, B, 1, C], block_dim=threads, device=device)
+    ref = A_host[:, :k].astype(np.float64) @ W.astype(np.float64)
+    err = float(np.abs(C.numpy() - ref).max() / np.abs(ref).max())
+    us = {}
+    for per_sm in (1, 2):
+        blocks = per_sm * device.sm_count
+        C = wp.zeros((blocks * rows, n), dtype=float, device=device)
+        us[per_sm] = per_rep_us(lambda r: wp.launch_tiled(kernel, dim=[blocks], inputs=[A, B, r, C],
+                                                          block_dim=threads, device=device), reps, device)
+    return err, us
 
 
 def copy_kernel(k: int, n: int):
@@ -403,18 +426,10 @@ def main() -> None:
             if (rows, k, n, threads) in EXTRA_SHAPES and kind != "native" and kind not in WGMMA_VARIANTS:
                 continue
             A_host = rng.standard_normal((rows, k + VARIANTS.get(kind, (None, 0))[1])).astype(np.float32)
-            A = wp.array(A_host, dtype=float, device=device)
             kernel = product_kernel(rows, k, n, kind)
             B = wp.array(pack_wgmma(W) if kind in WGMMA_VARIANTS else W, dtype=float, device=device)
-            C = wp.zeros((rows, n), dtype=float, device=device)  # one block, one product: against float64
-            wp.launch_tiled(kernel, dim=[1], inputs=[A, B, 1, C], block_dim=threads, device=device)
-            ref = A_host[:, :k].astype(np.float64) @ W.astype(np.float64)
-            err = float(np.abs(C.numpy() - ref).max() / np.abs(ref).max())
-            for per_sm in (1, 2):
-                blocks = per_sm * sms
-                C = wp.zeros((blocks * rows, n), dtype=float, device=device)
-                us = per_rep_us(lambda r: wp.launch_tiled(kernel, dim=[blocks], inputs=[A, B, r, C],
-                                                          block_dim=threads, device=device), a.reps, device)
+            err, times = time_product(kernel, A_host, W, B, threads, a.reps, device)
+            for per_sm, us in times.items():
                 records.append({"what": "product", "rows": rows, "k": k, "n": n, "threads": threads, "gemm": kind,
                                 "blocks_per_sm": per_sm, "us": us, "max_error": err})
                 print(f"product ({rows}, {k}) x ({k}, {n}) {kind:20s} {threads} threads, {per_sm} a SM: {us:.3f} us"

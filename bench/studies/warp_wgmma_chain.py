@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # warp_product_latency
 import numpy as np
 import provenance
 import warp as wp
-from warp_product_latency import per_rep_us
+from warp_product_latency import repeat_kernel, time_product
 
 from warpgnn.kernels import tiles
 from warpgnn.kernels.weights import tensor_core_layout
@@ -72,19 +72,7 @@ def product_kernel(rows: int, k: int, n: int, variant: str):
     def product(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(kb, n)),
                 acc: wp.tile(dtype=float, shape=(rows, n))): ...
 
-    @wp.kernel(enable_backward=False, module=owner)
-    def products(a: wp.array2d(dtype=float), b: wp.array2d(dtype=float), reps: int, c: wp.array2d(dtype=float)):
-        blk, _lane = wp.tid()
-        ta = wp.tile_load(a, shape=(rows, k), storage="shared")
-        tb = wp.tile_load(b, shape=(kb, n), storage="shared")
-        acc = wp.tile_zeros(shape=(rows, n), dtype=float, storage="shared")
-        i = int(0)
-        while i < reps:
-            product(ta, tb, acc)
-            i += 1
-        wp.tile_store(c, acc, offset=(blk * rows, 0))
-
-    return products
+    return repeat_kernel(product, rows, k, k, kb, n, owner)
 
 
 def main() -> None:
@@ -97,25 +85,15 @@ def main() -> None:
     wp.config.cuda_arch_suffix = "a"  # wgmma: sm_90a
     wp.init()
     device = wp.get_device("cuda:0")
-    sms = device.sm_count
     rng = np.random.default_rng(0)
     records = []
     for rows, k, n, threads in SHAPES:
         W = rng.standard_normal((k, n)).astype(np.float32)
         A_host = rng.standard_normal((rows, k)).astype(np.float32)
-        A = wp.array(A_host, dtype=float, device=device)
         B = wp.array(tensor_core_layout(W), dtype=float, device=device)
-        ref = A_host.astype(np.float64) @ W.astype(np.float64)
         for kind in a.variants.split(","):
-            kernel = product_kernel(rows, k, n, kind)
-            C = wp.zeros((rows, n), dtype=float, device=device)
-            wp.launch_tiled(kernel, dim=[1], inputs=[A, B, 1, C], block_dim=threads, device=device)
-            err = float(np.abs(C.numpy() - ref).max() / np.abs(ref).max())
-            for per_sm in (1, 2):
-                blocks = per_sm * sms
-                C = wp.zeros((blocks * rows, n), dtype=float, device=device)
-                us = per_rep_us(lambda r: wp.launch_tiled(kernel, dim=[blocks], inputs=[A, B, r, C],
-                                                          block_dim=threads, device=device), a.reps, device)
+            err, times = time_product(product_kernel(rows, k, n, kind), A_host, W, B, threads, a.reps, device)
+            for per_sm, us in times.items():
                 records.append({"rows": rows, "k": k, "n": n, "threads": threads, "variant": kind,
                                 "blocks_per_sm": per_sm, "us": us, "max_error": err})
                 print(f"({rows}, {k}) x ({k}, {n}) {kind:8s} {threads} threads, {per_sm} a SM: {us:.3f} us"
