@@ -685,7 +685,19 @@ LAYER_NORM = ROW_PTR + r"""
     WP_TILE_SYNC();
 """
 
-ACTIVATE_FILL = ROW_PTR + r"""
+# silu(v): on CUDA with the fast exponential and division (__expf: 2 + 1.2 |v| ulp, far inside the tests' 1e-5; expf
+# and an IEEE division are ~20 instructions an element); the CPU keeps the exact one (ROW_STEP, ACTIVATE_FILL)
+SILU = r"""
+    auto silu = [](wp::float32 v) {
+#if defined(__CUDA_ARCH__)
+        return __fdividef(v, wp::float32(1) + __expf(-v));
+#else
+        return v / (wp::float32(1) + wp::exp(-v));
+#endif
+    };
+"""
+
+ACTIVATE_FILL = ROW_PTR + SILU + r"""
     using LH = typename tile_h::Layout;
     using LO = typename tile_o::Layout;
     constexpr int R = LH::Shape::dim(0), C = LH::Shape::dim(1), SH = LH::Stride::dim(0);
@@ -694,13 +706,6 @@ ACTIVATE_FILL = ROW_PTR + r"""
     wp::float32* __restrict__ po = o.data.ptr;
     const wp::float32* __restrict__ hb = row_ptr(h_bias, h_row);
     const wp::float32* __restrict__ b = row_ptr(o_bias, o_row);
-    auto silu = [](wp::float32 v) {
-#if defined(__CUDA_ARCH__)  // as ROW_STEP: the fast exponential and division on CUDA, the exact ones on the CPU
-        return __fdividef(v, wp::float32(1) + __expf(-v));
-#else
-        return v / (wp::float32(1) + wp::exp(-v));
-#endif
-    };
     bool done = false;
 #if defined(__CUDA_ARCH__)
     if constexpr (C % 4 == 0 && CO % 4 == 0 && SH % 4 == 0 && SO % 4 == 0) {  // (row, 4 columns) items of both
@@ -741,7 +746,7 @@ ACTIVATE_FILL = ROW_PTR + r"""
 # loops without Warp's tile temporaries (a register tile, its coordinates and a barrier for each of broadcast, map
 # and assign). ``{mode}`` is the C++ that sets ``mode``: a constant for fill, from ``with_bias`` for activate (the
 # string is str.format-ed: ROW_PTR's braces doubled).
-ROW_STEP = ROW_PTR.replace("{", "{{").replace("}", "}}") + r"""
+ROW_STEP = (ROW_PTR + SILU).replace("{", "{{").replace("}", "}}") + r"""
     using L = typename tile_dst::Layout;
     constexpr int R = L::Shape::dim(0), C = L::Shape::dim(1), S = L::Stride::dim(0);
     {mode}
@@ -749,12 +754,7 @@ ROW_STEP = ROW_PTR.replace("{", "{{").replace("}", "}}") + r"""
     const wp::float32* __restrict__ b = row_ptr(src, row);
     auto step = [&](wp::float32 bias, wp::float32 v) {{
         v = mode == 0 ? bias : mode == 2 ? v + bias : v;
-#if defined(__CUDA_ARCH__)  // SiLU with the fast exponential and division (__expf: 2 + 1.2 |v| ulp, far inside
-        // the tests' 1e-5; expf and an IEEE division are ~20 instructions an element); the CPU keeps the exact one
-        return mode == 0 ? v : __fdividef(v, wp::float32(1) + __expf(-v));
-#else
-        return mode == 0 ? v : v / (wp::float32(1) + wp::exp(-v));
-#endif
+        return mode == 0 ? v : silu(v);
     }};
     bool done = false;
 #if defined(__CUDA_ARCH__)
