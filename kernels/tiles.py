@@ -149,13 +149,12 @@ def store(rows: int, cols: int, owner: str):
 # read as 16-byte vectors on CUDA (a's 4 k a load, b's 4 columns), the K loop unrolled by four steps of 4 k (by two:
 # (32, 64) x (64, 64) 1.29 -> 1.16 us a block alone on an SM, the decoder's (32, 144) product 3.70 -> 3.37;
 # warp_product_latency_h200.json) rather than whole as Warp's scalar GEMM does for K <= 32 (the instruction cache).
-GEMM = r"""
+GEMM_ITEMS = r"""
     using LA = typename tile_a::Layout;
     using LB = typename tile_b::Layout;
-    using LC = typename tile_acc::Layout;
-    constexpr int M = LC::Shape::dim(0), N = LC::Shape::dim(1), K = LA::Shape::dim(1);
-    constexpr int SA = LA::Stride::dim(0), SB = LB::Stride::dim(0), SC = LC::Stride::dim(0);
-    static_assert(LA::Stride::dim(1) == 1 && LB::Stride::dim(1) == 1 && LC::Stride::dim(1) == 1, "row-major tiles");
+    constexpr int M = LA::Shape::dim(0), N = LB::Shape::dim(1), K = LA::Shape::dim(1);
+    constexpr int SA = LA::Stride::dim(0), SB = LB::Stride::dim(0);
+    static_assert(LA::Stride::dim(1) == 1 && LB::Stride::dim(1) == 1 && LB::Shape::dim(0) == K, "row-major tiles");
     constexpr int BD = WP_TILE_BLOCK_DIM;
     constexpr int CN = N % 4 == 0 ? 4 : 1;  // columns a thread
     constexpr int KV = K % 4 == 0 ? 4 : 1;  // k a load of a
@@ -174,15 +173,9 @@ GEMM = r"""
     constexpr int KP = K / SPLIT;
     const wp::float32* __restrict__ pa = a.data.ptr;
     const wp::float32* __restrict__ pb = b.data.ptr;
-    wp::float32* __restrict__ pc = acc.data.ptr;
-    // item t's (RM, CN) block of a[:, k0:k0 + KP] @ b[k0:k0 + KP, :] into s
-    auto partial = [&](int t, int k0, wp::float32 (&s)[RM][CN]) {
+    // item t's (RM, CN) block of a[:, k0:k0 + KP] @ b[k0:k0 + KP, :] added to s
+    auto accumulate = [&](int t, int k0, wp::float32 (&s)[RM][CN]) {
         const int r0 = t / NC * RM, c0 = (t - t / NC * NC) * CN;
-#pragma unroll
-        for (int i = 0; i < RM; ++i)
-#pragma unroll
-            for (int j = 0; j < CN; ++j)
-                s[i][j] = wp::float32(0);
 #pragma unroll 4
         for (int k = k0; k < k0 + KP; k += KV) {
             wp::float32 av[RM][KV];
@@ -224,6 +217,14 @@ GEMM = r"""
             }
         }
     };
+"""  # noqa: E501 (C++ inside)
+
+# acc, the (M, N) output tile: add(t, s) adds item t's (RM, CN) block s into it
+GEMM_ADD = r"""
+    using LC = typename tile_acc::Layout;
+    constexpr int SC = LC::Stride::dim(0);
+    static_assert(LC::Stride::dim(1) == 1 && LC::Shape::dim(0) == M && LC::Shape::dim(1) == N, "acc (M, N)");
+    wp::float32* __restrict__ pc = acc.data.ptr;
     // acc's (RM, CN) block of item t += s
     auto add = [&](int t, const wp::float32 (&s)[RM][CN]) {
         const int r0 = t / NC * RM, c0 = (t - t / NC * NC) * CN;
@@ -245,6 +246,18 @@ GEMM = r"""
             for (int j = 0; j < CN; ++j)
                 pc[(r0 + i) * SC + c0 + j] += s[i][j];
     };
+"""
+
+GEMM_DISPATCH = r"""
+    // item t's (RM, CN) block of a[:, k0:k0 + KP] @ b[k0:k0 + KP, :] into s
+    auto partial = [&](int t, int k0, wp::float32 (&s)[RM][CN]) {
+#pragma unroll
+        for (int i = 0; i < RM; ++i)
+#pragma unroll
+            for (int j = 0; j < CN; ++j)
+                s[i][j] = wp::float32(0);
+        accumulate(t, k0, s);
+    };
     if constexpr (SPLIT == 1) {
         for (int t = WP_TILE_THREAD_IDX; t < ITEMS; t += BD) {
             wp::float32 s[RM][CN];
@@ -265,7 +278,89 @@ GEMM = r"""
         }
     }
     WP_TILE_SYNC();
-"""  # noqa: E501 (C++ inside)
+"""
+
+GEMM = GEMM_ITEMS + GEMM_ADD + GEMM_DISPATCH
+
+# A product over K chunks (matmul_ahead's finish) with each thread's items carried in registers from chunk to chunk
+# (s: CARRY floats a thread, a view of a and the chunk of b named for their shapes), added to acc once after the last
+# chunk (GEMM_SETTLE) rather than once a chunk: where K is split in parts (node tiles of 8 on 256 threads) each chunk
+# had ended with SPLIT barriers and its parts' adds one after another. Where a thread's items do not fit in s (few
+# threads a block: Warp's CPU device), each chunk adds into acc as GEMM does.
+GEMM_CARRY = GEMM_ITEMS + GEMM_ADD + r"""
+    constexpr int PER = SPLIT > 1 ? 1 : (ITEMS + BD - 1) / BD;  // items a thread
+    constexpr bool CARRIED = PER * RM * CN * sizeof(wp::float32) <= sizeof(s);
+    auto r = s;
+    if constexpr (CARRIED) {
+        const int part = SPLIT > 1 ? WP_TILE_THREAD_IDX / ITEMS : 0, t0 = WP_TILE_THREAD_IDX - part * ITEMS;
+        if (part < SPLIT) {
+#pragma unroll
+            for (int u = 0; u < PER; ++u) {
+                if (t0 + u * BD < ITEMS) {
+                    wp::float32 x[RM][CN];
+#pragma unroll
+                    for (int i = 0; i < RM; ++i)
+#pragma unroll
+                        for (int j = 0; j < CN; ++j)
+                            x[i][j] = r.c[(u * RM + i) * CN + j];
+                    accumulate(t0 + u * BD, part * KP, x);
+#pragma unroll
+                    for (int i = 0; i < RM; ++i)
+#pragma unroll
+                        for (int j = 0; j < CN; ++j)
+                            r.c[(u * RM + i) * CN + j] = x[i][j];
+                }
+            }
+        }
+    } else {
+        if constexpr (SPLIT == 1) {
+            for (int t = WP_TILE_THREAD_IDX; t < ITEMS; t += BD) {
+                wp::float32 s[RM][CN] = {};
+                accumulate(t, 0, s);
+                add(t, s);
+            }
+        } else {  // a thread one (item, part): the parts in different warps where ITEMS is a multiple of 32
+            const int part = WP_TILE_THREAD_IDX / ITEMS, t = WP_TILE_THREAD_IDX - part * ITEMS;
+            wp::float32 s[RM][CN] = {};
+            if (part < SPLIT)
+                accumulate(t, part * KP, s);
+    #pragma unroll
+            for (int q = 0; q < SPLIT; ++q) {  // in part order
+                if (part == q)
+                    add(t, s);
+                if (q + 1 < SPLIT)
+                    WP_TILE_SYNC();
+            }
+        }
+        WP_TILE_SYNC();
+    }
+    return r;
+"""
+
+GEMM_SETTLE = GEMM_ITEMS + GEMM_ADD + r"""
+    constexpr int PER = SPLIT > 1 ? 1 : (ITEMS + BD - 1) / BD;
+    constexpr bool CARRIED = PER * RM * CN * sizeof(wp::float32) <= sizeof(s);
+    if constexpr (CARRIED) {
+        const int part = SPLIT > 1 ? WP_TILE_THREAD_IDX / ITEMS : 0, t0 = WP_TILE_THREAD_IDX - part * ITEMS;
+#pragma unroll
+        for (int u = 0; u < PER; ++u) {
+            wp::float32 x[RM][CN];
+#pragma unroll
+            for (int i = 0; i < RM; ++i)
+#pragma unroll
+                for (int j = 0; j < CN; ++j)
+                    x[i][j] = s.c[(u * RM + i) * CN + j];
+#pragma unroll
+            for (int q = 0; q < SPLIT; ++q) {  // in part order, as GEMM
+                if (part == q && t0 + u * BD < ITEMS)
+                    add(t0 + u * BD, x);
+                if (q + 1 < SPLIT)
+                    WP_TILE_SYNC();
+            }
+        }
+        WP_TILE_SYNC();
+    }
+"""
 
 
 # Spec.gemm = "fp16": the products' operands rounded to half precision, sums in fp32 (the issue's stretch target).
@@ -345,7 +440,11 @@ def wgmma_asm(n: int, d: str, a: str, desc: str) -> str:
             f'"r"({a}[2]), "r"({a}[3]), "l"({desc}))')
 
 
-def _wgmma_source() -> str:
+def _wgmma_source(mode: str = "product") -> str:
+    """GEMM_WGMMA's C++ (``mode`` "product"), or over K chunks the accumulators carried from chunk to chunk in the
+    registers s and returned (``carry``), then added into acc after the last (``settle``), as GEMM_CARRY does: one
+    epilogue a product instead of one a chunk."""
+    carry, settle = mode == "carry", mode == "settle"
     dispatch = "\n".join(f"            {'' if i == 0 else 'else '}if constexpr (NW == {n}) "
                          f"{{ {wgmma_asm(n, 'd', 'x', 'desc')}; }}" for i, n in enumerate(WGMMA_N))
     return r"""
@@ -370,9 +469,16 @@ def _wgmma_source() -> str:
     const int group = threadIdx.x / 128, warp = threadIdx.x / 32 % 4, lane = threadIdx.x % 32, q = lane % 4;
     const int r0 = 16 * warp + lane / 4, r1 = r0 + 8, c0 = group * NW;
     wp::float32 d[NW / 2];
+""" + (r"""
+    static_assert(sizeof(s) >= sizeof(d), "s holds a thread's accumulators");
+#pragma unroll
+    for (int i = 0; i < NW / 2; ++i)
+        d[i] = s.c[i];
+""" if carry or settle else r"""
 #pragma unroll
     for (int i = 0; i < NW / 2; ++i)
         d[i] = 0.f;
+""") + ("" if settle else r"""
     unsigned ah[K / 8][4], al[K / 8][4];
     auto split = [](wp::float32 x, unsigned& hi, unsigned& lo) {
         asm("cvt.rna.tf32.f32 %0, %1;\n" : "=r"(hi) : "f"(x));
@@ -407,6 +513,13 @@ def _wgmma_source() -> str:
     }
     asm volatile("wgmma.commit_group.sync.aligned;\n" ::: "memory");
     asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory");
+""") + (r"""
+    auto r = s;
+#pragma unroll
+    for (int i = 0; i < NW / 2; ++i)
+        r.c[i] = d[i];
+    return r;
+""" if carry else r"""
     const bool odd = q & 1;
 #pragma unroll
     for (int j = 0; j + 1 < NW / 8; j += 2) {
@@ -433,8 +546,10 @@ def _wgmma_source() -> str:
         *o0 = w0;
         *o1 = w1;
     }
+""") + r"""
 #endif
 #else
+""" + ("    return;  // each chunk added into acc (below)\n" if settle else "") + r"""
     for (int i = WP_TILE_THREAD_IDX; i < M * N; i += WP_TILE_BLOCK_DIM) {  // an output element a thread
         const int r = i / N, c = i - r * N;
         wp::float32 s = wp::float32(0);
@@ -447,10 +562,11 @@ def _wgmma_source() -> str:
     }
 #endif
     WP_TILE_SYNC();
-"""
+""" + ("    return s;\n" if carry else "")
 
 
 GEMM_WGMMA = _wgmma_source()
+WGMMA_CARRY, WGMMA_SETTLE = _wgmma_source("carry"), _wgmma_source("settle")
 
 
 @functools.cache
@@ -494,6 +610,38 @@ def operand(rows: int, k: int, row_stride: int = 0):
     return wp.tile(dtype=float, shape=(rows, k))
 
 
+CARRY_ITEMS = 2  # (RM, CN) items a thread that GEMM_CARRY holds in registers (more: GEMM's per-chunk adds)
+
+
+@functools.cache
+def carried_items(rows: int, kc: int, n: int, kind: str, owner: str):
+    """(zero, carry, settle) for a product over K chunks of kc with each thread's part of it carried in registers
+    from chunk to chunk ("native": GEMM_CARRY, room for CARRY_ITEMS (RM, CN) items a thread, as GEMM shapes them;
+    "wgmma": WGMMA_CARRY, a warpgroup's accumulators): s = zero(); s = carry(a_chunk, b_chunk, s, acc) a chunk;
+    settle(a_chunk, b_chunk, s, acc) after the last."""
+    if kind == "wgmma":
+        kb, carry_src, settle_src = 2 * kc, WGMMA_CARRY, WGMMA_SETTLE
+        length = n // 2  # one warpgroup's (64, n) accumulators a thread (two warpgroups: half of it)
+    else:
+        kb, carry_src, settle_src = kc, GEMM_CARRY, GEMM_SETTLE
+        length = CARRY_ITEMS * (4 if rows % 4 == 0 else 2 if rows % 2 == 0 else 1) * (4 if n % 4 == 0 else 1)
+    regs = wp.types.vector(length=length, dtype=float)
+
+    @wp.func
+    def zero() -> regs:
+        return regs()
+
+    @wp.func_native(carry_src)
+    def carry(a: wp.tile(dtype=float, shape=(rows, kc)), b: wp.tile(dtype=float, shape=(kb, n)), s: regs,
+              acc: wp.tile(dtype=float, shape=(rows, n))) -> regs: ...
+
+    @wp.func_native(settle_src)
+    def settle(a: wp.tile(dtype=float, shape=(rows, kc)), b: wp.tile(dtype=float, shape=(kb, n)), s: regs,
+               acc: wp.tile(dtype=float, shape=(rows, n))): ...
+
+    return zero, carry, settle
+
+
 @functools.cache
 def matmul_ahead(rows: int, k: int, kc: int, n: int, kind: str, owner: str, a_stride: int = 0):
     """A staged product in two parts, so a kernel can start its weight copy first, in flight while its gathers'
@@ -514,6 +662,11 @@ def matmul_ahead(rows: int, k: int, kc: int, n: int, kind: str, owner: str, a_st
     buf_rows = ck * min(chunks, 2)
     stage_copy, staged = stage(ck, n, owner)
     product = gemm(rows, kc, n, kind, owner)
+    # each thread's part of the product in registers from chunk to chunk (GEMM_CARRY, WGMMA_CARRY): on an H200 the F
+    # = 128 12-pass step 601 -> 586 us (hybrid), 575 -> 560 (vanilla), batch 64 3605 -> 3513 us
+    # (bench/results/warp_carried_products_h200.json)
+    carry = kind in ("native", "wgmma") and chunks > 1
+    zero, carry_chunk, settle = carried_items(rows, kc, n, kind, owner) if carry else (product, product, product)
 
     @wp.func
     def begin(buf: wp.tile(dtype=float, shape=(buf_rows, n)), w: wp.array2d(dtype=float), row0: int, col0: int):
@@ -523,14 +676,21 @@ def matmul_ahead(rows: int, k: int, kc: int, n: int, kind: str, owner: str, a_st
     def finish(a: a_tile, w: wp.array2d(dtype=float), row0: int, col0: int,
                buf: wp.tile(dtype=float, shape=(buf_rows, n)), acc: wp.tile(dtype=float, shape=(rows, n))):
         c = int(0)
+        s = zero() if wp.static(carry) else wp.vec4()  # (unused without carry)
         while c < chunks:  # a while loop: Warp does not unroll it
             b = wp.tile_view(buf, offset=((c % 2) * ck, 0), shape=(ck, n))
             staged(b)  # chunk c is in; every thread is done with chunk c - 1's buffer
             if c + 1 < chunks:
                 stage_copy(wp.tile_view(buf, offset=(((c + 1) % 2) * ck, 0), shape=(ck, n)), w,
                            pk * (row0 + (c + 1) * kc), col0)
-            product(wp.tile_view(a, offset=(0, c * kc), shape=(rows, kc)), b, acc)
+            if wp.static(carry):
+                s = carry_chunk(wp.tile_view(a, offset=(0, c * kc), shape=(rows, kc)), b, s, acc)
+            else:
+                product(wp.tile_view(a, offset=(0, c * kc), shape=(rows, kc)), b, acc)
             c += 1
+        if wp.static(carry):
+            settle(wp.tile_view(a, offset=(0, 0), shape=(rows, kc)), wp.tile_view(buf, offset=(0, 0), shape=(ck, n)),
+                   s, acc)
 
     return buf_rows, begin, finish
 

@@ -714,33 +714,74 @@ def test_overlapped_launches_equal_plain_graph(edge_encoder):
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
+    not SM90, reason="wgmma needs an sm_90 GPU (H100, H200)"))])
+def test_tensor_core_products_over_k_chunks(device):
+    """tiles.matmul with "wgmma" over K chunks (the F = 128 edge pass's, the batch-64 decoder's): each warpgroup's
+    accumulators carried in registers from chunk to chunk and added into acc once (WGMMA_CARRY, WGMMA_SETTLE; off
+    CUDA each chunk added element by element), the weight read in chunks from its tensor-core layout: fp32's
+    answer, on one and two warpgroups, widths of 64 and 144."""
+    from warpgnn.kernels import tiles
+    from warpgnn.kernels.shipped import arch_suffix
+    from warpgnn.kernels.spec import Spec
+    from warpgnn.kernels.weights import tensor_core_layout
+
+    rng = np.random.default_rng(7)
+    for threads in (128, 256):
+        for k, kc, n in ((64, 16, 64), (64, 32, 144)):
+            owner = f"test_wgmma_chunks_{threads}_{n}"
+            mm = tiles.matmul(64, k, kc, n, "wgmma", owner)
+
+            @wp.kernel(enable_backward=False, module=owner)
+            def apply(a: wp.array2d(dtype=float), w: wp.array2d(dtype=float), c: wp.array2d(dtype=float)):
+                ta = wp.tile_load(a, shape=(64, k), storage="shared")
+                tc = wp.tile_load(c, shape=(64, n), storage="shared")
+                mm(ta, w, 0, 0, tc)
+                wp.tile_store(c, tc)
+
+            a, w, c = (rng.standard_normal(s).astype(np.float32) for s in ((64, k), (k, n), (64, n)))
+            out = wp.array(c, dtype=float, device=device)
+            block = threads if device != "cpu" else 1
+            with arch_suffix(Spec(16, edge_rows=64, edge_gemm="wgmma")):  # sm_90a on CUDA
+                wp.load_module(owner, device=device, block_dim=block)
+            wp.launch_tiled(apply, dim=[1], inputs=[wp.array(a, dtype=float, device=device),
+                                                    wp.array(tensor_core_layout(w), dtype=float, device=device),
+                                                    out], block_dim=block, device=device)
+            expected = c + a.astype(np.float64) @ w.astype(np.float64)
+            assert np.abs(out.numpy() - expected).max() <= 1e-5 * np.abs(expected).max(), (threads, n)
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
     not HAS_CUDA, reason="needs a CUDA device"))])
-def test_staged_products_against_numpy(device):
-    """tiles.matmul, the staged product every MLP layer runs (weight chunks double-buffered, cp.async on CUDA),
-    acc += a @ W[row0:, col0:] against numpy to fp32's accuracy: node and edge tiles, widths of 144, 24 and 12, a
-    weight slice at a row and column offset."""
+def test_staged_products_against_numpy(monkeypatch, device):
+    """tiles.matmul, the staged product every MLP layer runs (weight chunks double-buffered, cp.async on CUDA; over
+    K chunks each thread's items carried in registers from chunk to chunk, GEMM_CARRY, where they fit), acc += a @
+    W[row0:, col0:] against numpy to fp32's accuracy: node and edge tiles, widths of 144, 24, 16 and 12, a weight
+    slice at a row and column offset, one chunk and several; on the CPU with blocks of 1, 8 and 32 threads (CPU
+    fibers), so that items are carried with K in one part and in several, and not carried (too many a thread)."""
     from warpgnn.kernels import tiles
 
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
     rng = np.random.default_rng(1)
-    for rows, k, n in ((8, 64, 144), (32, 64, 24), (32, 32, 12)):
-        kc, row0, col0 = 32, 32, 8
-        mm = tiles.matmul(rows, k, kc, n, "native", "test_staged_products")
+    for block_dim in (1, 8, 32) if device == "cpu" else (128, 256):
+        for rows, k, n in ((8, 64, 144), (32, 64, 24), (32, 32, 12), (8, 128, 16)):
+            kc, row0, col0 = 32, 32, 8
+            mm = tiles.matmul(rows, k, kc, n, "native", "test_staged_products")
 
-        @wp.kernel(enable_backward=False, module="test_staged_products")
-        def apply(a: wp.array2d(dtype=float), w: wp.array2d(dtype=float), c: wp.array2d(dtype=float)):
-            ta = wp.tile_load(a, shape=(rows, k), storage="shared")
-            tc = wp.tile_load(c, shape=(rows, n), storage="shared")
-            mm(ta, w, row0, col0, tc)
-            wp.tile_store(c, tc)
+            @wp.kernel(enable_backward=False, module="test_staged_products")
+            def apply(a: wp.array2d(dtype=float), w: wp.array2d(dtype=float), c: wp.array2d(dtype=float)):
+                ta = wp.tile_load(a, shape=(rows, k), storage="shared")
+                tc = wp.tile_load(c, shape=(rows, n), storage="shared")
+                mm(ta, w, row0, col0, tc)
+                wp.tile_store(c, tc)
 
-        a = rng.standard_normal((rows, k)).astype(np.float32)
-        w = rng.standard_normal((row0 + k, col0 + n + 4)).astype(np.float32)
-        c = rng.standard_normal((rows, n)).astype(np.float32)
-        out = wp.array(c, dtype=float, device=device)
-        wp.launch_tiled(apply, dim=[1], inputs=[wp.array(a, dtype=float, device=device),
-                                                wp.array(w, dtype=float, device=device), out],
-                        block_dim=128 if device != "cpu" else 1, device=device)
-        exact = c + a.astype(np.float64) @ w[row0:row0 + k, col0:col0 + n].astype(np.float64)
-        err = np.abs(out.numpy() - exact).max() / np.abs(exact).max()
-        assert err < 2e-6, (rows, k, n, err)
+            a = rng.standard_normal((rows, k)).astype(np.float32)
+            w = rng.standard_normal((row0 + k, col0 + n + 4)).astype(np.float32)
+            c = rng.standard_normal((rows, n)).astype(np.float32)
+            out = wp.array(c, dtype=float, device=device)
+            wp.launch_tiled(apply, dim=[1], inputs=[wp.array(a, dtype=float, device=device),
+                                                    wp.array(w, dtype=float, device=device), out],
+                            block_dim=block_dim, device=device)
+            exact = c + a.astype(np.float64) @ w[row0:row0 + k, col0:col0 + n].astype(np.float64)
+            err = np.abs(out.numpy() - exact).max() / np.abs(exact).max()
+            assert err < 2e-6, (block_dim, rows, k, n, err)
 

@@ -7,7 +7,11 @@ columns), one and two blocks an SM, each checked against a float64 product:
 * ``shipped``: tiles.GEMM_WGMMA, three wgmmas a k step (lo hi, hi lo, hi hi) into one accumulator: a chain of 3 K / 8;
 * ``par3``: the three terms into three accumulators (three chains of K / 8), added after the wait;
 * ``fixed``: the shipped product without its wgmmas (operand loads and splits, fence, barriers, accumulator's
-  read-modify-writes): its fixed costs.
+  read-modify-writes): its fixed costs;
+* ``ksplit`` (on 256 threads): each warpgroup all N columns over half of K (m64nNk8 instead of N / 2, the wider
+  wgmma), the two accumulators added into the tile one warpgroup after the other (a barrier between: the same order
+  every run). Measured once (bench/results/warp_carried_products_h200.json): slower, (64, 64) x (64, 64) 1.38 ->
+  2.10 us a block alone.
 
 The weight is packed as the kernels pack it (weights.tensor_core_layout); the run recorded in
 bench/results/warp_bias_fills_h200.json packed it as warp_product_latency.py does (a layout of the products before
@@ -61,6 +65,19 @@ def variant_source(variant: str) -> str:
                           "#pragma unroll\n    for (int i = 0; i < NW / 2; ++i)\n        d[i] += e[i] + g[i];\n")
         assert "mma3(e" in src and "d[i] += e[i] + g[i]" in src
         return src
+    if variant == "ksplit":
+        for old, new in (("constexpr int WG = WP_TILE_BLOCK_DIM / 128, NW = N / WG;",
+                          "constexpr int WG = WP_TILE_BLOCK_DIM / 128, NW = N;"),
+                         ("c0 = group * NW;", "c0 = 0;"),
+                         (CALLS, "        if (WG == 1 || (j < K / 16) == (group == 0)) {\n    "
+                          + CALLS.replace("\n", "\n    ") + "\n        }"),
+                         ("    const bool odd = q & 1;\n",
+                          "    auto epilogue = [&]() {\n    const bool odd = q & 1;\n")):
+            assert old in src, old
+            src = src.replace(old, new, 1)
+        end = src.index("#endif\n#else")
+        return (src[:end] + "    };\n    if (group == 0) epilogue();\n    WP_TILE_SYNC();\n"
+                "    if (group != 0) epilogue();\n" + src[end:])
     raise ValueError(variant)
 
 
