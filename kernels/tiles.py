@@ -283,10 +283,11 @@ GEMM_DISPATCH = r"""
 GEMM = GEMM_ITEMS + GEMM_ADD + GEMM_DISPATCH
 
 # A product over K chunks (matmul_ahead's finish) with each thread's items carried in registers from chunk to chunk
-# (s: CARRY floats a thread, a view of a and the chunk of b named for their shapes), added to acc once after the last
-# chunk (GEMM_SETTLE) rather than once a chunk: where K is split in parts (node tiles of 8 on 256 threads) each chunk
-# had ended with SPLIT barriers and its parts' adds one after another. Where a thread's items do not fit in s (few
-# threads a block: Warp's CPU device), each chunk adds into acc as GEMM does.
+# (s: room for CARRY_ITEMS (RM, CN) items a thread; a view of a and the chunk of b named for their shapes), added to
+# acc once after the last chunk (GEMM_SETTLE) rather than once a chunk: where K is split in parts (node tiles of 8 on
+# 256 threads) each chunk had ended with SPLIT barriers and its parts' adds one after another. Where a thread has more
+# items than s holds (few threads a block, as on Warp's CPU device; on CUDA the batch-64 node pass's (32, 192)
+# next-stage product on 128 threads, 3 a thread), each chunk adds into acc as GEMM does.
 GEMM_CARRY = GEMM_ITEMS + GEMM_ADD + r"""
     constexpr int PER = SPLIT > 1 ? 1 : (ITEMS + BD - 1) / BD;  // items a thread
     constexpr bool CARRIED = PER * RM * CN * sizeof(wp::float32) <= sizeof(s);
@@ -420,7 +421,8 @@ assert "half_round(av" in GEMM_F16
 # data, b the weight's chunk in weights.tensor_core_layout (its tf32 hi and lo parts, (2 K, N) floats) staged in shared
 # memory. Each warpgroup (128 threads; a block of 256 has two, each taking half of acc's columns) holds a in registers,
 # a warp 16 rows, split into hi = tf32(x) and lo = tf32(x - hi); three products a k step (lo hi + hi lo + hi hi,
-# ~fp32's accuracy: 3xTF32) into an accumulator started at zero, added into acc by 16-byte read-modify-writes (pairs
+# ~fp32's accuracy: 3xTF32) into an accumulator started at zero (over K chunks: carried from chunk to chunk,
+# WGMMA_CARRY, and added once, WGMMA_SETTLE), added into acc by 16-byte read-modify-writes (pairs
 # of lanes swap halves of two 8-column blocks by shuffles). Measured alone on
 # an H200: a (64, 64) x (64, 64) product 3.28 -> 1.29 us at one block an SM, 4.39 -> 1.58 at two, against GEMM on the
 # same tile; on 32-row tiles (half of each instruction padding) little faster
@@ -663,8 +665,8 @@ def matmul_ahead(rows: int, k: int, kc: int, n: int, kind: str, owner: str, a_st
     stage_copy, staged = stage(ck, n, owner)
     product = gemm(rows, kc, n, kind, owner)
     # each thread's part of the product in registers from chunk to chunk (GEMM_CARRY, WGMMA_CARRY): on an H200 the F
-    # = 128 12-pass step 601 -> 586 us (hybrid), 575 -> 560 (vanilla), batch 64 3605 -> 3513 us
-    # (bench/results/warp_carried_products_h200.json)
+    # = 128 12-pass step 601 -> 519 us (hybrid), 575 -> 495 (vanilla), batch 64 3613 -> 3430 us (the fp32 products
+    # alone: 601 -> 587, 575 -> 560, 3609 -> 3513; bench/results/warp_carried_products_h200.json)
     carry = kind in ("native", "wgmma") and chunks > 1
     zero, carry_chunk, settle = carried_items(rows, kc, n, kind, owner) if carry else (product, product, product)
 

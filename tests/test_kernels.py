@@ -719,7 +719,7 @@ def test_tensor_core_products_over_k_chunks(device):
     """tiles.matmul with "wgmma" over K chunks (the F = 128 edge pass's, the batch-64 decoder's): each warpgroup's
     accumulators carried in registers from chunk to chunk and added into acc once (WGMMA_CARRY, WGMMA_SETTLE; off
     CUDA each chunk added element by element), the weight read in chunks from its tensor-core layout: fp32's
-    answer, on one and two warpgroups, widths of 64 and 144."""
+    answer, on one and two warpgroups (CUDA; the CPU runs a block as one thread), widths of 64 and 144."""
     from warpgnn.kernels import tiles
     from warpgnn.kernels.shipped import arch_suffix
     from warpgnn.kernels.spec import Spec
