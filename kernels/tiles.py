@@ -313,27 +313,8 @@ GEMM_CARRY = GEMM_ITEMS + GEMM_ADD + r"""
                 }
             }
         }
-    } else {
-        if constexpr (SPLIT == 1) {
-            for (int t = WP_TILE_THREAD_IDX; t < ITEMS; t += BD) {
-                wp::float32 s[RM][CN] = {};
-                accumulate(t, 0, s);
-                add(t, s);
-            }
-        } else {  // a thread one (item, part): the parts in different warps where ITEMS is a multiple of 32
-            const int part = WP_TILE_THREAD_IDX / ITEMS, t = WP_TILE_THREAD_IDX - part * ITEMS;
-            wp::float32 s[RM][CN] = {};
-            if (part < SPLIT)
-                accumulate(t, part * KP, s);
-    #pragma unroll
-            for (int q = 0; q < SPLIT; ++q) {  // in part order
-                if (part == q)
-                    add(t, s);
-                if (q + 1 < SPLIT)
-                    WP_TILE_SYNC();
-            }
-        }
-        WP_TILE_SYNC();
+    } else {  // GEMM's per-call adds, in a scope of their own
+""" + GEMM_DISPATCH + r"""
     }
     return r;
 """
