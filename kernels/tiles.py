@@ -288,28 +288,39 @@ GEMM = GEMM_ITEMS + GEMM_ADD + GEMM_DISPATCH
 # 256 threads) each chunk had ended with SPLIT barriers and its parts' adds one after another. Where a thread has more
 # items than s holds (few threads a block, as on Warp's CPU device; on CUDA the batch-64 node pass's (32, 192)
 # next-stage product on 128 threads, 3 a thread), each chunk adds into acc as GEMM does.
-GEMM_CARRY = GEMM_ITEMS + GEMM_ADD + r"""
+# where GEMM_CARRY and GEMM_SETTLE find a thread's items (the same as GEMM_DISPATCH's) and its item u in s: PER items
+# a thread (t0 + u BD, K part ``part``), CARRIED where they fit in s
+CARRY_MAP = r"""
     constexpr int PER = SPLIT > 1 ? 1 : (ITEMS + BD - 1) / BD;  // items a thread
     constexpr bool CARRIED = PER * RM * CN * sizeof(wp::float32) <= sizeof(s);
+    const int part = SPLIT > 1 ? WP_TILE_THREAD_IDX / ITEMS : 0, t0 = WP_TILE_THREAD_IDX - part * ITEMS;
+    auto unpack = [](const decltype(s)& v, int u, wp::float32 (&x)[RM][CN]) {
+#pragma unroll
+        for (int i = 0; i < RM; ++i)
+#pragma unroll
+            for (int j = 0; j < CN; ++j)
+                x[i][j] = v.c[(u * RM + i) * CN + j];
+    };
+    auto pack = [](const wp::float32 (&x)[RM][CN], int u, decltype(s)& v) {
+#pragma unroll
+        for (int i = 0; i < RM; ++i)
+#pragma unroll
+            for (int j = 0; j < CN; ++j)
+                v.c[(u * RM + i) * CN + j] = x[i][j];
+    };
+"""
+
+GEMM_CARRY = GEMM_ITEMS + GEMM_ADD + CARRY_MAP + r"""
     auto r = s;
     if constexpr (CARRIED) {
-        const int part = SPLIT > 1 ? WP_TILE_THREAD_IDX / ITEMS : 0, t0 = WP_TILE_THREAD_IDX - part * ITEMS;
         if (part < SPLIT) {
 #pragma unroll
             for (int u = 0; u < PER; ++u) {
                 if (t0 + u * BD < ITEMS) {
                     wp::float32 x[RM][CN];
-#pragma unroll
-                    for (int i = 0; i < RM; ++i)
-#pragma unroll
-                        for (int j = 0; j < CN; ++j)
-                            x[i][j] = r.c[(u * RM + i) * CN + j];
+                    unpack(r, u, x);
                     accumulate(t0 + u * BD, part * KP, x);
-#pragma unroll
-                    for (int i = 0; i < RM; ++i)
-#pragma unroll
-                        for (int j = 0; j < CN; ++j)
-                            r.c[(u * RM + i) * CN + j] = x[i][j];
+                    pack(x, u, r);
                 }
             }
         }
@@ -319,19 +330,12 @@ GEMM_CARRY = GEMM_ITEMS + GEMM_ADD + r"""
     return r;
 """
 
-GEMM_SETTLE = GEMM_ITEMS + GEMM_ADD + r"""
-    constexpr int PER = SPLIT > 1 ? 1 : (ITEMS + BD - 1) / BD;
-    constexpr bool CARRIED = PER * RM * CN * sizeof(wp::float32) <= sizeof(s);
+GEMM_SETTLE = GEMM_ITEMS + GEMM_ADD + CARRY_MAP + r"""
     if constexpr (CARRIED) {
-        const int part = SPLIT > 1 ? WP_TILE_THREAD_IDX / ITEMS : 0, t0 = WP_TILE_THREAD_IDX - part * ITEMS;
 #pragma unroll
         for (int u = 0; u < PER; ++u) {
             wp::float32 x[RM][CN];
-#pragma unroll
-            for (int i = 0; i < RM; ++i)
-#pragma unroll
-                for (int j = 0; j < CN; ++j)
-                    x[i][j] = s.c[(u * RM + i) * CN + j];
+            unpack(s, u, x);
 #pragma unroll
             for (int q = 0; q < SPLIT; ++q) {  // in part order, as GEMM
                 if (part == q && t0 + u * BD < ITEMS)
