@@ -23,6 +23,7 @@ rather than one block's chain of products), and the hybrid's learned self-loop l
 """
 
 # No `from __future__ import annotations`: node_pass's row_vector(F) annotation is evaluated when defined.
+import dataclasses
 import functools
 
 import warp as wp
@@ -63,7 +64,11 @@ def encoder_kernel(spec: Spec):
     """encode, in spec.module_of("encode")."""
     owner = spec.module_of("encode")
     T, F = spec.tile_rows, spec.latent
-    fill, _activate, second_layer, _sums, project, _gather, ahead_parts = helpers(spec, owner)
+    # W2's and the node products' K chunks of node_kc where blocks do not queue for the SMs (F = 128); where they do
+    # (batch 64) its blocks an SM are bound by shared memory (MANY_BLOCKS_REGISTERS): there kc
+    kc = spec.kc if spec.many_blocks else spec.node_kc
+    fill, _activate, second_layer, _sums, project, _gather, ahead_parts = helpers(
+        dataclasses.replace(spec, k_chunk=kc), owner)
     w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
     mm_in = matmul(T, FW, FW, F, spec.gemm, owner)
     in_rows, begin_in, finish_in = matmul_ahead(T, FW, FW, F, spec.gemm, owner)
@@ -275,7 +280,9 @@ def node_kernel(spec: Spec, decode: int = 0):
     code."""
     owner = spec.module_of("node_pass")
     T, F = spec.node_tile, spec.latent
-    fill, _activate, second_layer, sums, _project, _gather, ahead_parts = helpers(spec.nodes, owner)
+    kc_in = spec.node_kc  # the K chunks of its first layer's and W2's products
+    fill, _activate, second_layer, sums, _project, _gather, ahead_parts = helpers(
+        dataclasses.replace(spec.nodes, k_chunk=kc_in), owner)
     segment_sums, staged_segment_sums = sums
     w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
     decoder_ahead, node_fields, node_state, node_fields_staged, node_state_staged = node_decoder(spec.nodes, owner)
@@ -287,7 +294,7 @@ def node_kernel(spec: Spec, decode: int = 0):
     ahead = spec.kc == F  # as the edge pass: weight copies first with whole weights
     # and then the first layer's (3F, F) weight as one chunk too, copied whole at the launch's start (in three chunks
     # the product waited for two copies: 2.81 -> 2.40 us a block, bench/results/warp_edge_occupancy_h200.json)
-    in_rows, begin_in, finish_in = matmul_ahead(T, F3, F3 if ahead else spec.kc, F, spec.gemm, owner)
+    in_rows, begin_in, finish_in = matmul_ahead(T, F3, F3 if ahead else kc_in, F, spec.gemm, owner)
     # the next stage's products: all three (F, F) blocks, or on the vanilla's last pass with whole weights only the
     # third, the one its decoder reads (a product of (F, F), not (F, 3F)): batch 1 vanilla 36.8 / 101.3 -> 36.0 /
     # 100.4 us at 1 / 5 passes; with K chunks (F = 128) its step took 598 -> 602-604 us (cause not traced: its last
@@ -297,7 +304,13 @@ def node_kernel(spec: Spec, decode: int = 0):
     next_cols = F if third_only else F3
     out_rows, begin_out, finish_out = matmul_ahead(T, F, spec.kc, next_cols, spec.gemm, owner)
     out_col = 2 * F if third_only else 0  # the first column of proj's blocks this kernel computes
-    mm_in, mm_out = matmul(T, F3, spec.kc, F, spec.gemm, owner), matmul(T, F, spec.kc, next_cols, spec.gemm, owner)
+    mm_in, mm_out = matmul(T, F3, kc_in, F, spec.gemm, owner), matmul(T, F, spec.kc, next_cols, spec.gemm, owner)
+    # with K chunks where blocks do not queue for the SMs (F = 128): the first layer's and the next stage's first
+    # chunks copied before the launch's wait, W2's chunks in the first layer's buffer after its product (buffers for
+    # all three at once do not fit): on an H200 (L5, 12 passes, F = 128) hybrid 504.3 -> 497.2 us, vanilla 481.2 ->
+    # 474.1 (the first layer's chunk alone: 501.3 / 478.6; bench/results/warp_node_chunks_h200.json). Where blocks
+    # queue (batch 64) the buffers' shared memory would cost blocks an SM
+    early = not ahead and not spec.many_blocks and in_rows == w2_rows
     load_rows, loaded = stage(T, F, owner)
     store_rows, store_products = store(T, F, owner), store(T, F3, owner)
     _stage_ids, stage_offsets = index_steps(T, owner)
@@ -328,6 +341,11 @@ def node_kernel(spec: Spec, decode: int = 0):
             begin_second_layer(w2_buf, w2, p)
             proj_buf = wp.tile_empty(shape=(out_rows, next_cols), dtype=float, storage="shared")
             begin_out(proj_buf, proj, (p + 1) * F, out_col)
+        if wp.static(early):
+            w1_buf = wp.tile_empty(shape=(in_rows, F), dtype=float, storage="shared")
+            begin_in(w1_buf, w1, 3 * p * F, 0)
+            proj_buf = wp.tile_empty(shape=(out_rows, next_cols), dtype=float, storage="shared")
+            begin_out(proj_buf, proj, (p + 1) * F, out_col)
         if wp.static(decode != 0 and ahead):  # the decoder's second-layer weight, in flight with the others
             dec_buf = wp.tile_empty(shape=(dec_rows, dec_cols), dtype=float, storage="shared")
             begin_dec(dec_buf, dv_w2, 0, 0)
@@ -353,6 +371,10 @@ def node_kernel(spec: Spec, decode: int = 0):
         if wp.static(ahead):
             finish_in(xin, w1, 3 * p * F, 0, w1_buf, h)
             second_layer_ahead(h, w2, w2_buf, b2, gain, shift, p, eps, x, 1, y)
+        elif wp.static(early):  # W2's chunks into the first layer's buffer, free once its product is done
+            finish_in(xin, w1, 3 * p * F, 0, w1_buf, h)
+            begin_second_layer(w1_buf, w2, p)
+            second_layer_ahead(h, w2, w1_buf, b2, gain, shift, p, eps, x, 1, y)
         else:
             mm_in(xin, w1, 3 * p * F, 0, h)
             second_layer(h, w2, b2, gain, shift, p, eps, x, 1, y)
@@ -362,7 +384,7 @@ def node_kernel(spec: Spec, decode: int = 0):
         # the next stage's node products, its three (F, F) blocks as one product (blocks a stage does not use are
         # zero weights, or read by no launch)
         nxt = wp.tile_zeros(shape=(T, next_cols), dtype=float, storage="shared")
-        if wp.static(ahead):
+        if wp.static(ahead or early):
             finish_out(y, proj, (p + 1) * F, out_col, proj_buf, nxt)
         else:
             mm_out(y, proj, (p + 1) * F, out_col, nxt)

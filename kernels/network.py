@@ -35,6 +35,7 @@ from .spec import (
     max_shared_of,
     node_rows_for,
     threads_for,
+    tile_rows_for,
 )
 from .tiles import row_view
 from .weights import pack
@@ -85,7 +86,7 @@ def _as_warp(x, device):
 
 
 class Network:
-    def __init__(self, model, topology, device=None, tile_rows: int = Spec.tile_rows, block_dim: int | None = None,
+    def __init__(self, model, topology, device=None, tile_rows: int | None = None, block_dim: int | None = None,
                  k_chunk: int | None = None, weights=None, node_rows: int | None = None, gemm: str = Spec.gemm,
                  threads: dict | None = None, edge_rows: int | None = None, edge_gemm: str | None = None,
                  edge_kernels: tuple | None = None, receiver_groups: bool | None = None,
@@ -94,10 +95,11 @@ class Network:
         warpgnn.graphs.Topology, one simulation or a stacked batch. ``tile_rows``, ``node_rows``, ``k_chunk``,
         ``gemm``, ``edge_rows``, ``edge_gemm``, ``edge_kernels``: the kernels' Spec (node_rows and k_chunk None: by the
         graph's size, spec.node_rows_for and spec.k_chunk_for; the edge products None: by the GPU and the graph's size,
-        spec.edge_products_for; the shapes kernels/aot ships). ``block_dim``: threads a block
-        of the tile kernels (default_block_dim); ``threads``: {kernel name: threads a block} of those whose CUDA
-        launches take another (Spec.threads; None: by the K chunk, spec.threads_for). ``weights``: the
-        model already packed on ``device`` (weights.pack), so Networks of many topologies share one copy.
+        spec.edge_products_for; tile_rows None: by those, spec.tile_rows_for; the shapes kernels/aot ships).
+        ``block_dim``: threads a block of the tile kernels (default_block_dim); ``threads``: {kernel name: threads a
+        block} of those whose CUDA launches take another (Spec.threads; None: by the K chunk, spec.threads_for).
+        ``weights``: the model already packed on ``device`` (weights.pack), so Networks of many topologies share one
+        copy.
         ``receiver_groups``: the hybrid decoder and tail in one launch on receiver-owned tiles (decoders.hybrid_step)
         where every node's incoming edges and self-loop fit a tile; None: on small graphs (a node tile an SM at most,
         not Spec.many_blocks: where blocks do not queue for the SMs; measured there only). ``split_products``: the
@@ -110,10 +112,11 @@ class Network:
         encoder computes the features (F = 128 on small graphs on sm_90)."""
         self.device = wp.get_device(device)
         self.weights = w = weights if weights is not None else pack(model, self.device)
-        if not node_rows:  # by the graph's size, a divisor of tile_rows
-            picked = node_rows_for(topology.n_nodes, self.device.sm_count if self.device.is_cuda else 0, w.latent,
-                                   max_shared_of(self.device))
-            node_rows = next(n for n in (picked, NODE_ROWS[0], tile_rows) if tile_rows % n == 0)
+        if not node_rows:  # by the graph's size, a divisor of tile_rows where given
+            node_rows = node_rows_for(topology.n_nodes, self.device.sm_count if self.device.is_cuda else 0, w.latent,
+                                      max_shared_of(self.device))
+            if tile_rows:
+                node_rows = next(n for n in (node_rows, NODE_ROWS[0], tile_rows) if tile_rows % n == 0)
         tiles_per_sm = -(-topology.n_nodes // node_rows) / self.device.sm_count if self.device.is_cuda else 0
         small = node_rows == NODE_ROWS[0] and tiles_per_sm <= 1  # a node tile an SM at most
         if k_chunk is None:
@@ -121,7 +124,8 @@ class Network:
         arch = self.device.arch if self.device.is_cuda else None
         # None: by the GPU and the graph's size
         edge = edge_products(edge_rows, edge_gemm, k_chunk, w.latent, arch, small, edge_kernels, tiles_per_sm,
-                             tile_rows)
+                             tile_rows or Spec.tile_rows)
+        tile_rows = tile_rows or tile_rows_for(node_rows, w.latent, edge)
         threads = threads_for(k_chunk, w.latent, self.device.is_cuda, edge) if threads is None else threads
         self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm, threads=tuple(dict(threads).items()), **edge)
         build_kernels(self.spec)

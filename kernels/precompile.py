@@ -24,7 +24,17 @@ import warp as wp
 
 from . import shipped
 from .network import build_kernels, default_block_dim
-from .spec import GEMMS, NODE_ROWS, SHARED_OF_ARCH, Spec, edge_products, k_chunk_for, max_shared_of, threads_for
+from .spec import (
+    GEMMS,
+    NODE_ROWS,
+    SHARED_OF_ARCH,
+    Spec,
+    edge_products,
+    k_chunk_for,
+    max_shared_of,
+    threads_for,
+    tile_rows_for,
+)
 
 
 def _specs(latents, max_shared: int | None, arch: int | None, **shape) -> list[Spec]:
@@ -41,9 +51,10 @@ def _specs(latents, max_shared: int | None, arch: int | None, **shape) -> list[S
         k = k_chunk_for(node_rows, F, max_shared) if k_chunk is None else k_chunk
         small = node_rows == NODE_ROWS[0]  # the small graphs' node tiles
         edge = edge_products(edge_rows, edge_gemm, k, F, arch, small, edge_kernels,
-                             tile_rows=shape.get("tile_rows", Spec.tile_rows))
+                             tile_rows=shape.get("tile_rows") or Spec.tile_rows)
+        tiles = {"tile_rows": shape.get("tile_rows") or tile_rows_for(node_rows, F, edge)}
         specs.append(Spec(F, k_chunk=k, threads=threads_for(k, F, True, edge) if threads is None else threads,
-                          **edge, **shape))
+                          **edge, **(shape | tiles)))
     for spec in specs:
         build_kernels(spec)
     return specs
@@ -92,9 +103,9 @@ def ship(log=print) -> None:
     for arch in shipped.ARCHS:
         for spec in shipped.specs(arch):
             with tempfile.TemporaryDirectory() as tmp:
-                seconds = compile_ahead([spec.latent], arch, tmp, node_rows=spec.node_rows, k_chunk=spec.k_chunk,
-                                        threads=spec.threads, edge_rows=spec.edge_rows, edge_gemm=spec.edge_gemm,
-                                        edge_kernels=spec.edge_kernels)
+                seconds = compile_ahead([spec.latent], arch, tmp, tile_rows=spec.tile_rows, node_rows=spec.node_rows,
+                                        k_chunk=spec.k_chunk, threads=spec.threads, edge_rows=spec.edge_rows,
+                                        edge_gemm=spec.edge_gemm, edge_kernels=spec.edge_kernels)
                 for cubin, meta in shipped.files(spec, arch):
                     cubin.write_bytes(lzma.compress((Path(tmp) / cubin.stem).read_bytes(), preset=6))
                     shutil.copy(Path(tmp) / meta.name, meta)
@@ -119,7 +130,8 @@ def main(argv=None) -> None:
     parser.add_argument("--out", default="aot", help="the folder of --arch's cubins (default aot)")
     parser.add_argument("--k-chunk", type=int, default=None,
                         help="Spec.k_chunk (default: a Network's pick for --node-rows; 0: Spec's; not --ship)")
-    parser.add_argument("--tile-rows", type=int, default=Spec.tile_rows, help="Spec.tile_rows (not --ship)")
+    parser.add_argument("--tile-rows", type=int, default=None,
+                        help="Spec.tile_rows (default: a Network's pick, spec.tile_rows_for; not --ship)")
     parser.add_argument("--node-rows", type=int, default=Spec.node_rows, help="Spec.node_rows (not --ship)")
     parser.add_argument("--block-dim", type=int, default=shipped.BLOCK_DIM,
                         help="threads a block, with --arch (default %(default)s; not --ship)")

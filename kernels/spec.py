@@ -96,6 +96,16 @@ class Spec:
         return kc
 
     @property
+    def node_kc(self) -> int:
+        """K rows of the weight chunks of the node pass's first layer and W2: twice kc where that divides F (F = 128's
+        chunks of 64), else kc. With the per-chunk adds gone (tiles.GEMM_CARRY) half as many chunks wait for half as
+        many copies and barriers, and their buffers (2 kc, F) stay within the (kc, 3F) ones of the launch's next-stage
+        product: no more shared memory. On an H200 (L5, 12 passes, F = 128) hybrid 518.6 -> 510.5 us, vanilla 494.9
+        -> 486.2; the edge pass's wgmma products in chunks of 64 took 6 us longer
+        (bench/results/warp_node_chunks_h200.json)."""
+        return 2 * self.kc if self.latent % (2 * self.kc) == 0 else self.kc
+
+    @property
     def many_blocks(self) -> bool:
         """K chunks at F <= 64: a Network's pick for graphs of more than a node tile an SM (k_chunk_for), where the
         blocks queue for the SMs and how many fit an SM (their shared memory and registers) sets a launch's speed;
@@ -225,6 +235,17 @@ def k_chunk_for(node_rows: int, latent: int, max_shared: int | None = None, node
     fits = max_shared is None or max_shared >= WHOLE_WEIGHTS_SHARED
     small = node_rows == NODE_ROWS[0] and node_tiles_per_sm <= 1
     return latent if small and latent <= 64 and fits else 0
+
+
+def tile_rows_for(node_rows: int, latent: int, edge: dict) -> int:
+    """Spec.tile_rows (the encoder's tiles, and the layout's) for a Network whose node tiles are ``node_rows`` and
+    edge products ``edge`` (edge_products_for): at F > 64, where the edge-row launches take tiles of their own
+    (edge_rows), the node tiles' rows, else Spec's 32. With K chunks (F = 128) the encoder's node tiles wait on a
+    chain of products chunk by chunk: smaller tiles make shorter chains on more SMs. On an H200 (L5, F = 128, 12
+    passes) tiles of 32 / 16 / 8 rows: hybrid 509.1 / 506.6 / 503.1 us, vanilla 485.1 / 482.9 / 480.3 (the encoder
+    alone 37.0 / 25.9 / 22.3 us); with whole weights (F = 64) every tile copies them: batch 1 hybrid 51.2 / 53.4 /
+    60.1 us at 1 pass (bench/results/warp_node_chunks_h200.json)."""
+    return node_rows if latent > 64 and edge.get("edge_rows") else Spec.tile_rows
 
 
 WIDE = 256  # threads a block of the kernels threads_for names

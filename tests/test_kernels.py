@@ -359,17 +359,26 @@ def test_tiles_by_graph_size():
     """Node tiles of the most rows that still make a tile an SM: 8 at batch 1 and 2 of L5 (670 nodes) on an H200's
     132 SMs, 16 at batch 4, 32 from batch 8 on (batch 64), at most 16 at F = 128 or where a block may take less than
     whole weights' shared memory, 8 off a GPU; with tiles of 8 at most one an SM, whole weights of F <= 64 a K
-    chunk, else Spec's chunks of 32 (at most F); a Network takes them unless told."""
-    from warpgnn.kernels.spec import k_chunk_for, node_rows_for
+    chunk, else Spec's chunks of 32 (at most F); the encoder's tiles those of the nodes at F > 64 where the edge-row
+    launches take tiles of their own, else 32; the node pass's first layer and W2 in K chunks of twice the others'
+    where that divides F; a Network takes them unless told."""
+    from warpgnn.kernels.spec import Spec, k_chunk_for, node_rows_for, tile_rows_for
 
     assert [node_rows_for(b * 670, 132) for b in (1, 2, 4, 8, 64)] == [8, 8, 16, 32, 32]
     assert node_rows_for(64 * 670, 132, 128) == 16 and node_rows_for(64 * 670, 132, 64, 99 * 1024) == 16
     assert node_rows_for(10**6, 0) == 8
     assert (k_chunk_for(8, 64), k_chunk_for(16, 64), k_chunk_for(8, 128), k_chunk_for(8, 16)) == (64, 0, 0, 16)
     assert k_chunk_for(8, 64, node_tiles_per_sm=84 / 132) == 64 and k_chunk_for(8, 64, node_tiles_per_sm=168 / 132) == 0
+    tensor = {"edge_rows": 64, "edge_gemm": "wgmma"}
+    assert (tile_rows_for(8, 128, tensor), tile_rows_for(16, 128, tensor), tile_rows_for(8, 128, {})) == (8, 16, 32)
+    assert tile_rows_for(8, 64, tensor) == 32
+    assert (Spec(128).node_kc, Spec(64, k_chunk=32).node_kc, Spec(64, k_chunk=64).node_kc, Spec(48).node_kc) == (
+        64, 64, 64, 16)
     top = tool_topology(box((3, 3, 2)), 2)
     spec = Network(random_model("vanilla", 1, 16), top, device="cpu").spec
-    assert (spec.node_rows, spec.kc) == (8, 16)
+    assert (spec.node_rows, spec.kc, spec.tile_rows) == (8, 16, 32)
+    spec = Network(random_model("vanilla", 1, 80), top, device="cpu", k_chunk=16, **tensor).spec
+    assert (spec.tile_rows, spec.node_kc) == (8, 16)
     assert Network(random_model("vanilla", 1, 16), top, device="cpu", k_chunk=8).spec.kc == 8
 
 
