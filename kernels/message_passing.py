@@ -31,7 +31,7 @@ import warp as wp
 from . import features
 from .decoders import node_decoder
 from .generic_tail import Tail, step_values
-from .spec import EDGE_FEATURE_WIDTH, FEATURE_WIDTH, N_GRAD, STATE, Spec
+from .spec import EDGE_FEATURE_WIDTH, FEATURE_WIDTH, N_GRAD, NODE_ROWS, STATE, Spec
 from .tiles import grid_step, helpers, index_steps, matmul, matmul_ahead, row_vector, stage, store
 
 FW = FEATURE_WIDTH
@@ -64,9 +64,10 @@ def encoder_kernel(spec: Spec):
     """encode, in spec.module_of("encode")."""
     owner = spec.module_of("encode")
     T, F = spec.tile_rows, spec.latent
-    # W2's and the node products' K chunks of node_kc where blocks do not queue for the SMs (F = 128); where they do
-    # (batch 64) its blocks an SM are bound by shared memory (MANY_BLOCKS_REGISTERS): there kc
-    kc = spec.kc if spec.many_blocks else spec.node_kc
+    # W2's and the node products' K chunks of node_kc on the small graphs' tiles of 8 at F = 128 (spec.tile_rows_for;
+    # 82,688 bytes a block): 510.4 -> 508.7 us at 12 passes; at batch 64 (F = 64, K chunks) the launch took 330 -> 337
+    # us, and on tiles of 32 at F = 128 its blocks would grow 101,376 -> 134,144 bytes, one an SM: there kc
+    kc = spec.node_kc if spec.tile_rows == NODE_ROWS[0] and not spec.many_blocks else spec.kc
     fill, _activate, second_layer, _sums, project, _gather, ahead_parts = helpers(
         dataclasses.replace(spec, k_chunk=kc), owner)
     w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
@@ -305,12 +306,12 @@ def node_kernel(spec: Spec, decode: int = 0):
     out_rows, begin_out, finish_out = matmul_ahead(T, F, spec.kc, next_cols, spec.gemm, owner)
     out_col = 2 * F if third_only else 0  # the first column of proj's blocks this kernel computes
     mm_in, mm_out = matmul(T, F3, kc_in, F, spec.gemm, owner), matmul(T, F, spec.kc, next_cols, spec.gemm, owner)
-    # with K chunks where blocks do not queue for the SMs (F = 128): the first layer's and the next stage's first
-    # chunks copied before the launch's wait, W2's chunks in the first layer's buffer after its product (buffers for
-    # all three at once do not fit): on an H200 (L5, 12 passes, F = 128) hybrid 504.3 -> 497.2 us, vanilla 481.2 ->
-    # 474.1 (the first layer's chunk alone: 501.3 / 478.6; bench/results/warp_node_chunks_h200.json). Where blocks
-    # queue (batch 64) the buffers' shared memory would cost blocks an SM
-    early = not ahead and not spec.many_blocks and in_rows == w2_rows
+    # with K chunks on the small graphs' node tiles of 8 on sm_90 (F = 128): the first layer's and the next stage's
+    # first chunks copied before the launch's wait, W2's chunks in the first layer's buffer after its product (buffers
+    # for all three at once do not fit): on an H200 (L5, 12 passes, F = 128) hybrid 504.3 -> 497.2 us, vanilla 481.2
+    # -> 474.1 (the first layer's chunk alone: 501.3 / 478.6; bench/results/warp_node_chunks_h200.json). Its blocks
+    # take 196,608-207,616 bytes there: within sm_90's 227 KiB, not sm_80's 163 nor, on tiles of 16, sm_90's
+    early = not ahead and spec.sm90a and T == NODE_ROWS[0] and in_rows == w2_rows
     load_rows, loaded = stage(T, F, owner)
     store_rows, store_products = store(T, F, owner), store(T, F3, owner)
     _stage_ids, stage_offsets = index_steps(T, owner)

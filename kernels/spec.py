@@ -100,9 +100,9 @@ class Spec:
         """K rows of the weight chunks of the node pass's first layer and W2: twice kc where that divides F (F = 128's
         chunks of 64), else kc. With the per-chunk adds gone (tiles.GEMM_CARRY) half as many chunks wait for half as
         many copies and barriers, and their buffers (2 kc, F) stay within the (kc, 3F) ones of the launch's next-stage
-        product: no more shared memory. On an H200 (L5, 12 passes, F = 128) hybrid 518.6 -> 510.5 us, vanilla 494.9
-        -> 486.2; the edge pass's wgmma products in chunks of 64 took 6 us longer
-        (bench/results/warp_node_chunks_h200.json)."""
+        product: no more shared memory. On an H200 (L5) at F = 128, 12 passes: hybrid 518.5 -> 510.4 us, vanilla
+        494.8 -> 485.9; batch 64 (F = 64: W2 whole) 3430.5 -> 3416.3 us; the edge pass's wgmma products in chunks of
+        64 took 6 us longer (bench/results/warp_node_chunks_h200.json, calls N3, N1)."""
         return 2 * self.kc if self.latent % (2 * self.kc) == 0 else self.kc
 
     @property

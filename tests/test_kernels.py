@@ -584,7 +584,7 @@ def test_tensor_core_edge_pass(monkeypatch, kind, edge_kernels):
 @pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
 @pytest.mark.parametrize("latent,shape,actuator_graphs", [
     (32, {"edge_rows": 64, "edge_gemm": "wgmma", "k_chunk": 32, "edge_encoder": True}, True),
-    (80, {"edge_rows": 64, "edge_gemm": "wgmma", "k_chunk": 16}, True),
+    (96, {"edge_rows": 64, "edge_gemm": "wgmma", "k_chunk": 16}, True),
     (32, {"edge_encoder": True}, True), (32, {"edge_encoder": True}, False)],
     ids=["wgmma-whole", "wgmma-chunks-default", "fp32", "fp32-single-graph"])
 def test_mesh_edge_encoder_a_launch_of_its_own(monkeypatch, kind, latent, shape, actuator_graphs):
@@ -593,11 +593,15 @@ def test_mesh_edge_encoder_a_launch_of_its_own(monkeypatch, kind, latent, shape,
     32-row tiles else; whole weights or K chunks, a Network's default with K chunks on tensor cores), its first layer
     over the features' first 16 columns, the encoder's launch taking the other rows (the self-loop, actuator and tool
     tiles after the mesh edges', or none): the reference's answer, one launch more; refused in one line where a
-    features launch computes the features."""
+    features launch computes the features. With K chunks at F > 64 (F = 96, chunks of 16) as at F = 128 on an H200:
+    the encoder on the node tiles' 8 rows, its W2 and the node pass's first layer and W2 in chunks of 32
+    (Spec.node_kc), the node pass's first chunks copied before its wait and W2's in the first layer's buffer."""
     monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
     net, _ = check(random_model(kind, 2, latent, actuator_graphs, seed=13), tool_topology(box((5, 4, 3)), 3, seed=13),
                    seed=13, block_dim=5, **shape)
     assert net.edge_encoder and net.spec.features_in_encoder
+    if latent > 64:
+        assert (net.spec.tile_rows, net.spec.kc, net.spec.node_kc) == (8, 16, 32)
     assert net.n_launches == 2 * 2 + (3 if kind == "hybrid" else 2)
     with pytest.raises(ValueError, match="edge_encoder: only where the encoder computes the features"):
         Network(random_model(kind, 1, 16), tool_topology(box((2, 2, 2)), 1), device="cpu", k_chunk=8,

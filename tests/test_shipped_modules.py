@@ -123,3 +123,22 @@ def test_kernels_build_for_gpus_before_sm_80(tmp_path):
 
     precompile.compile_ahead([16], 75, tmp_path)
     assert list(tmp_path.glob("*.sm75.cubin"))
+
+
+def test_wider_networks_picks_fit_their_gpus_shared_memory(tmp_path):
+    """F = 128 is not shipped (it compiles on first use), but what a Network picks there must launch: its kernels'
+    shared memory (the .meta of a build for the GPU, here ahead of time) within the GPU's opt-in limit a block, with
+    1 KiB to spare for Warp's static allocations, on the small graphs' node tiles of 8 (the node pass copying its
+    first weight chunks before its wait on sm_90, message_passing.node_kernel) and the larger graphs' 16."""
+    from warpgnn.kernels import precompile
+    from warpgnn.kernels.spec import NODE_ROWS, SHARED_OF_ARCH
+
+    for arch in (80, 90):
+        for rows in NODE_ROWS[:2]:
+            out = tmp_path / f"sm{arch}_n{rows}"
+            precompile.compile_ahead([128], arch, out, node_rows=rows)
+            meta = {}
+            for path in out.glob("*.meta"):
+                meta.update(json.loads(path.read_text()))
+            name, need = max(meta.items(), key=lambda kv: kv[1])
+            assert need + 1024 <= SHARED_OF_ARCH[arch], f"sm_{arch}, node tiles of {rows}: {name} needs {need} B"
