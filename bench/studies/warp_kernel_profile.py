@@ -46,11 +46,11 @@ def kernel_means(net: Network, calls: int) -> dict:
 
 
 def shape_args(shape: str) -> dict:
-    """"T:N:B[:K[:GEMM[:E]]]" -> Network's tile_rows, node_rows (0: by graph size), block_dim, k_chunk (absent: by
-    graph size; 0: Spec's), gemm (Spec.gemm), and the edge pass's tiles and products as E = rows then products
-    (Spec.edge_rows, edge_gemm; e.g. 64wgmma, or 32 for the plain edge pass; absent: a Network's pick,
-    spec.edge_products_for), on the edge-row launches after an @ (Spec.edge_kernels, +-separated; e.g.
-    64wgmma@hybrid_fields; absent: both)."""
+    """"T:N:B[:K[:GEMM[:E]]]" -> Network's tile_rows (0: its pick, spec.tile_rows_for), node_rows (0: by graph
+    size), block_dim, k_chunk (absent: by graph size; 0: Spec's), gemm (Spec.gemm), and the edge pass's tiles and
+    products as E = rows then products (Spec.edge_rows, edge_gemm; e.g. 64wgmma, or 32 for the plain edge pass;
+    absent: a Network's pick, spec.edge_products_for), on the edge-row launches after an @ (Spec.edge_kernels,
+    +-separated; e.g. 64wgmma@hybrid_fields; absent: both)."""
     T, N, B, *rest = shape.split(":")
     edge = re.fullmatch(r"(\d*)([a-z0-9]*)(?:@([\w+]+))?", rest[2]) if len(rest) > 2 else None  # absent: a pick
     return {"tile_rows": int(T), "node_rows": int(N), "block_dim": int(B), "k_chunk": int(rest[0]) if rest else None,
@@ -97,9 +97,9 @@ def main():
     ap.add_argument("--mesh", default=None, help="the L5 mesh (`warpgnn anatomy --name L5`) where meshing is missing")
     ap.add_argument("--aot", default=None)
     ap.add_argument("--calls", type=int, default=10)
-    ap.add_argument("--shapes", default=f"{Spec.tile_rows}:{Spec.node_rows}:{shipped.BLOCK_DIM}",
-                    help="tile_rows:node_rows:block_dim[:k_chunk[:gemm[:edge]]], comma-separated (default: the "
-                    "shipped shape, %(default)s)")
+    ap.add_argument("--shapes", default=f"0:{Spec.node_rows}:{shipped.BLOCK_DIM}",
+                    help="tile_rows:node_rows:block_dim[:k_chunk[:gemm[:edge]]], comma-separated (default: "
+                    "%(default)s, the shipped shape at F = 64; tile_rows 0: a Network's pick)")
     ap.add_argument("--threads", default=None,
                     help="Spec.threads as KERNEL=N,... ('none': every kernel on the shape's block; default: a "
                     "Network's pick, spec.threads_for)")
@@ -130,8 +130,9 @@ def main():
                  "edge_gemm": sh["edge_gemm"], "edge_kernels": sh["edge_kernels"]}
         threads = None if a.threads is None else dict(precompile.parse_threads(a.threads))
         if a.aot:
-            if not N or K is None:
-                raise SystemExit("--aot needs each shape's node rows and K chunk (T:N:B:K), as its module was built")
+            if not T or not N or K is None:
+                raise SystemExit("--aot needs each shape's tile rows, node rows and K chunk (T:N:B:K), as its module "
+                                 "was built")
             precompile.load(aot_folder(a.aot, a.latent, sh), [a.latent], "cuda:0", B, **tiles,
                             threads=None if threads is None else tuple(threads.items()))
         for item in a.cases.split(","):
@@ -145,17 +146,18 @@ def main():
             net.set_inputs(case.z, case.u_now, case.u_next, DT)
             kernels = kernel_means(net, a.calls)
             p10, median, p90 = captured_step_ms(net, a.repeats)
-            N_used, K_used = net.spec.node_tile, net.spec.kc  # what the Network took (by graph size where not given)
+            # what the Network took (by graph size where not given)
+            T_used, N_used, K_used = net.spec.tile_rows, net.spec.node_tile, net.spec.kc
             # the kernels one by one, uncaptured: a captured step longer than this loses time between its launches
             alone = sum(v["mean_us"] * v["per_forward"] for v in kernels.values())
             cases.append({"model": kind, "passes": int(passes), "batch": int(batch), "latent": a.latent,
-                          "tile_rows": T, "node_rows": N_used, "block_dim": B, "k_chunk": K_used, "gemm": G,
+                          "tile_rows": T_used, "node_rows": N_used, "block_dim": B, "k_chunk": K_used, "gemm": G,
                           "edge_rows": net.spec.edge_tile, "edge_gemm": net.spec.edge_gemm or G,
                           "edge_kernels": list(net.spec.edge_kernels),
                           "threads": dict(net.spec.threads),
                           "step_ms": median, "step_p10_ms": p10, "step_p90_ms": p90, "launches": net.n_launches,
                           "kernels_alone_us": alone, "kernels": kernels})
-            print(f"T{T} N{N_used} B{B} K{K_used} {G} E{net.spec.edge_tile}{net.spec.edge_gemm or G}"
+            print(f"T{T_used} N{N_used} B{B} K{K_used} {G} E{net.spec.edge_tile}{net.spec.edge_gemm or G}"
                   f"@{'+'.join(net.spec.edge_kernels)} "
                   f"{dict(net.spec.threads)}", kind, passes, batch,
                   f"step {median * 1e3:.1f} us (its kernels alone {alone:.1f})",
