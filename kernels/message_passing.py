@@ -65,8 +65,9 @@ def encoder_kernel(spec: Spec):
     owner = spec.module_of("encode")
     T, F = spec.tile_rows, spec.latent
     # W2's and the node products' K chunks of node_kc on the small graphs' tiles of 8 at F = 128 (spec.tile_rows_for;
-    # 82,688 bytes a block): 510.4 -> 508.7 us at 12 passes; at batch 64 (F = 64, K chunks) the launch took 330 -> 337
-    # us, and on tiles of 32 at F = 128 its blocks would grow 101,376 -> 134,144 bytes, one an SM: there kc
+    # 82,688 bytes a block). Measured at batch 1 on tiles of 32: 510.4 -> 508.7 us at 12 passes; there its blocks grow
+    # 101,376 -> 134,144 bytes, which on larger graphs (tiles of 32, blocks queueing) would halve the blocks an SM (not
+    # measured), and at batch 64 (F = 64, K chunks) the launch took 330 -> 337 us: kc elsewhere
     kc = spec.node_kc if spec.tile_rows == NODE_ROWS[0] and not spec.many_blocks else spec.kc
     fill, _activate, second_layer, _sums, project, _gather, ahead_parts = helpers(
         dataclasses.replace(spec, k_chunk=kc), owner)

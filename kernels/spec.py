@@ -97,8 +97,9 @@ class Spec:
 
     @property
     def node_kc(self) -> int:
-        """K rows of the weight chunks of the node pass's first layer and W2: twice kc where that divides F (F = 128's
-        chunks of 64), else kc. With the per-chunk adds gone (tiles.GEMM_CARRY) half as many chunks wait for half as
+        """K rows of the weight chunks of the node pass's first layer and W2 (and of the encoder's W2 and node
+        products on tiles of 8, message_passing.encoder_kernel): twice kc where that divides F (F = 128's chunks of
+        64), else kc. With the per-chunk adds gone (tiles.GEMM_CARRY) half as many chunks wait for half as
         many copies and barriers, and their buffers (2 kc, F) stay within the (kc, 3F) ones of the launch's next-stage
         product: no more shared memory. On an H200 (L5) at F = 128, 12 passes: hybrid 518.5 -> 510.4 us, vanilla
         494.8 -> 485.9; batch 64 (F = 64: W2 whole) 3430.5 -> 3416.3 us; the edge pass's wgmma products in chunks of
