@@ -211,9 +211,14 @@ def edge_kernel(spec: Spec):
     owner = spec.module_of("edge_pass")
     edges = spec.edges("edge_pass")  # its tiles and products (Spec.edge_rows, edge_gemm, edge_kernels)
     T, F = edges.tile_rows, spec.latent
-    _fill, _activate, second_layer, _sums, _project, gather_pair, ahead_parts = helpers(edges, owner)
+    # where blocks queue for the SMs (many_blocks) both products in K chunks of node_kc (F = 64: whole weights, one
+    # buffer as large as two chunks' were: no more shared memory): batch 64 3428 -> 3389 us a step, the launch 348 ->
+    # 340 us (bench/results/warp_node_chunks_h200.json, call S18a); at F = 128 chunks of 64 were slower (call N3)
+    kc_edges = edges.node_kc if spec.many_blocks else edges.kc
+    _fill, _activate, second_layer, _sums, _project, gather_pair, ahead_parts = helpers(
+        dataclasses.replace(edges, k_chunk=kc_edges), owner)
     w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
-    mm_ff = matmul(T, F, edges.kc, F, edges.gemm, owner)
+    mm_ff = matmul(T, F, kc_edges, F, edges.gemm, owner)
     buf_rows, begin_ff, finish_ff = matmul_ahead(T, F, edges.kc, F, edges.gemm, owner)
     # whole weights in one K chunk (small graphs, spec.k_chunk_for): a launch starts its weight copies first, so they
     # are in flight while its rows' loads are; with chunks the buffers held that long would cost occupancy
@@ -304,9 +309,14 @@ def node_kernel(spec: Spec, decode: int = 0):
     # computes all three (bench/results/warp_vanilla_last_products_h200.json)
     third_only = decode == DECODE_STATE and ahead
     next_cols = F if third_only else F3
-    out_rows, begin_out, finish_out = matmul_ahead(T, F, spec.kc, next_cols, spec.gemm, owner)
+    # where blocks queue for the SMs (many_blocks) the next stage's product in K chunks of node_kc too (F = 64: whole,
+    # one (F, 3F) buffer as large as two chunks' were; the (32, 192) product's per-chunk adds gone, tiles.CARRY_ITEMS):
+    # batch 64 3375.7 -> 3363.0 us a step (hybrid), 2859.5 -> 2849.3 (vanilla), bench/results/warp_node_chunks_h200.json
+    # call S18c
+    kc_out = spec.node_kc if spec.many_blocks else spec.kc
+    out_rows, begin_out, finish_out = matmul_ahead(T, F, kc_out, next_cols, spec.gemm, owner)
     out_col = 2 * F if third_only else 0  # the first column of proj's blocks this kernel computes
-    mm_in, mm_out = matmul(T, F3, kc_in, F, spec.gemm, owner), matmul(T, F, spec.kc, next_cols, spec.gemm, owner)
+    mm_in, mm_out = matmul(T, F3, kc_in, F, spec.gemm, owner), matmul(T, F, kc_out, next_cols, spec.gemm, owner)
     # with K chunks on the small graphs' node tiles of 8 on sm_90 (F = 128): the first layer's and the next stage's
     # first chunks copied before the launch's wait, W2's chunks in the first layer's buffer after its product (buffers
     # for all three at once do not fit): on an H200 (L5, 12 passes, F = 128) hybrid 504.3 -> 497.2 us, vanilla 481.2

@@ -98,12 +98,16 @@ class Spec:
     @property
     def node_kc(self) -> int:
         """K rows of the weight chunks of the node pass's first layer and W2 (and of the encoder's W2 and node
-        products on tiles of 8, message_passing.encoder_kernel): twice kc where that divides F (F = 128's chunks of
-        64), else kc. With the per-chunk adds gone (tiles.GEMM_CARRY) half as many chunks wait for half as
-        many copies and barriers, and their buffers (2 kc, F) stay within the (kc, 3F) ones of the launch's next-stage
-        product: no more shared memory. On an H200 (L5) at F = 128, 12 passes: hybrid 518.5 -> 510.4 us, vanilla
-        494.8 -> 485.9; batch 64 (F = 64: W2 whole) 3430.5 -> 3416.3 us; the edge pass's wgmma products in chunks of
-        64 took 6 us longer (bench/results/warp_node_chunks_h200.json, calls N3, N1)."""
+        products on tiles of 8, message_passing.encoder_kernel; where blocks queue for the SMs, many_blocks, of the
+        edge pass's products and the node pass's next-stage product too): twice kc where that divides F (F = 128's
+        chunks of 64; batch 64 at F = 64: whole weights), else kc. With the per-chunk adds gone (tiles.GEMM_CARRY)
+        half as many chunks wait for half as many copies and barriers, and their buffers (2 kc, F) stay within the
+        (kc, 3F) ones of the launch's next-stage product (at batch 64 one whole (F, 3F) buffer as large as two chunks'
+        and the edge pass's one (F, F) as large as two): no more shared memory. On an H200 (L5) at F = 128, 12
+        passes: hybrid 518.5 -> 510.4 us, vanilla 494.8 -> 485.9; batch 64 (F = 64: W2 whole) 3430.5 -> 3416.3 us,
+        then with the edge pass's products 3428 -> 3389 us and the next-stage product 3375.7 -> 3363.0 us; the edge
+        pass's wgmma products in chunks of 64 at F = 128 took 6 us longer (bench/results/warp_node_chunks_h200.json,
+        calls N3, N1, S18a, S18c)."""
         return 2 * self.kc if self.latent % (2 * self.kc) == 0 else self.kc
 
     @property

@@ -427,14 +427,16 @@ def wgmma_asm(n: int, d: str, a: str, desc: str) -> str:
             f'"r"({a}[2]), "r"({a}[3]), "l"({desc}))')
 
 
-def _wgmma_source(mode: str = "product") -> str:
+def _wgmma_source(mode: str = "product", silu_bias: bool = False) -> str:
     """GEMM_WGMMA's C++ (``mode`` "product"), or over K chunks the accumulators carried from chunk to chunk in the
     registers s and returned (``carry``), then added into acc after the last (``settle``), as GEMM_CARRY does: one
-    epilogue a product instead of one a chunk."""
+    epilogue a product instead of one a chunk. ``silu_bias``: an MLP's second layer, acc = silu(a) @ W + bias[row]
+    (the native function's further arguments ``bias``, ``bias_row``): a's values activated as they are loaded into
+    registers and acc stored, not added to, with the bias (WGMMA_SILU_BIAS)."""
     carry, settle = mode == "carry", mode == "settle"
     dispatch = "\n".join(f"            {'' if i == 0 else 'else '}if constexpr (NW == {n}) "
                          f"{{ {wgmma_asm(n, 'd', 'x', 'desc')}; }}" for i, n in enumerate(WGMMA_N))
-    return r"""
+    src = r"""
     using LA = typename tile_a::Layout;
     using LB = typename tile_b::Layout;
     using LC = typename tile_acc::Layout;
@@ -550,6 +552,28 @@ def _wgmma_source(mode: str = "product") -> str:
 #endif
     WP_TILE_SYNC();
 """ + ("    return s;\n" if carry else "")
+    if not silu_bias:
+        return src
+    assert mode == "product", "silu_bias: a product of one K chunk"
+    # silu(a) as loaded (SILU: the values activate_fill left in a, then loaded) and acc = bias + the product (the sum
+    # that a tile filled with the bias, then added to, held): activate_fill's and GEMM_WGMMA's outputs bit for bit
+    src = ROW_PTR + SILU + "    const wp::float32* __restrict__ pbias = row_ptr(bias, bias_row);\n" + src
+    for old, new in (
+            ("        const float4 u = *", "        float4 u = *"),
+            ("        const float4 v = *reinterpret_cast<const float4*>(pa + r1 * SA + 16 * s + 4 * q);\n",
+             "        float4 v = *reinterpret_cast<const float4*>(pa + r1 * SA + 16 * s + 4 * q);\n"
+             "        u = make_float4(silu(u.x), silu(u.y), silu(u.z), silu(u.w));\n"
+             "        v = make_float4(silu(v.x), silu(v.y), silu(v.z), silu(v.w));\n"),
+            ("float4 w = *o;",
+             "float4 w = *reinterpret_cast<const float4*>(pbias + c0 + (odd ? 8 * j + 6 + 2 * q : 8 * j + 2 * q));"),
+            ("float2 w0 = *o0, w1 = *o1;",
+             "const float2 bb = *reinterpret_cast<const float2*>(pbias + c0 + 8 * j + 2 * q);\n"
+             "        float2 w0 = bb, w1 = bb;"),
+            ("wp::muladd(pa[r * SA + k], pb", "wp::muladd(silu(pa[r * SA + k]), pb"),
+            ("pc[r * SC + c] += s;", "pc[r * SC + c] = pbias[c] + s;")):
+        assert src.count(old) == 1, old
+        src = src.replace(old, new)
+    return src
 
 
 GEMM_WGMMA = _wgmma_source()
@@ -680,6 +704,30 @@ def matmul_ahead(rows: int, k: int, kc: int, n: int, kind: str, owner: str, a_st
                    s, acc)
 
     return buf_rows, begin, finish
+
+
+@functools.cache
+def matmul_silu_bias(rows: int, k: int, n: int, owner: str):
+    """finish(a, W, row0, col0, buf, acc, bias, bias_row): acc (rows, n) = silu(a) @ W[...] + bias[bias_row] for the
+    buffer of matmul_ahead(rows, k, k, n, "wgmma", owner) (one K chunk, begun by its begin): an MLP's second layer
+    on tensor cores in one step (WGMMA_SILU_BIAS), where activate_fill's SiLU pass over a, its fill of acc with the
+    bias and their barrier came before the product."""
+    ck = 2 * k  # the chunk's rows in tensor-core layout
+    _stage_copy, staged = stage(ck, n, owner)
+
+    @wp.func_native(WGMMA_SILU_BIAS)
+    def product(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(ck, n)),
+                acc: wp.tile(dtype=float, shape=(rows, n)), bias: wp.array2d(dtype=float), bias_row: int): ...
+
+    @wp.func
+    def finish(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
+               buf: wp.tile(dtype=float, shape=(ck, n)), acc: wp.tile(dtype=float, shape=(rows, n)),
+               bias: wp.array2d(dtype=float), bias_row: int):
+        b = wp.tile_view(buf, offset=(0, 0), shape=(ck, n))
+        staged(b)
+        product(a, b, acc, bias, bias_row)
+
+    return finish
 
 
 @functools.cache
@@ -843,6 +891,8 @@ SILU = r"""
 #endif
     };
 """
+
+WGMMA_SILU_BIAS = _wgmma_source(silu_bias=True)
 
 ACTIVATE_FILL = ROW_PTR + SILU + r"""
     using LH = typename tile_h::Layout;

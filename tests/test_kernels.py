@@ -764,6 +764,50 @@ def test_tensor_core_products_over_k_chunks(device):
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
+    not SM90, reason="wgmma needs an sm_90 GPU (H100, H200)"))])
+def test_second_layer_product_with_silu_and_bias(device):
+    """tiles.matmul_silu_bias (the hybrid decoder's (F, 144) product on tensor cores with whole weights): acc =
+    silu(a) @ W + bias[row], every element of acc written (it starts as NaN), a left as it was, W in tensor-core
+    layout: fp32's answer on one and two warpgroups, widths of 64 and 144 (the odd last 8-column block)."""
+    from warpgnn.kernels import tiles
+    from warpgnn.kernels.shipped import arch_suffix
+    from warpgnn.kernels.spec import Spec
+    from warpgnn.kernels.weights import tensor_core_layout
+
+    rng = np.random.default_rng(11)
+    for threads in (128, 256):
+        for k, n in ((64, 64), (32, 144)):
+            owner = f"test_silu_bias_{threads}_{k}_{n}"
+            buf_rows, begin, _finish = tiles.matmul_ahead(64, k, k, n, "wgmma", owner)
+            finish = tiles.matmul_silu_bias(64, k, n, owner)
+
+            @wp.kernel(enable_backward=False, module=owner)
+            def apply(a: wp.array2d(dtype=float), w: wp.array2d(dtype=float), bias: wp.array2d(dtype=float),
+                      c: wp.array2d(dtype=float), a_out: wp.array2d(dtype=float)):
+                ta = wp.tile_load(a, shape=(64, k), storage="shared")
+                tc = wp.tile_load(c, shape=(64, n), storage="shared")
+                buf = wp.tile_empty(shape=(buf_rows, n), dtype=float, storage="shared")
+                begin(buf, w, 0, 0)
+                finish(ta, w, 0, 0, buf, tc, bias, 2)
+                wp.tile_store(c, tc)
+                wp.tile_store(a_out, ta)
+
+            a, w, bias = (rng.standard_normal(s).astype(np.float32) for s in ((64, k), (k, n), (3, n)))
+            out, a_out = wp.full((64, n), np.nan, dtype=float, device=device), wp.zeros((64, k), device=device)
+            block = threads if device != "cpu" else 1
+            with arch_suffix(Spec(16, edge_rows=64, edge_gemm="wgmma")):  # sm_90a on CUDA
+                wp.load_module(owner, device=device, block_dim=block)
+            wp.launch_tiled(apply, dim=[1], inputs=[wp.array(a, dtype=float, device=device),
+                                                    wp.array(tensor_core_layout(w), dtype=float, device=device),
+                                                    wp.array(bias, dtype=float, device=device), out, a_out],
+                            block_dim=block, device=device)
+            a64 = a.astype(np.float64)
+            expected = bias[2] + (a64 / (1 + np.exp(-a64))) @ w.astype(np.float64)
+            assert np.abs(out.numpy() - expected).max() <= 1e-5 * np.abs(expected).max(), (threads, n)
+            assert np.array_equal(a_out.numpy(), a), "a is read, not activated in place"
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
     not HAS_CUDA, reason="needs a CUDA device"))])
 def test_staged_products_against_numpy(monkeypatch, device):
     """tiles.matmul, the staged product every MLP layer runs (weight chunks double-buffered, cp.async on CUDA; over
