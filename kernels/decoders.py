@@ -34,7 +34,7 @@ from .tiles import (
     index_steps,
     matmul,
     matmul_ahead,
-    matmul_silu_bias,
+    matmul_fused,
     row_steps,
     row_vector,
     stage,
@@ -160,13 +160,11 @@ def kernels(spec: Spec):
     lm_rows, begin_lm, finish_lm = matmul_ahead(T, F, edges.kc, N_LM, G, owner)
     fill_lm, _activate_lm = row_steps(T, N_LM, owner)
     activate_lm = activate_fill(T, F, N_LM, owner)  # silu(h) and o's bias in one step
-    # on tensor cores with whole weights (small graphs) both in the (F, 144) product instead (tiles.matmul_silu_bias):
-    # the same outputs bit for bit, batch 1 hybrid 51.4 / 113.25 / 222.05 -> 50.4 / 112.3 / 221.3 us at 1 / 5 / 12
-    # passes (the launch alone 17.8 -> 16.7 us); the edge pass's second layer likewise gained alone (11.75 -> 11.5 us)
-    # and lost in the steps (113.45 -> 113.75 us at 5 passes, vanilla 205.3 -> 206.35 at 12), so it keeps
-    # activate_fill (bench/results/warp_node_chunks_h200.json, calls S18b, S18c)
-    silu_bias = G == "wgmma" and ahead
-    finish_silu_bias = matmul_silu_bias(T, F, N_LM, owner) if silu_bias else finish_lm
+    # with whole weights (small graphs) h = silu(h + e W_e) in the first product and o's bias added by the second
+    # (tiles.matmul_fused, Spec.fused_layers)
+    fused = ahead and edges.fused_layers
+    finish_act = matmul_fused(T, F, F, G, owner, silu_out=True) if fused else finish_ff
+    finish_bias = matmul_fused(T, F, N_LM, G, owner, "bias") if fused else finish_lm
     port_terms, port_terms_to_tile = row_operators(edges, owner)
     gather_grads, gather_latents = gather_rows(T, N_GRAD, owner), gather_rows(T, F, owner)
     load_rows, loaded = stage(T, F, owner)
@@ -223,7 +221,9 @@ def kernels(spec: Spec):
             h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
             gather_pair(h, b1, 0, products, ids, 0, 0, F)
             loaded(e)
-            if wp.static(ahead):
+            if wp.static(fused):
+                finish_act(e, w_e, 0, 0, w1_buf, h, b1, 0)
+            elif wp.static(ahead):
                 finish_ff(e, w_e, 0, 0, w1_buf, h)
             else:
                 mm_ff(e, w_e, 0, 0, h)
@@ -233,10 +233,10 @@ def kernels(spec: Spec):
                 fill_lm(o, b2, 0)
             else:
                 o = wp.tile_empty(shape=(T, N_LM), dtype=float, storage="shared")
-                if wp.static(not silu_bias):
+                if wp.static(not fused):
                     activate_lm(h, b1, 0, 0, o, b2, 0)
-            if wp.static(silu_bias):
-                finish_silu_bias(h, w2, 0, 0, w2_buf, o, b2, 0)
+            if wp.static(fused):
+                finish_bias(h, w2, 0, 0, w2_buf, o, b2, 0)
             elif wp.static(ahead):
                 finish_lm(h, w2, 0, 0, w2_buf, o)
             else:

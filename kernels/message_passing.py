@@ -32,7 +32,7 @@ from . import features
 from .decoders import node_decoder
 from .generic_tail import Tail, step_values
 from .spec import EDGE_FEATURE_WIDTH, FEATURE_WIDTH, N_GRAD, NODE_ROWS, STATE, Spec
-from .tiles import grid_step, helpers, index_steps, matmul, matmul_ahead, row_vector, stage, store
+from .tiles import grid_step, helpers, index_steps, matmul, matmul_ahead, matmul_fused, row_vector, stage, store
 
 FW = FEATURE_WIDTH
 # the edge pass's shared memory with whole weights (kernels below): at most two blocks an SM on sm_80 and sm_90. On an
@@ -71,13 +71,16 @@ def encoder_kernel(spec: Spec):
     kc = spec.node_kc if spec.tile_rows == NODE_ROWS[0] and not spec.many_blocks else spec.kc
     fill, _activate, second_layer, _sums, project, _gather, ahead_parts = helpers(
         dataclasses.replace(spec, k_chunk=kc), owner)
-    w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
+    w2_rows, begin_second_layer, second_layer_ahead, second_layer_activated = ahead_parts
     mm_in = matmul(T, FW, FW, F, spec.gemm, owner)
     in_rows, begin_in, finish_in = matmul_ahead(T, FW, FW, F, spec.gemm, owner)
     inline = spec.features_in_encoder  # else read from the features launch's rows
     # computing its features with whole weights, both layers' weight copies first, in flight while the features' loads
     # are (as the edge pass's)
     ahead = inline and spec.kc == F
+    # h = silu(b1 + x W1) in the first product, b2 added by the second (tiles.matmul_fused)
+    fused = ahead and dataclasses.replace(spec, k_chunk=kc).fused_layers
+    finish_in_act = matmul_fused(T, FW, F, spec.gemm, owner, "bias", silu_out=True) if fused else finish_in
     tile_features = features.tile_features(T, owner)
     load_feat, loaded_feat = stage(T, FW, owner)
     store_rows = store(T, F, owner)
@@ -144,9 +147,13 @@ def encoder_kernel(spec: Spec):
             load_feat(x, feat, row0, 0)
             loaded_feat(x)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        fill(h, b1, cls)
+        if wp.static(not fused):
+            fill(h, b1, cls)
         y = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        if wp.static(ahead):
+        if wp.static(fused):
+            finish_in_act(x, w1, cls * FW, 0, w1_buf, h, b1, cls)
+            second_layer_activated(h, w2, w2_buf, b2, gain, shift, cls, eps, h, 0, y)
+        elif wp.static(ahead):
             finish_in(x, w1, cls * FW, 0, w1_buf, h)
             second_layer_ahead(h, w2, w2_buf, b2, gain, shift, cls, eps, h, 0, y)
         else:
@@ -173,8 +180,10 @@ def edge_encoder_kernel(spec: Spec):
     edges = spec.edges("edge_pass")
     T, F, EW = edges.tile_rows, spec.latent, EDGE_FEATURE_WIDTH
     fill, _activate, _second_layer, _sums, _project, _gather, ahead_parts = helpers(edges, owner)
-    w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
+    w2_rows, begin_second_layer, second_layer_ahead, second_layer_activated = ahead_parts
     in_rows, begin_in, finish_in = matmul_ahead(T, EW, EW, F, edges.gemm, owner)
+    fused = edges.fused_layers  # h = silu(b1 + x W1) in the first product, b2 added by the second (matmul_fused)
+    finish_in_act = matmul_fused(T, EW, F, edges.gemm, owner, "bias", silu_out=True) if fused else finish_in
     tile_features = features.tile_features(T, owner, EW)
     store_rows = store(T, F, owner)
     MESH = 1  # the mesh-edge encoder's block of the stacked encoder weights (weights.ENCODERS)
@@ -193,10 +202,14 @@ def edge_encoder_kernel(spec: Spec):
         x = wp.tile_empty(shape=(T, EW), dtype=float, storage="shared")
         tile_features(x, raw, row0, lane)  # reads the step's inputs only: no launch before writes them
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        fill(h, b1, MESH)
         y = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        finish_in(x, w1, 0, 0, w1_buf, h)
-        second_layer_ahead(h, w2, w2_buf, b2, gain, shift, MESH, eps, h, 0, y)
+        if wp.static(fused):
+            finish_in_act(x, w1, 0, 0, w1_buf, h, b1, MESH)
+            second_layer_activated(h, w2, w2_buf, b2, gain, shift, MESH, eps, h, 0, y)
+        else:
+            fill(h, b1, MESH)
+            finish_in(x, w1, 0, 0, w1_buf, h)
+            second_layer_ahead(h, w2, w2_buf, b2, gain, shift, MESH, eps, h, 0, y)
         store_rows(y, lat, row0, 0)
         # the encoder's launch before this one ended before this one does: the edge pass after waits on this launch
         # alone (overlapped graphs: kernels/pdl.py). No block may leave before this wait
@@ -217,12 +230,14 @@ def edge_kernel(spec: Spec):
     kc_edges = edges.node_kc if spec.many_blocks else edges.kc
     _fill, _activate, second_layer, _sums, _project, gather_pair, ahead_parts = helpers(
         dataclasses.replace(edges, k_chunk=kc_edges), owner)
-    w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
+    w2_rows, begin_second_layer, second_layer_ahead, second_layer_activated = ahead_parts
     mm_ff = matmul(T, F, kc_edges, F, edges.gemm, owner)
     buf_rows, begin_ff, finish_ff = matmul_ahead(T, F, edges.kc, F, edges.gemm, owner)
     # whole weights in one K chunk (small graphs, spec.k_chunk_for): a launch starts its weight copies first, so they
     # are in flight while its rows' loads are; with chunks the buffers held that long would cost occupancy
     ahead = edges.kc == F
+    fused = ahead and edges.fused_layers  # h = silu(h + e W_e) in the first product, b2 added by the second
+    finish_act = matmul_fused(T, F, F, edges.gemm, owner, silu_out=True) if fused else finish_ff
     # with whole weights the edge pass holds at least EDGE_PASS_SHARED bytes of shared memory (its tiles, then a spare
     # tile), so that at most two of its blocks share an SM (sm_80: 164 KiB an SM, sm_90: 228): overlapped with the
     # node pass, its blocks (56 KiB each) were otherwise packed three to an SM beside the node pass's and ran their
@@ -268,7 +283,10 @@ def edge_kernel(spec: Spec):
         gather_pair(h, b1, wi, products, ids, recv_col, send_row, F)
         loaded(e)
         o = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        if wp.static(ahead):
+        if wp.static(fused):
+            finish_act(e, w_e, wi * F, 0, w1_buf, h, b1, wi)
+            second_layer_activated(h, w2, w2_buf, b2, gain, shift, wi, eps, e, 1, o)
+        elif wp.static(ahead):
             finish_ff(e, w_e, wi * F, 0, w1_buf, h)
             second_layer_ahead(h, w2, w2_buf, b2, gain, shift, wi, eps, e, 1, o)
         else:
@@ -291,7 +309,7 @@ def node_kernel(spec: Spec, decode: int = 0):
     fill, _activate, second_layer, sums, _project, _gather, ahead_parts = helpers(
         dataclasses.replace(spec.nodes, k_chunk=kc_in), owner)
     segment_sums, staged_segment_sums = sums
-    w2_rows, begin_second_layer, second_layer_ahead = ahead_parts
+    w2_rows, begin_second_layer, second_layer_ahead, second_layer_activated = ahead_parts
     decoder_ahead, node_fields, node_state, node_fields_staged, node_state_staged = node_decoder(spec.nodes, owner)
     # the last pass's decoder weight (F, width): with whole weights its copy begun with the kernel's others, so its
     # product does not wait for a load of its own (DECODE_FIELDS's on the other passes, never used)
@@ -323,6 +341,11 @@ def node_kernel(spec: Spec, decode: int = 0):
     # -> 474.1 (the first layer's chunk alone: 501.3 / 478.6; bench/results/warp_node_chunks_h200.json). Its blocks
     # take 196,608-207,616 bytes there: within sm_90's 227 KiB, not sm_80's 163 nor, on tiles of 16, sm_90's
     early = not ahead and spec.sm90a and T == NODE_ROWS[0] and in_rows == w2_rows
+    # whole weights: h = silu(b1 + [x | sums] W1) in the first product, b2 added by W2's, the next stage's products
+    # into a tile not zeroed first (tiles.matmul_fused)
+    fused = ahead and spec.nodes.fused_layers
+    finish_in_act = matmul_fused(T, F3, F, spec.gemm, owner, "bias", silu_out=True) if fused else finish_in
+    finish_next = matmul_fused(T, F, next_cols, spec.gemm, owner, "zero") if fused else finish_out
     load_rows, loaded = stage(T, F, owner)
     store_rows, store_products = store(T, F, owner), store(T, F3, owner)
     _stage_ids, stage_offsets = index_steps(T, owner)
@@ -378,9 +401,13 @@ def node_kernel(spec: Spec, decode: int = 0):
             segment_sums(xin, lat_rows, mesh_off, mesh_row, act_off, act_row, actuators, row0, n_nodes)
         loaded(x)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        fill(h, b1, p)
+        if wp.static(not fused):
+            fill(h, b1, p)
         y = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        if wp.static(ahead):
+        if wp.static(fused):
+            finish_in_act(xin, w1, 3 * p * F, 0, w1_buf, h, b1, p)
+            second_layer_activated(h, w2, w2_buf, b2, gain, shift, p, eps, x, 1, y)
+        elif wp.static(ahead):
             finish_in(xin, w1, 3 * p * F, 0, w1_buf, h)
             second_layer_ahead(h, w2, w2_buf, b2, gain, shift, p, eps, x, 1, y)
         elif wp.static(early):  # W2's chunks into the first layer's buffer, free once its product is done
@@ -395,11 +422,15 @@ def node_kernel(spec: Spec, decode: int = 0):
             store_rows(y, lat, row0, 0)
         # the next stage's node products, its three (F, F) blocks as one product (blocks a stage does not use are
         # zero weights, or read by no launch)
-        nxt = wp.tile_zeros(shape=(T, next_cols), dtype=float, storage="shared")
-        if wp.static(ahead or early):
-            finish_out(y, proj, (p + 1) * F, out_col, proj_buf, nxt)
+        if wp.static(fused):
+            nxt = wp.tile_empty(shape=(T, next_cols), dtype=float, storage="shared")
+            finish_next(y, proj, (p + 1) * F, out_col, proj_buf, nxt, b1, 0)
         else:
-            mm_out(y, proj, (p + 1) * F, out_col, nxt)
+            nxt = wp.tile_zeros(shape=(T, next_cols), dtype=float, storage="shared")
+            if wp.static(ahead or early):
+                finish_out(y, proj, (p + 1) * F, out_col, proj_buf, nxt)
+            else:
+                mm_out(y, proj, (p + 1) * F, out_col, nxt)
         if wp.static(decode != DECODE_STATE):  # the vanilla's last products are read here only
             store_products(nxt, products, row0, 0)
         # the last pass: the vanilla's decoder, zdot and the Euler step, or the hybrid's delta_v (so (dE, dS) exist

@@ -111,6 +111,16 @@ class Spec:
         return 2 * self.kc if self.latent % (2 * self.kc) == 0 else self.kc
 
     @property
+    def fused_layers(self) -> bool:
+        """Whether an MLP's first-layer product activates its own output and the second adds its bias, and node
+        products start from zero rather than a zeroed tile (tiles.matmul_fused), instead of bias fills, activate
+        steps and zeroing, each a pass over a tile and a barrier: with whole weights (one K chunk) on the "native"
+        and "wgmma" products. The same sums in the same order, so the same outputs bit for bit; on an H200 (L5,
+        batch 1, F = 64) hybrid 50.55 / 112.55 / 221.6 -> 49.5 / 109.2 / 213.3 us at 1 / 5 / 12 passes, vanilla
+        34.75 / 96.5 / 204.9 -> 34.0 / 93.2 / 197.0 (bench/results/warp_fused_layers_h200.json)."""
+        return self.kc == self.latent and self.gemm in ("native", "wgmma")
+
+    @property
     def many_blocks(self) -> bool:
         """K chunks at F <= 64: a Network's pick for graphs of more than a node tile an SM (k_chunk_for), where the
         blocks queue for the SMs and how many fit an SM (their shared memory and registers) sets a launch's speed;

@@ -282,6 +282,85 @@ GEMM_DISPATCH = r"""
 
 GEMM = GEMM_ITEMS + GEMM_ADD + GEMM_DISPATCH
 
+
+def _gemm_fused_source(init: str, silu_out: bool) -> str:
+    """GEMM with an MLP layer's steps around it (fused_product): the first K part's sums added to acc's values
+    (``init`` "acc"), to zero or to bias[bias_row] (``bias``, ``bias_row``: a thread's CN bias columns loaded before
+    its products), the last part's result activated (``silu_out``); the same sums in the same order as a tile
+    filled with the bias (or zeros), GEMM, then an activate step."""
+    return ROW_PTR + SILU + GEMM_ITEMS + r"""
+    using LC = typename tile_acc::Layout;
+    constexpr int SC = LC::Stride::dim(0);
+    static_assert(LC::Stride::dim(1) == 1 && LC::Shape::dim(0) == M && LC::Shape::dim(1) == N, "acc (M, N)");
+    constexpr int INIT = """ + str(("acc", "zero", "bias").index(init)) + r""";
+    constexpr bool SILU_OUT = """ + ("true" if silu_out else "false") + r""";
+    wp::float32* __restrict__ pc = acc.data.ptr;
+    const wp::float32* __restrict__ pbias = row_ptr(bias, bias_row);
+    // item t's bias columns (INIT 2; zeros else)
+    auto bias_of = [&](int t, wp::float32 (&bv)[CN]) {
+        const int c0 = (t - t / NC * NC) * CN;
+#pragma unroll
+        for (int j = 0; j < CN; ++j)
+            bv[j] = INIT == 2 ? pbias[c0 + j] : wp::float32(0);
+    };
+    // acc's (RM, CN) block of item t = s + (first: acc's values, zero or the bias; else acc's), activated if last
+    auto add = [&](int t, const wp::float32 (&s)[RM][CN], const wp::float32 (&bv)[CN], bool first, bool last) {
+        const int r0 = t / NC * RM, c0 = (t - t / NC * NC) * CN;
+#if defined(__CUDA_ARCH__)
+        if constexpr (CN == 4 && SC % 4 == 0) {  // 16-byte read-modify-writes (scalar ones: 4-way bank conflicts)
+#pragma unroll
+            for (int i = 0; i < RM; ++i) {
+                float4* q = reinterpret_cast<float4*>(pc + (r0 + i) * SC + c0);
+                float4 v = first && INIT != 0 ? make_float4(bv[0], bv[1], bv[2], bv[3]) : *q;
+                v.x += s[i][0]; v.y += s[i][1]; v.z += s[i][2]; v.w += s[i][3];
+                if (SILU_OUT && last)
+                    v = make_float4(silu(v.x), silu(v.y), silu(v.z), silu(v.w));
+                *q = v;
+            }
+            return;
+        }
+#endif
+#pragma unroll
+        for (int i = 0; i < RM; ++i)
+#pragma unroll
+            for (int j = 0; j < CN; ++j) {
+                wp::float32* q = pc + (r0 + i) * SC + c0 + j;
+                const wp::float32 v = (first && INIT != 0 ? bv[j] : *q) + s[i][j];
+                *q = SILU_OUT && last ? silu(v) : v;
+            }
+    };
+    auto partial = [&](int t, int k0, wp::float32 (&s)[RM][CN]) {
+#pragma unroll
+        for (int i = 0; i < RM; ++i)
+#pragma unroll
+            for (int j = 0; j < CN; ++j)
+                s[i][j] = wp::float32(0);
+        accumulate(t, k0, s);
+    };
+    if constexpr (SPLIT == 1) {
+        for (int t = WP_TILE_THREAD_IDX; t < ITEMS; t += BD) {
+            wp::float32 bv[CN], s[RM][CN];
+            bias_of(t, bv);
+            partial(t, 0, s);
+            add(t, s, bv, true, true);
+        }
+    } else {  // as GEMM_DISPATCH: a thread one (item, part), the parts added in part order
+        const int part = WP_TILE_THREAD_IDX / ITEMS, t = WP_TILE_THREAD_IDX - part * ITEMS;
+        wp::float32 bv[CN], s[RM][CN];
+        bias_of(t, bv);
+        if (part < SPLIT)
+            partial(t, part * KP, s);
+#pragma unroll
+        for (int q = 0; q < SPLIT; ++q) {
+            if (part == q)
+                add(t, s, bv, q == 0, q + 1 == SPLIT);
+            if (q + 1 < SPLIT)
+                WP_TILE_SYNC();
+        }
+    }
+    WP_TILE_SYNC();
+"""
+
 # A product over K chunks (matmul_ahead's finish) with each thread's items carried in registers from chunk to chunk
 # (s: room for CARRY_ITEMS (RM, CN) items a thread; a view of a and the chunk of b named for their shapes), added to
 # acc once after the last chunk (GEMM_SETTLE) rather than once a chunk: where K is split in parts (node tiles of 8 on
@@ -427,12 +506,13 @@ def wgmma_asm(n: int, d: str, a: str, desc: str) -> str:
             f'"r"({a}[2]), "r"({a}[3]), "l"({desc}))')
 
 
-def _wgmma_source(mode: str = "product", silu_bias: bool = False) -> str:
+def _wgmma_source(mode: str = "product", silu_a: bool = False, init: str = "acc", silu_out: bool = False) -> str:
     """GEMM_WGMMA's C++ (``mode`` "product"), or over K chunks the accumulators carried from chunk to chunk in the
     registers s and returned (``carry``), then added into acc after the last (``settle``), as GEMM_CARRY does: one
-    epilogue a product instead of one a chunk. ``silu_bias``: an MLP's second layer, acc = silu(a) @ W + bias[row]
-    (the native function's further arguments ``bias``, ``bias_row``): a's values activated as they are loaded into
-    registers and acc stored, not added to, with the bias (WGMMA_SILU_BIAS)."""
+    epilogue a product instead of one a chunk. A product of one chunk may also take a's values activated as they are
+    loaded (``silu_a``), add its sums to acc's values ("acc"), to zero or to bias[bias_row] ("bias", the native
+    function's further arguments ``bias``, ``bias_row``, loaded while the wgmmas run) and activate the result
+    (``silu_out``): fused_source."""
     carry, settle = mode == "carry", mode == "settle"
     dispatch = "\n".join(f"            {'' if i == 0 else 'else '}if constexpr (NW == {n}) "
                          f"{{ {wgmma_asm(n, 'd', 'x', 'desc')}; }}" for i, n in enumerate(WGMMA_N))
@@ -552,25 +632,47 @@ def _wgmma_source(mode: str = "product", silu_bias: bool = False) -> str:
 #endif
     WP_TILE_SYNC();
 """ + ("    return s;\n" if carry else "")
-    if not silu_bias:
+    if not (silu_a or silu_out or init != "acc"):
         return src
-    assert mode == "product", "silu_bias: a product of one K chunk"
-    # silu(a) as loaded (SILU: the values activate_fill left in a, then loaded) and acc = bias + the product (the sum
-    # that a tile filled with the bias, then added to, held): activate_fill's and GEMM_WGMMA's outputs bit for bit
-    src = ROW_PTR + SILU + "    const wp::float32* __restrict__ pbias = row_ptr(bias, bias_row);\n" + src
-    for old, new in (
-            ("        const float4 u = *", "        float4 u = *"),
-            ("        const float4 v = *reinterpret_cast<const float4*>(pa + r1 * SA + 16 * s + 4 * q);\n",
-             "        float4 v = *reinterpret_cast<const float4*>(pa + r1 * SA + 16 * s + 4 * q);\n"
-             "        u = make_float4(silu(u.x), silu(u.y), silu(u.z), silu(u.w));\n"
-             "        v = make_float4(silu(v.x), silu(v.y), silu(v.z), silu(v.w));\n"),
-            ("float4 w = *o;",
-             "float4 w = *reinterpret_cast<const float4*>(pbias + c0 + (odd ? 8 * j + 6 + 2 * q : 8 * j + 2 * q));"),
-            ("float2 w0 = *o0, w1 = *o1;",
-             "const float2 bb = *reinterpret_cast<const float2*>(pbias + c0 + 8 * j + 2 * q);\n"
-             "        float2 w0 = bb, w1 = bb;"),
-            ("wp::muladd(pa[r * SA + k], pb", "wp::muladd(silu(pa[r * SA + k]), pb"),
-            ("pc[r * SC + c] += s;", "pc[r * SC + c] = pbias[c] + s;")):
+    assert mode == "product" and init in ("acc", "zero", "bias"), "a fused product: one K chunk"
+    bias = "make_float4(0.f, 0.f, 0.f, 0.f)" if init == "zero" else "bq[j / 2]"
+    bias2 = "make_float2(0.f, 0.f)" if init == "zero" else "bt"
+    act4 = "\n            w = make_float4(silu(w.x), silu(w.y), silu(w.z), silu(w.w));" if silu_out else ""
+    act2 = ("\n        w0 = make_float2(silu(w0.x), silu(w0.y));\n        w1 = make_float2(silu(w1.x), silu(w1.y));"
+            if silu_out else "")
+    cpu_init = {"acc": "pc[r * SC + c]", "zero": "wp::float32(0)", "bias": "pbias[c]"}[init]
+    # the bias columns of the thread's epilogue (below), loaded before the wgmmas so that their latency is hidden
+    preload = r"""
+    float4 bq[NW / 16 > 0 ? NW / 16 : 1];
+    float2 bt = make_float2(0.f, 0.f);
+#pragma unroll
+    for (int j = 0; j + 1 < NW / 8; j += 2)
+        bq[j / 2] = *reinterpret_cast<const float4*>(pbias + c0 + ((q & 1) ? 8 * j + 6 + 2 * q : 8 * j + 2 * q));
+    if constexpr (NW % 16 == 8)
+        bt = *reinterpret_cast<const float2*>(pbias + c0 + 8 * (NW / 8 - 1) + 2 * q);
+""" if init == "bias" else ""
+    src = ROW_PTR + SILU + ("    const wp::float32* __restrict__ pbias = row_ptr(bias, bias_row);\n"
+                            if init == "bias" else "") + src
+    fence = "    // b was written by the block's generic-proxy copies"
+    edits = [(fence, preload + fence)]
+    if silu_a:  # silu(a) as loaded: the values an activate step would have left in a
+        edits += [("        const float4 u = *", "        float4 u = *"),
+                  ("        const float4 v = *reinterpret_cast<const float4*>(pa + r1 * SA + 16 * s + 4 * q);\n",
+                   "        float4 v = *reinterpret_cast<const float4*>(pa + r1 * SA + 16 * s + 4 * q);\n"
+                   "        u = make_float4(silu(u.x), silu(u.y), silu(u.z), silu(u.w));\n"
+                   "        v = make_float4(silu(v.x), silu(v.y), silu(v.z), silu(v.w));\n"),
+                  ("wp::muladd(pa[r * SA + k], pb", "wp::muladd(silu(pa[r * SA + k]), pb")]
+    if init != "acc":
+        edits += [("float4 w = *o;", f"float4 w = {bias};"),
+                  ("float2 w0 = *o0, w1 = *o1;", f"float2 w0 = {bias2}, w1 = w0;")]
+    edits += [("            w.x += v.x; w.y += v.y; w.z += v.z; w.w += v.w;\n",
+               "            w.x += v.x; w.y += v.y; w.z += v.z; w.w += v.w;" + act4 + "\n"),
+              ("        w0.x += d[4 * j]; w0.y += d[4 * j + 1]; w1.x += d[4 * j + 2]; w1.y += d[4 * j + 3];\n",
+               "        w0.x += d[4 * j]; w0.y += d[4 * j + 1]; w1.x += d[4 * j + 2]; w1.y += d[4 * j + 3];"
+               + act2 + "\n"),
+              ("        pc[r * SC + c] += s;\n",
+               f"        pc[r * SC + c] = {'silu(' if silu_out else '('}{cpu_init} + s);\n")]
+    for old, new in edits:
         assert src.count(old) == 1, old
         src = src.replace(old, new)
     return src
@@ -707,17 +809,36 @@ def matmul_ahead(rows: int, k: int, kc: int, n: int, kind: str, owner: str, a_st
 
 
 @functools.cache
-def matmul_silu_bias(rows: int, k: int, n: int, owner: str):
-    """finish(a, W, row0, col0, buf, acc, bias, bias_row): acc (rows, n) = silu(a) @ W[...] + bias[bias_row] for the
-    buffer of matmul_ahead(rows, k, k, n, "wgmma", owner) (one K chunk, begun by its begin): an MLP's second layer
-    on tensor cores in one step (WGMMA_SILU_BIAS), where activate_fill's SiLU pass over a, its fill of acc with the
-    bias and their barrier came before the product."""
-    ck = 2 * k  # the chunk's rows in tensor-core layout
-    _stage_copy, staged = stage(ck, n, owner)
+def fused_product(rows: int, k: int, n: int, kind: str, owner: str, init: str = "acc", silu_out: bool = False,
+                  silu_a: bool = False):
+    """product(a, b, acc, bias, bias_row): acc (rows, n) = [silu](init + [silu](a) @ b), init acc's values ("acc"),
+    zero ("zero") or bias[bias_row] ("bias"), b one whole K chunk as gemm(rows, k, n, kind) takes it ("native": GEMM's
+    items and K parts, _gemm_fused_source; "wgmma": _wgmma_source; silu(a) as loaded on tensor cores only, where a
+    warpgroup loads all of a): an MLP layer's bias, activation and product in one step, where a bias fill and an
+    activate step (each a pass over a tile and a barrier) came before or after the product."""
+    if kind == "wgmma":
+        src, kb = _wgmma_source(silu_a=silu_a, init=init, silu_out=silu_out), 2 * k
+    elif kind == "native" and not silu_a:
+        src, kb = _gemm_fused_source(init, silu_out), k
+    else:
+        raise ValueError(f"no fused {kind} product with silu_a={silu_a}")
 
-    @wp.func_native(WGMMA_SILU_BIAS)
-    def product(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(ck, n)),
+    def product(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(kb, n)),
                 acc: wp.tile(dtype=float, shape=(rows, n)), bias: wp.array2d(dtype=float), bias_row: int): ...
+
+    # a name a variant: Warp keys a native function by its qualified name, its overloads by their argument types
+    product.__qualname__ = f"fused_{kind}_{init}{'_silu' if silu_out else ''}{'_silu_a' if silu_a else ''}"
+    return wp.func_native(src)(product)
+
+
+@functools.cache
+def matmul_fused(rows: int, k: int, n: int, kind: str, owner: str, init: str = "acc", silu_out: bool = False,
+                 silu_a: bool = False):
+    """finish(a, W, row0, col0, buf, acc, bias, bias_row): fused_product's acc for W[row0:row0 + k, col0:col0 + n] in
+    the buffer of matmul_ahead(rows, k, k, n, kind, owner) (one K chunk: whole weights, begun by its begin)."""
+    ck = 2 * k if kind == "wgmma" else k  # the chunk's rows (tensor-core layout: two a k)
+    _stage_copy, staged = stage(ck, n, owner)
+    product = fused_product(rows, k, n, kind, owner, init, silu_out, silu_a)
 
     @wp.func
     def finish(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
@@ -891,8 +1012,6 @@ SILU = r"""
 #endif
     };
 """
-
-WGMMA_SILU_BIAS = _wgmma_source(silu_bias=True)
 
 ACTIVATE_FILL = ROW_PTR + SILU + r"""
     using LH = typename tile_h::Layout;
@@ -1296,18 +1415,26 @@ def helpers(spec: Spec, owner: str):
         ...
 
     mm_ff = matmul(T, F, spec.kc, F, spec.gemm, owner)
+    buf_rows, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, owner)
+    fused = spec.fused_layers  # whole weights: the layers' biases, activations and zero tiles in their products
+    finish_zero = matmul_fused(T, F, F, spec.gemm, owner, "zero") if fused else finish_ff
 
     @wp.func
     def project(y: wp.tile(dtype=float, shape=(T, F)), w: wp.array2d(dtype=float), row0: int, col0: int,
                 out: wp.array2d(dtype=float), out_row: int, out_col: int):
         """out[out_row:, out_col:] = y @ W[row0:row0 + F, col0:col0 + F] (a block of node products)."""
-        acc = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
-        mm_ff(y, w, row0, col0, acc)
+        if wp.static(fused):
+            acc = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+            buf = wp.tile_empty(shape=(buf_rows, F), dtype=float, storage="shared")
+            begin_ff(buf, w, row0, col0)
+            finish_zero(y, w, row0, col0, buf, acc, w, 0)
+        else:
+            acc = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
+            mm_ff(y, w, row0, col0, acc)
         wp.tile_store(out, acc, offset=(out_row, out_col))
 
     fill, activate = row_steps(T, F, owner)
     activate_bias = activate_fill(T, F, F, owner)
-    buf_rows, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, owner)
 
     @wp.func
     def second_layer_ahead(h: wp.tile(dtype=float, shape=(T, F)), w2: wp.array2d(dtype=float),
@@ -1337,7 +1464,22 @@ def helpers(spec: Spec, owner: str):
         begin_second_layer(w2_buf, w2, row)
         second_layer_ahead(h, w2, w2_buf, b2, gain, shift, row, eps, res, residual, o)
 
+    # with whole weights (one K chunk) the first layer's product may activate its output itself and the second add
+    # its bias (fused_product): no bias fill or activate step between the products (Spec.fused_layers)
+    finish_bias = matmul_fused(T, F, F, spec.gemm, owner, "bias") if fused else finish_ff
+
+    @wp.func
+    def second_layer_activated(h: wp.tile(dtype=float, shape=(T, F)), w2: wp.array2d(dtype=float),
+                               w2_buf: wp.tile(dtype=float, shape=(buf_rows, F)), b2: wp.array2d(dtype=float),
+                               gain: wp.array2d(dtype=float), shift: wp.array2d(dtype=float), row: int, eps: float,
+                               res: wp.tile(dtype=float, shape=(T, F)), residual: int,
+                               o: wp.tile(dtype=float, shape=(T, F))):
+        """second_layer_ahead on h = silu(first layer) already (matmul_fused's silu_out): o = [res +]
+        LayerNorm(h W2 + b2), the bias added by the product."""
+        finish_bias(h, w2, row * F, 0, w2_buf, o, b2, row)
+        layer_norm(o, gain, shift, row, eps, res, residual)
+
     # the last: second_layer in two parts, W2's buffer rows, the copy's start and the rest (a kernel that starts
-    # its weight copies first)
-    ahead = (buf_rows, begin_second_layer, second_layer_ahead)
+    # its weight copies first), and the rest after a fused first layer
+    ahead = (buf_rows, begin_second_layer, second_layer_ahead, second_layer_activated)
     return fill, activate, second_layer, (segment_sums, staged_segment_sums), project, gather_pair, ahead

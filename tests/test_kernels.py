@@ -764,46 +764,60 @@ def test_tensor_core_products_over_k_chunks(device):
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
-    not SM90, reason="wgmma needs an sm_90 GPU (H100, H200)"))])
-def test_second_layer_product_with_silu_and_bias(device):
-    """tiles.matmul_silu_bias (the hybrid decoder's (F, 144) product on tensor cores with whole weights): acc =
-    silu(a) @ W + bias[row], every element of acc written (it starts as NaN), a left as it was, W in tensor-core
-    layout: fp32's answer on one and two warpgroups, widths of 64 and 144 (the odd last 8-column block)."""
+    not HAS_CUDA, reason="needs a CUDA device"))])
+@pytest.mark.parametrize("kind", ["native", "wgmma"])
+def test_fused_layer_products_against_numpy(device, kind):
+    """tiles.matmul_fused, an MLP layer's steps in its product (whole weights): acc = [silu](init + [silu](a) @ W)
+    with init acc's values, zero or bias[row], against numpy: every element of acc written where init is not acc's
+    (it starts as NaN), a left as it was; the native product on node tiles of 8 rows with K in parts (256 threads)
+    and on 32-row tiles (128), wgmma on one and two warpgroups (sm_90 only on CUDA), widths of 64 and 144."""
     from warpgnn.kernels import tiles
     from warpgnn.kernels.shipped import arch_suffix
     from warpgnn.kernels.spec import Spec
     from warpgnn.kernels.weights import tensor_core_layout
 
+    if kind == "wgmma" and device != "cpu" and not SM90:
+        pytest.skip("wgmma needs an sm_90 GPU (H100, H200)")
+    tensor = kind == "wgmma"
+    variants = [("bias", False, True), ("acc", True, False), ("bias", False, False)] if tensor else [
+        ("bias", True, False), ("bias", False, False), ("zero", False, False), ("acc", True, False)]
+    shapes = [(128, 64, 64, 64), (256, 64, 32, 144)] if tensor else [(256, 8, 192, 64), (128, 32, 64, 144)]
     rng = np.random.default_rng(11)
-    for threads in (128, 256):
-        for k, n in ((64, 64), (32, 144)):
-            owner = f"test_silu_bias_{threads}_{k}_{n}"
-            buf_rows, begin, _finish = tiles.matmul_ahead(64, k, k, n, "wgmma", owner)
-            finish = tiles.matmul_silu_bias(64, k, n, owner)
+    silu = lambda v: v / (1 + np.exp(-v))  # noqa: E731
+    for threads, rows, k, n in shapes:
+        for init, silu_out, silu_a in variants:
+            owner = f"test_fused_{kind}_{threads}_{k}_{n}_{init}_{silu_out}_{silu_a}"
+            buf_rows, begin, _finish = tiles.matmul_ahead(rows, k, k, n, kind, owner)
+            finish = tiles.matmul_fused(rows, k, n, kind, owner, init, silu_out, silu_a)
 
             @wp.kernel(enable_backward=False, module=owner)
             def apply(a: wp.array2d(dtype=float), w: wp.array2d(dtype=float), bias: wp.array2d(dtype=float),
                       c: wp.array2d(dtype=float), a_out: wp.array2d(dtype=float)):
-                ta = wp.tile_load(a, shape=(64, k), storage="shared")
-                tc = wp.tile_load(c, shape=(64, n), storage="shared")
+                ta = wp.tile_load(a, shape=(rows, k), storage="shared")
+                tc = wp.tile_load(c, shape=(rows, n), storage="shared")
                 buf = wp.tile_empty(shape=(buf_rows, n), dtype=float, storage="shared")
                 begin(buf, w, 0, 0)
                 finish(ta, w, 0, 0, buf, tc, bias, 2)
                 wp.tile_store(c, tc)
                 wp.tile_store(a_out, ta)
 
-            a, w, bias = (rng.standard_normal(s).astype(np.float32) for s in ((64, k), (k, n), (3, n)))
-            out, a_out = wp.full((64, n), np.nan, dtype=float, device=device), wp.zeros((64, k), device=device)
+            a, w, bias, c = (rng.standard_normal(s).astype(np.float32) for s in ((rows, k), (k, n), (3, n), (rows, n)))
+            out = wp.array(c if init == "acc" else np.full_like(c, np.nan), dtype=float, device=device)
+            a_out = wp.zeros((rows, k), device=device)
             block = threads if device != "cpu" else 1
-            with arch_suffix(Spec(16, edge_rows=64, edge_gemm="wgmma")):  # sm_90a on CUDA
+            with arch_suffix(Spec(16, edge_rows=64, edge_gemm="wgmma" if tensor else "")):  # sm_90a on CUDA
                 wp.load_module(owner, device=device, block_dim=block)
             wp.launch_tiled(apply, dim=[1], inputs=[wp.array(a, dtype=float, device=device),
-                                                    wp.array(tensor_core_layout(w), dtype=float, device=device),
+                                                    wp.array(tensor_core_layout(w) if tensor else w, dtype=float,
+                                                             device=device),
                                                     wp.array(bias, dtype=float, device=device), out, a_out],
                             block_dim=block, device=device)
             a64 = a.astype(np.float64)
-            expected = bias[2] + (a64 / (1 + np.exp(-a64))) @ w.astype(np.float64)
-            assert np.abs(out.numpy() - expected).max() <= 1e-5 * np.abs(expected).max(), (threads, n)
+            start = {"acc": c.astype(np.float64), "zero": 0.0, "bias": bias[2].astype(np.float64)}[init]
+            expected = start + (silu(a64) if silu_a else a64) @ w.astype(np.float64)
+            expected = silu(expected) if silu_out else expected
+            got = out.numpy()
+            assert np.abs(got - expected).max() <= 1e-5 * np.abs(expected).max(), (threads, n, init, silu_out, silu_a)
             assert np.array_equal(a_out.numpy(), a), "a is read, not activated in place"
 
 
