@@ -121,6 +121,15 @@ class Spec:
         return self.kc == self.latent and self.gemm in ("native", "wgmma")
 
     @property
+    def fused_norm(self) -> bool:
+        """Whether an MLP's second product also applies its LayerNorm (and residual) from the accumulators
+        (tiles.matmul_norm): fused_layers on tensor cores ("wgmma"), the batch-1 edge pass on an H100 / H200. There
+        (L5, F = 64) hybrid 49.55 / 109.1 / 213.3 -> 48.9 / 107.15 / 208.8 us at 1 / 5 / 12 passes, vanilla 34.0 /
+        93.2 / 196.9 -> 33.3 / 91.35 / 192.65, the outputs within 6.5e-7 relative (the statistics summed in another
+        order; bench/results/warp_fused_layers_h200.json, call S18f)."""
+        return self.fused_layers and self.gemm == "wgmma"
+
+    @property
     def many_blocks(self) -> bool:
         """K chunks at F <= 64: a Network's pick for graphs of more than a node tile an SM (k_chunk_for), where the
         blocks queue for the SMs and how many fit an SM (their shared memory and registers) sets a launch's speed;

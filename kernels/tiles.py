@@ -682,6 +682,122 @@ GEMM_WGMMA = _wgmma_source()
 WGMMA_CARRY, WGMMA_SETTLE = _wgmma_source("carry"), _wgmma_source("settle")
 
 
+def _wgmma_norm_source() -> str:
+    """An MLP's second layer and LayerNorm on tensor cores (whole weights): acc = [res +] LayerNorm(bias[bias_row] +
+    a @ W) (res where ``residual``) with gain and shift of row bias_row, the rows' statistics from the accumulators in
+    registers (each warpgroup's half of a row summed by shuffles in a quad of lanes, the two halves through
+    ``scratch`` (4, 64): its first two rows the sums, the last two the squared deviations) and acc written once, where
+    a LayerNorm step read the tile again after the product's epilogue had written it (tiles.LAYER_NORM: the same
+    two-pass statistics, summed in another order). The bias, gain and shift columns of a thread are loaded before
+    the wgmmas."""
+    fence = "    // b was written by the block's generic-proxy copies"
+    preload = r"""
+    const wp::float32* __restrict__ pbias = row_ptr(bias, bias_row);
+    const wp::float32* __restrict__ pg = row_ptr(gain, bias_row);
+    const wp::float32* __restrict__ ps = row_ptr(shift, bias_row);
+    float2 bz[NW / 8];  // block jb's columns c0 + 8 jb + 2 q, + 1: the accumulators' (d below)
+    float4 g4[NW / 16], t4[NW / 16];  // columns c0 + 8 j + (q odd ? 6 : 0) + 2 q .. + 3: after the swap (below)
+#pragma unroll
+    for (int jb = 0; jb < NW / 8; ++jb)
+        bz[jb] = *reinterpret_cast<const float2*>(pbias + c0 + 8 * jb + 2 * q);
+#pragma unroll
+    for (int j = 0; j + 1 < NW / 8; j += 2) {
+        const int c = c0 + ((q & 1) ? 8 * j + 6 + 2 * q : 8 * j + 2 * q);
+        g4[j / 2] = *reinterpret_cast<const float4*>(pg + c);
+        t4[j / 2] = *reinterpret_cast<const float4*>(ps + c);
+    }
+"""
+    src = ROW_PTR + _wgmma_source().replace(fence, preload + fence, 1)
+    head, tail = src.split("    const bool odd = q & 1;\n", 1)
+    _epilogue, cpu = tail.split("#endif\n#else\n", 1)
+    cpu_sum = "        pc[r * SC + c] += s;\n"
+    assert cpu.count(cpu_sum) == 1
+    cpu = cpu.replace(cpu_sum, "        pc[r * SC + c] = row_ptr(bias, bias_row)[c] + s;\n")
+    return head + r"""
+    static_assert(NW % 16 == 0, "a warpgroup's columns in 16-column pairs of blocks");
+    wp::float32* __restrict__ red = scratch.data.ptr;
+    const wp::float32* __restrict__ pres = res.data.ptr;
+    constexpr int SR = tile_res::Layout::Stride::dim(0);
+    // d[4 jb + 2 h + e]: row (h ? r1 : r0), column c0 + 8 jb + 2 q + e (wgmma's accumulator fragment), plus the bias
+    const bool odd = q & 1;
+#pragma unroll
+    for (int jb = 0; jb < NW / 8; ++jb) {
+        d[4 * jb] += bz[jb].x; d[4 * jb + 1] += bz[jb].y; d[4 * jb + 2] += bz[jb].x; d[4 * jb + 3] += bz[jb].y;
+    }
+    wp::float32 s0 = 0.f, s1 = 0.f;
+#pragma unroll
+    for (int i = 0; i < NW / 8; ++i) {
+        s0 += d[4 * i] + d[4 * i + 1];
+        s1 += d[4 * i + 2] + d[4 * i + 3];
+    }
+    s0 += __shfl_xor_sync(0xffffffffu, s0, 1); s0 += __shfl_xor_sync(0xffffffffu, s0, 2);
+    s1 += __shfl_xor_sync(0xffffffffu, s1, 1); s1 += __shfl_xor_sync(0xffffffffu, s1, 2);
+    if (q == 0) { red[group * M + r0] = s0; red[group * M + r1] = s1; }
+    WP_TILE_SYNC();
+    const wp::float32 m0 = (WG == 2 ? red[r0] + red[M + r0] : red[r0]) / wp::float32(N);
+    const wp::float32 m1 = (WG == 2 ? red[r1] + red[M + r1] : red[r1]) / wp::float32(N);
+    wp::float32 v0 = 0.f, v1 = 0.f;
+#pragma unroll
+    for (int i = 0; i < NW / 8; ++i) {
+        d[4 * i] -= m0; d[4 * i + 1] -= m0; d[4 * i + 2] -= m1; d[4 * i + 3] -= m1;
+        v0 += d[4 * i] * d[4 * i] + d[4 * i + 1] * d[4 * i + 1];
+        v1 += d[4 * i + 2] * d[4 * i + 2] + d[4 * i + 3] * d[4 * i + 3];
+    }
+    v0 += __shfl_xor_sync(0xffffffffu, v0, 1); v0 += __shfl_xor_sync(0xffffffffu, v0, 2);
+    v1 += __shfl_xor_sync(0xffffffffu, v1, 1); v1 += __shfl_xor_sync(0xffffffffu, v1, 2);
+    if (q == 0) { red[(2 + group) * M + r0] = v0; red[(2 + group) * M + r1] = v1; }
+    WP_TILE_SYNC();
+    const wp::float32 rs0 = wp::float32(1) / sqrtf((WG == 2 ? red[2 * M + r0] + red[3 * M + r0] : red[2 * M + r0])
+                                                   / wp::float32(N) + eps);
+    const wp::float32 rs1 = wp::float32(1) / sqrtf((WG == 2 ? red[2 * M + r1] + red[3 * M + r1] : red[2 * M + r1])
+                                                   / wp::float32(N) + eps);
+#pragma unroll
+    for (int j = 0; j + 1 < NW / 8; j += 2) {
+        const int c = c0 + (odd ? 8 * j + 6 + 2 * q : 8 * j + 2 * q);  // this lane's 4 columns after the swap
+        const float4 g = g4[j / 2], t = t4[j / 2];
+#pragma unroll
+        for (int h = 0; h < 2; ++h) {  // rows r0, r1: lane pairs swap so each holds 4 consecutive columns of a row
+            const int r = h ? r1 : r0;
+            const wp::float32 rs = h ? rs1 : rs0;
+            const wp::float32 u0 = odd ? d[4 * j + 2 * h] : d[4 * j + 4 + 2 * h];
+            const wp::float32 u1 = odd ? d[4 * j + 2 * h + 1] : d[4 * j + 5 + 2 * h];
+            const wp::float32 t0 = __shfl_xor_sync(0xffffffffu, u0, 1), t1 = __shfl_xor_sync(0xffffffffu, u1, 1);
+            const float4 v = odd ? make_float4(t0, t1, d[4 * j + 4 + 2 * h], d[4 * j + 5 + 2 * h])
+                                 : make_float4(d[4 * j + 2 * h], d[4 * j + 2 * h + 1], t0, t1);
+            const float4 e = residual ? *reinterpret_cast<const float4*>(pres + r * SR + c)
+                                      : make_float4(0.f, 0.f, 0.f, 0.f);
+            *reinterpret_cast<float4*>(pc + r * SC + c) = make_float4(
+                e.x + (v.x * rs * g.x + t.x), e.y + (v.y * rs * g.y + t.y), e.z + (v.z * rs * g.z + t.z),
+                e.w + (v.w * rs * g.w + t.w));
+        }
+    }
+#endif
+#else
+""" + cpu.replace("#endif\n", r"""    WP_TILE_SYNC();
+    for (int r = WP_TILE_THREAD_IDX; r < M; r += WP_TILE_BLOCK_DIM) {  // a thread a row, in column order
+        const wp::float32* __restrict__ pg = row_ptr(gain, bias_row);
+        const wp::float32* __restrict__ ps = row_ptr(shift, bias_row);
+        const wp::float32* __restrict__ pr = res.data.ptr;
+        constexpr int SR = tile_res::Layout::Stride::dim(0);
+        wp::float32 s = wp::float32(0);
+        for (int c = 0; c < N; ++c)
+            s += pc[r * SC + c];
+        const wp::float32 mean = s / wp::float32(N);
+        wp::float32 v = wp::float32(0);
+        for (int c = 0; c < N; ++c)
+            v += (pc[r * SC + c] - mean) * (pc[r * SC + c] - mean);
+        const wp::float32 rstd = wp::float32(1) / sqrt(v / wp::float32(N) + eps);
+        for (int c = 0; c < N; ++c)
+            pc[r * SC + c] = (residual ? pr[r * SR + c] : wp::float32(0)) + ((pc[r * SC + c] - mean) * rstd * pg[c]
+                                                                            + ps[c]);
+    }
+#endif
+""", 1)
+
+
+WGMMA_NORM = _wgmma_norm_source()
+
+
 @functools.cache
 def gemm(rows: int, k: int, n: int, kind: str, owner: str):
     """acc (rows, n) += a (rows, k) @ b (k, n), shared tiles: GEMM above ("native"), GEMM_F16 ("fp16"), GEMM_WGMMA
@@ -847,6 +963,35 @@ def matmul_fused(rows: int, k: int, n: int, kind: str, owner: str, init: str = "
         b = wp.tile_view(buf, offset=(0, 0), shape=(ck, n))
         staged(b)
         product(a, b, acc, bias, bias_row)
+
+    return finish
+
+
+@functools.cache
+def matmul_norm(rows: int, k: int, n: int, owner: str):
+    """finish(a, W, row0, col0, buf, acc, bias, row, gain, shift, eps, res, residual, scratch): acc = [res +]
+    LayerNorm(bias[row] + a @ W[row0:row0 + k, col0:col0 + n]) with gain and shift of ``row``, on tensor cores with W
+    whole in the buffer of matmul_ahead(rows, k, k, n, "wgmma", owner) (begun by its begin), ``scratch`` a (4,
+    rows) shared tile for the rows' statistics (_wgmma_norm_source)."""
+    ck = 2 * k
+    _stage_copy, staged = stage(ck, n, owner)
+
+    @wp.func_native(WGMMA_NORM)
+    def product(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(ck, n)),
+                acc: wp.tile(dtype=float, shape=(rows, n)), bias: wp.array2d(dtype=float), bias_row: int,
+                gain: wp.array2d(dtype=float), shift: wp.array2d(dtype=float), eps: float,
+                res: wp.tile(dtype=float, shape=(rows, n)), residual: int,
+                scratch: wp.tile(dtype=float, shape=(4, rows))): ...
+
+    @wp.func
+    def finish(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
+               buf: wp.tile(dtype=float, shape=(ck, n)), acc: wp.tile(dtype=float, shape=(rows, n)),
+               bias: wp.array2d(dtype=float), row: int, gain: wp.array2d(dtype=float),
+               shift: wp.array2d(dtype=float), eps: float, res: wp.tile(dtype=float, shape=(rows, n)), residual: int,
+               scratch: wp.tile(dtype=float, shape=(4, rows))):
+        b = wp.tile_view(buf, offset=(0, 0), shape=(ck, n))
+        staged(b)
+        product(a, b, acc, bias, row, gain, shift, eps, res, residual, scratch)
 
     return finish
 
@@ -1467,6 +1612,9 @@ def helpers(spec: Spec, owner: str):
     # with whole weights (one K chunk) the first layer's product may activate its output itself and the second add
     # its bias (fused_product): no bias fill or activate step between the products (Spec.fused_layers)
     finish_bias = matmul_fused(T, F, F, spec.gemm, owner, "bias") if fused else finish_ff
+    # on tensor cores the LayerNorm too, from the accumulators (matmul_norm; a (4, T) tile more for its statistics)
+    norm = spec.fused_norm
+    finish_norm = matmul_norm(T, F, F, owner) if norm else finish_ff
 
     @wp.func
     def second_layer_activated(h: wp.tile(dtype=float, shape=(T, F)), w2: wp.array2d(dtype=float),
@@ -1476,8 +1624,12 @@ def helpers(spec: Spec, owner: str):
                                o: wp.tile(dtype=float, shape=(T, F))):
         """second_layer_ahead on h = silu(first layer) already (matmul_fused's silu_out): o = [res +]
         LayerNorm(h W2 + b2), the bias added by the product."""
-        finish_bias(h, w2, row * F, 0, w2_buf, o, b2, row)
-        layer_norm(o, gain, shift, row, eps, res, residual)
+        if wp.static(norm):
+            scratch = wp.tile_empty(shape=(4, T), dtype=float, storage="shared")
+            finish_norm(h, w2, row * F, 0, w2_buf, o, b2, row, gain, shift, eps, res, residual, scratch)
+        else:
+            finish_bias(h, w2, row * F, 0, w2_buf, o, b2, row)
+            layer_norm(o, gain, shift, row, eps, res, residual)
 
     # the last: second_layer in two parts, W2's buffer rows, the copy's start and the rest (a kernel that starts
     # its weight copies first), and the rest after a fused first layer

@@ -822,6 +822,54 @@ def test_fused_layer_products_against_numpy(device, kind):
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
+    not SM90, reason="wgmma needs an sm_90 GPU (H100, H200)"))])
+def test_norm_layer_product_against_numpy(device):
+    """tiles.matmul_norm (the edge pass's second layer on tensor cores with whole weights): acc = [res +]
+    LayerNorm(bias[row] + a @ W) with gain and shift of that row, the statistics from the accumulators, against
+    numpy's two-pass LayerNorm (biased variance, eps): every element of acc written (it starts as NaN), with and
+    without the residual, on one and two warpgroups (CUDA), widths of 64 and 128."""
+    from warpgnn.kernels import tiles
+    from warpgnn.kernels.shipped import arch_suffix
+    from warpgnn.kernels.spec import Spec
+    from warpgnn.kernels.weights import tensor_core_layout
+
+    rng = np.random.default_rng(5)
+    eps = 1e-5
+    for threads, k, n in ((128, 64, 64), (256, 64, 64), (256, 32, 128)):
+        owner = f"test_norm_{threads}_{k}_{n}"
+        buf_rows, begin, _finish = tiles.matmul_ahead(64, k, k, n, "wgmma", owner)
+        finish = tiles.matmul_norm(64, k, n, owner)
+
+        @wp.kernel(enable_backward=False, module=owner)
+        def apply(a: wp.array2d(dtype=float), w: wp.array2d(dtype=float), bias: wp.array2d(dtype=float),
+                  gain: wp.array2d(dtype=float), shift: wp.array2d(dtype=float), res: wp.array2d(dtype=float),
+                  residual: int, c: wp.array2d(dtype=float)):
+            ta = wp.tile_load(a, shape=(64, k), storage="shared")
+            tr = wp.tile_load(res, shape=(64, n), storage="shared")
+            tc = wp.tile_load(c, shape=(64, n), storage="shared")
+            buf = wp.tile_empty(shape=(buf_rows, n), dtype=float, storage="shared")
+            begin(buf, w, 0, 0)
+            scratch = wp.tile_empty(shape=(4, 64), dtype=float, storage="shared")
+            finish(ta, w, 0, 0, buf, tc, bias, 1, gain, shift, eps, tr, residual, scratch)
+            wp.tile_store(c, tc)
+
+        a, w, res = (rng.standard_normal(s).astype(np.float32) for s in ((64, k), (k, n), (64, n)))
+        bias, gain, shift = (rng.standard_normal((2, n)).astype(np.float32) + o for o in (0.0, 1.0, 0.0))
+        block = threads if device != "cpu" else 1
+        with arch_suffix(Spec(16, edge_rows=64, edge_gemm="wgmma")):  # sm_90a on CUDA
+            wp.load_module(owner, device=device, block_dim=block)
+        y = bias[1] + a.astype(np.float64) @ w.astype(np.float64)
+        ln = (y - y.mean(1, keepdims=True)) / np.sqrt(y.var(1, keepdims=True) + eps) * gain[1] + shift[1]
+        for residual in (1, 0):
+            out = wp.full((64, n), np.nan, dtype=float, device=device)
+            arrays = [wp.array(x, dtype=float, device=device) for x in (a, tensor_core_layout(w), bias, gain, shift,
+                                                                         res)]
+            wp.launch_tiled(apply, dim=[1], inputs=[*arrays, residual, out], block_dim=block, device=device)
+            expected = ln + res if residual else ln
+            assert np.abs(out.numpy() - expected).max() <= 1e-5 * np.abs(expected).max(), (threads, n, residual)
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
     not HAS_CUDA, reason="needs a CUDA device"))])
 def test_staged_products_against_numpy(monkeypatch, device):
     """tiles.matmul, the staged product every MLP layer runs (weight chunks double-buffered, cp.async on CUDA; over
