@@ -243,7 +243,9 @@ def edge_kernel(spec: Spec):
     # node pass, its blocks (56 KiB each) were otherwise packed three to an SM beside the node pass's and ran their
     # loads and products slower than the early start gained (kernels/network.py); the staged indices' 256 B come on
     # top (82,176 B: two blocks an SM on sm_80 too, with 1.5 KiB to spare)
-    stats = 4 * T if ahead and edges.fused_norm else 0  # matmul_norm's statistics tile
+    # matmul_norm's statistics tile: on an H200 the batch-1 block 115,200 -> 116,224 bytes, one an SM by its registers
+    # either way (254 a thread at 256 threads)
+    stats = 4 * T if ahead and edges.fused_norm else 0
     spare = max(0, EDGE_PASS_SHARED // 4 - 3 * T * F - buf_rows * F - w2_rows * F - stats) if ahead else 0
     spare_cols = max(1, -(-spare // T))
     load_rows, loaded = stage(T, F, owner)

@@ -123,7 +123,8 @@ class Spec:
     @property
     def fused_norm(self) -> bool:
         """Whether an MLP's second product also applies its LayerNorm (and residual) from the accumulators
-        (tiles.matmul_norm): fused_layers on tensor cores ("wgmma"), the batch-1 edge pass on an H100 / H200. There
+        (tiles.matmul_norm): fused_layers on tensor cores ("wgmma"): the batch-1 edge pass on an H100 / H200 (and the
+        mesh-edge encoder there where it runs with whole weights, not a Network's pick at F = 64). There
         (L5, F = 64) hybrid 49.55 / 109.1 / 213.3 -> 48.9 / 107.15 / 208.8 us at 1 / 5 / 12 passes, vanilla 34.0 /
         93.2 / 196.9 -> 33.3 / 91.35 / 192.65, the outputs within 6.5e-7 relative (the statistics summed in another
         order; bench/results/warp_fused_layers_h200.json, call S18f)."""

@@ -287,79 +287,52 @@ def _gemm_fused_source(init: str, silu_out: bool) -> str:
     """GEMM with an MLP layer's steps around it (fused_product): the first K part's sums added to acc's values
     (``init`` "acc"), to zero or to bias[bias_row] (``bias``, ``bias_row``: a thread's CN bias columns loaded before
     its products), the last part's result activated (``silu_out``); the same sums in the same order as a tile
-    filled with the bias (or zeros), GEMM, then an activate step."""
-    return ROW_PTR + SILU + GEMM_ITEMS + r"""
-    using LC = typename tile_acc::Layout;
-    constexpr int SC = LC::Stride::dim(0);
-    static_assert(LC::Stride::dim(1) == 1 && LC::Shape::dim(0) == M && LC::Shape::dim(1) == N, "acc (M, N)");
-    constexpr int INIT = """ + str(("acc", "zero", "bias").index(init)) + r""";
-    constexpr bool SILU_OUT = """ + ("true" if silu_out else "false") + r""";
-    wp::float32* __restrict__ pc = acc.data.ptr;
-    const wp::float32* __restrict__ pbias = row_ptr(bias, bias_row);
-    // item t's bias columns (INIT 2; zeros else)
-    auto bias_of = [&](int t, wp::float32 (&bv)[CN]) {
-        const int c0 = (t - t / NC * NC) * CN;
-#pragma unroll
-        for (int j = 0; j < CN; ++j)
-            bv[j] = INIT == 2 ? pbias[c0 + j] : wp::float32(0);
-    };
-    // acc's (RM, CN) block of item t = s + (first: acc's values, zero or the bias; else acc's), activated if last
-    auto add = [&](int t, const wp::float32 (&s)[RM][CN], const wp::float32 (&bv)[CN], bool first, bool last) {
-        const int r0 = t / NC * RM, c0 = (t - t / NC * NC) * CN;
-#if defined(__CUDA_ARCH__)
-        if constexpr (CN == 4 && SC % 4 == 0) {  // 16-byte read-modify-writes (scalar ones: 4-way bank conflicts)
-#pragma unroll
-            for (int i = 0; i < RM; ++i) {
-                float4* q = reinterpret_cast<float4*>(pc + (r0 + i) * SC + c0);
-                float4 v = first && INIT != 0 ? make_float4(bv[0], bv[1], bv[2], bv[3]) : *q;
-                v.x += s[i][0]; v.y += s[i][1]; v.z += s[i][2]; v.w += s[i][3];
-                if (SILU_OUT && last)
-                    v = make_float4(silu(v.x), silu(v.y), silu(v.z), silu(v.w));
-                *q = v;
-            }
-            return;
-        }
-#endif
-#pragma unroll
-        for (int i = 0; i < RM; ++i)
-#pragma unroll
-            for (int j = 0; j < CN; ++j) {
-                wp::float32* q = pc + (r0 + i) * SC + c0 + j;
-                const wp::float32 v = (first && INIT != 0 ? bv[j] : *q) + s[i][j];
-                *q = SILU_OUT && last ? silu(v) : v;
-            }
-    };
-    auto partial = [&](int t, int k0, wp::float32 (&s)[RM][CN]) {
-#pragma unroll
-        for (int i = 0; i < RM; ++i)
-#pragma unroll
-            for (int j = 0; j < CN; ++j)
-                s[i][j] = wp::float32(0);
-        accumulate(t, k0, s);
-    };
-    if constexpr (SPLIT == 1) {
-        for (int t = WP_TILE_THREAD_IDX; t < ITEMS; t += BD) {
-            wp::float32 bv[CN], s[RM][CN];
-            bias_of(t, bv);
-            partial(t, 0, s);
-            add(t, s, bv, true, true);
-        }
-    } else {  // as GEMM_DISPATCH: a thread one (item, part), the parts added in part order
-        const int part = WP_TILE_THREAD_IDX / ITEMS, t = WP_TILE_THREAD_IDX - part * ITEMS;
-        wp::float32 bv[CN], s[RM][CN];
-        bias_of(t, bv);
-        if (part < SPLIT)
-            partial(t, part * KP, s);
-#pragma unroll
-        for (int q = 0; q < SPLIT; ++q) {
-            if (part == q)
-                add(t, s, bv, q == 0, q + 1 == SPLIT);
-            if (q + 1 < SPLIT)
-                WP_TILE_SYNC();
-        }
-    }
-    WP_TILE_SYNC();
-"""
+    filled with the bias (or zeros), GEMM, then an activate step. GEMM_ADD's and GEMM_DISPATCH's text, edited."""
+    add = GEMM_ADD
+    for old, new in (
+            ("    wp::float32* __restrict__ pc = acc.data.ptr;\n",
+             "    wp::float32* __restrict__ pc = acc.data.ptr;\n"
+             f"    constexpr int INIT = {('acc', 'zero', 'bias').index(init)};  // acc's values, zero, the bias\n"
+             f"    constexpr bool SILU_OUT = {'true' if silu_out else 'false'};\n"
+             "    const wp::float32* __restrict__ pbias = row_ptr(bias, bias_row);\n"
+             "    auto bias_of = [&](int t, wp::float32 (&bv)[CN]) {  // item t's bias columns (INIT 2; zeros else)\n"
+             "        const int c0 = (t - t / NC * NC) * CN;\n"
+             "#pragma unroll\n"
+             "        for (int j = 0; j < CN; ++j)\n"
+             "            bv[j] = INIT == 2 ? pbias[c0 + j] : wp::float32(0);\n"
+             "    };\n"),
+            ("    // acc's (RM, CN) block of item t += s\n"
+             "    auto add = [&](int t, const wp::float32 (&s)[RM][CN]) {\n",
+             "    // acc's (RM, CN) block of item t = s + (first: acc's values, zero or the bias; else acc's),\n"
+             "    // activated if last\n"
+             "    auto add = [&](int t, const wp::float32 (&s)[RM][CN], const wp::float32 (&bv)[CN], bool first,\n"
+             "                   bool last) {\n"),
+            ("                float4 v = *q;\n",
+             "                float4 v = first && INIT != 0 ? make_float4(bv[0], bv[1], bv[2], bv[3]) : *q;\n"),
+            ("                *q = v;\n",
+             "                if (SILU_OUT && last)\n"
+             "                    v = make_float4(silu(v.x), silu(v.y), silu(v.z), silu(v.w));\n"
+             "                *q = v;\n"),
+            ("                pc[(r0 + i) * SC + c0 + j] += s[i][j];\n",
+             "            {\n"
+             "                wp::float32* q = pc + (r0 + i) * SC + c0 + j;\n"
+             "                const wp::float32 v = (first && INIT != 0 ? bv[j] : *q) + s[i][j];\n"
+             "                *q = SILU_OUT && last ? silu(v) : v;\n"
+             "            }\n")):
+        assert add.count(old) == 1, old
+        add = add.replace(old, new)
+    dispatch = GEMM_DISPATCH
+    for old, new in (
+            ("            wp::float32 s[RM][CN];\n            partial(t, 0, s);\n            add(t, s);\n",
+             "            wp::float32 bv[CN], s[RM][CN];\n            bias_of(t, bv);\n            partial(t, 0, s);\n"
+             "            add(t, s, bv, true, true);\n"),
+            ("        wp::float32 s[RM][CN];\n        if (part < SPLIT)\n",
+             "        wp::float32 bv[CN], s[RM][CN];\n        bias_of(t, bv);\n        if (part < SPLIT)\n"),
+            ("                add(t, s);\n", "                add(t, s, bv, q == 0, q + 1 == SPLIT);\n")):
+        assert dispatch.count(old) == 1, old
+        dispatch = dispatch.replace(old, new)
+    return ROW_PTR + SILU + GEMM_ITEMS + add + dispatch
+
 
 # A product over K chunks (matmul_ahead's finish) with each thread's items carried in registers from chunk to chunk
 # (s: room for CARRY_ITEMS (RM, CN) items a thread; a view of a and the chunk of b named for their shapes), added to
@@ -512,7 +485,7 @@ def _wgmma_source(mode: str = "product", silu_a: bool = False, init: str = "acc"
     epilogue a product instead of one a chunk. A product of one chunk may also take a's values activated as they are
     loaded (``silu_a``), add its sums to acc's values ("acc"), to zero or to bias[bias_row] ("bias", the native
     function's further arguments ``bias``, ``bias_row``, loaded while the wgmmas run) and activate the result
-    (``silu_out``): fused_source."""
+    (``silu_out``): fused_product."""
     carry, settle = mode == "carry", mode == "settle"
     dispatch = "\n".join(f"            {'' if i == 0 else 'else '}if constexpr (NW == {n}) "
                          f"{{ {wgmma_asm(n, 'd', 'x', 'desc')}; }}" for i, n in enumerate(WGMMA_N))
@@ -718,6 +691,8 @@ def _wgmma_norm_source() -> str:
     wp::float32* __restrict__ red = scratch.data.ptr;
     const wp::float32* __restrict__ pres = res.data.ptr;
     constexpr int SR = tile_res::Layout::Stride::dim(0);
+    static_assert(tile_scratch::Layout::Stride::dim(0) == M && tile_res::Layout::Stride::dim(1) == 1 && SR % 4 == 0,
+                  "a contiguous (4, 64) scratch tile, res rows of 16-byte vectors");
     // d[4 jb + 2 h + e]: row (h ? r1 : r0), column c0 + 8 jb + 2 q + e (wgmma's accumulator fragment), plus the bias
     const bool odd = q & 1;
 #pragma unroll
@@ -942,7 +917,7 @@ def fused_product(rows: int, k: int, n: int, kind: str, owner: str, init: str = 
     def product(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(kb, n)),
                 acc: wp.tile(dtype=float, shape=(rows, n)), bias: wp.array2d(dtype=float), bias_row: int): ...
 
-    # a name a variant: Warp keys a native function by its qualified name, its overloads by their argument types
+    # a name a variant (the generated code's function names say which)
     product.__qualname__ = f"fused_{kind}_{init}{'_silu' if silu_out else ''}{'_silu_a' if silu_a else ''}"
     return wp.func_native(src)(product)
 
