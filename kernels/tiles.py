@@ -29,6 +29,37 @@ ROW_PTR = r"""
     };
 """
 
+# o = [res +] LayerNorm(o) over each row of a shared tile, a thread a row in column order (the mean, then the biased
+# variance about it): the block-cooperative LayerNorms off CUDA (LAYER_NORM's fallback, _wgmma_norm_source's CPU
+# path). Its C++ names the tile's pointer and row stride, rows, columns, res's pointer and row stride, and the C++
+# of gain and shift at column c; ``residual`` and ``eps`` are the caller's.
+_ROWS_LAYER_NORM = r"""
+for (int r = WP_TILE_THREAD_IDX; r < @ROWS@; r += WP_TILE_BLOCK_DIM) {
+    wp::float32 s = wp::float32(0);
+    for (int c = 0; c < @COLS@; ++c)
+        s += @O@[r * @SO@ + c];
+    const wp::float32 mean = s / wp::float32(@COLS@);
+    wp::float32 v = wp::float32(0);
+    for (int c = 0; c < @COLS@; ++c)
+        v += (@O@[r * @SO@ + c] - mean) * (@O@[r * @SO@ + c] - mean);
+    const wp::float32 rstd = wp::float32(1) / sqrt(v / wp::float32(@COLS@) + eps);
+    for (int c = 0; c < @COLS@; ++c) {
+        const wp::float32 y = (@O@[r * @SO@ + c] - mean) * rstd * @GAIN@ + @SHIFT@;
+        @O@[r * @SO@ + c] = residual ? @RES@[r * @SRES@ + c] + y : y;
+    }
+}
+"""
+
+
+def rows_layer_norm(indent: str, **names: str) -> str:
+    """_ROWS_LAYER_NORM with its names (O, SO, ROWS, COLS, RES, SRES, GAIN, SHIFT) given, each line indented."""
+    src = _ROWS_LAYER_NORM
+    for name, value in names.items():
+        src = src.replace(f"@{name}@", value)
+    assert "@" not in src, src
+    return "".join(indent + line + "\n" for line in src.strip("\n").split("\n"))
+
+
 STAGE = ROW_PTR + r"""
     using Shape = typename tile_dst::Layout::Shape;
     constexpr int R = Shape::dim(0);
@@ -749,25 +780,10 @@ def _wgmma_norm_source() -> str:
 #endif
 #else
 """ + cpu.replace("#endif\n", r"""    WP_TILE_SYNC();
-    for (int r = WP_TILE_THREAD_IDX; r < M; r += WP_TILE_BLOCK_DIM) {  // a thread a row, in column order
-        const wp::float32* __restrict__ pg = row_ptr(gain, bias_row);
-        const wp::float32* __restrict__ ps = row_ptr(shift, bias_row);
-        const wp::float32* __restrict__ pr = res.data.ptr;
-        constexpr int SR = tile_res::Layout::Stride::dim(0);
-        wp::float32 s = wp::float32(0);
-        for (int c = 0; c < N; ++c)
-            s += pc[r * SC + c];
-        const wp::float32 mean = s / wp::float32(N);
-        wp::float32 v = wp::float32(0);
-        for (int c = 0; c < N; ++c)
-            v += (pc[r * SC + c] - mean) * (pc[r * SC + c] - mean);
-        const wp::float32 rstd = wp::float32(1) / sqrt(v / wp::float32(N) + eps);
-        for (int c = 0; c < N; ++c)
-            pc[r * SC + c] = (residual ? pr[r * SR + c] : wp::float32(0)) + ((pc[r * SC + c] - mean) * rstd * pg[c]
-                                                                            + ps[c]);
-    }
-#endif
-""", 1)
+    const wp::float32* __restrict__ pr = res.data.ptr;
+    constexpr int SR = tile_res::Layout::Stride::dim(0);
+""" + rows_layer_norm("    ", O="pc", SO="SC", ROWS="M", COLS="N", RES="pr", SRES="SR",
+                      GAIN="wp::index(gain, bias_row, c)", SHIFT="wp::index(shift, bias_row, c)") + "#endif\n", 1)
 
 
 WGMMA_NORM = _wgmma_norm_source()
@@ -1102,22 +1118,8 @@ LAYER_NORM = ROW_PTR + r"""
     }
 #endif
     if (!done) {  // a thread a row, in column order
-        for (int r = WP_TILE_THREAD_IDX; r < T; r += WP_TILE_BLOCK_DIM) {
-            wp::float32 s = wp::float32(0);
-            for (int c = 0; c < F; ++c)
-                s += po[r * S + c];
-            const wp::float32 mean = s / wp::float32(F);
-            wp::float32 v = wp::float32(0);
-            for (int c = 0; c < F; ++c)
-                v += (po[r * S + c] - mean) * (po[r * S + c] - mean);
-            const wp::float32 rstd = wp::float32(1) / sqrt(v / wp::float32(F) + eps);
-            for (int c = 0; c < F; ++c) {
-                const wp::float32 y = (po[r * S + c] - mean) * rstd * wp::index(gain, row, c)
-                    + wp::index(shift, row, c);
-                po[r * S + c] = residual ? pr[r * SR + c] + y : y;
-            }
-        }
-    }
+""" + rows_layer_norm("        ", O="po", SO="S", ROWS="T", COLS="F", RES="pr", SRES="SR",
+                      GAIN="wp::index(gain, row, c)", SHIFT="wp::index(shift, row, c)") + r"""    }
     WP_TILE_SYNC();
 """
 
