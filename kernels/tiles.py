@@ -510,13 +510,12 @@ def wgmma_asm(n: int, d: str, a: str, desc: str) -> str:
             f'"r"({a}[2]), "r"({a}[3]), "l"({desc}))')
 
 
-def _wgmma_source(mode: str = "product", silu_a: bool = False, init: str = "acc", silu_out: bool = False) -> str:
+def _wgmma_source(mode: str = "product", init: str = "acc", silu_out: bool = False) -> str:
     """GEMM_WGMMA's C++ (``mode`` "product"), or over K chunks the accumulators carried from chunk to chunk in the
     registers s and returned (``carry``), then added into acc after the last (``settle``), as GEMM_CARRY does: one
-    epilogue a product instead of one a chunk. A product of one chunk may also take a's values activated as they are
-    loaded (``silu_a``), add its sums to acc's values ("acc"), to zero or to bias[bias_row] ("bias", the native
-    function's further arguments ``bias``, ``bias_row``, loaded while the wgmmas run) and activate the result
-    (``silu_out``): fused_product."""
+    epilogue a product instead of one a chunk. A product of one chunk may also add its sums to acc's values ("acc"),
+    to zero or to bias[bias_row] ("bias", the native function's further arguments ``bias``, ``bias_row``, loaded
+    while the wgmmas run) and activate the result (``silu_out``): fused_product."""
     carry, settle = mode == "carry", mode == "settle"
     dispatch = "\n".join(f"            {'' if i == 0 else 'else '}if constexpr (NW == {n}) "
                          f"{{ {wgmma_asm(n, 'd', 'x', 'desc')}; }}" for i, n in enumerate(WGMMA_N))
@@ -636,7 +635,7 @@ def _wgmma_source(mode: str = "product", silu_a: bool = False, init: str = "acc"
 #endif
     WP_TILE_SYNC();
 """ + ("    return s;\n" if carry else "")
-    if not (silu_a or silu_out or init != "acc"):
+    if not (silu_out or init != "acc"):
         return src
     assert mode == "product" and init in ("acc", "zero", "bias"), "a fused product: one K chunk"
     bias = "make_float4(0.f, 0.f, 0.f, 0.f)" if init == "zero" else "bq[j / 2]"
@@ -659,13 +658,6 @@ def _wgmma_source(mode: str = "product", silu_a: bool = False, init: str = "acc"
                             if init == "bias" else "") + src
     fence = "    // b was written by the block's generic-proxy copies"
     edits = [(fence, preload + fence)]
-    if silu_a:  # silu(a) as loaded: the values an activate step would have left in a
-        edits += [("        const float4 u = *", "        float4 u = *"),
-                  ("        const float4 v = *reinterpret_cast<const float4*>(pa + r1 * SA + 16 * s + 4 * q);\n",
-                   "        float4 v = *reinterpret_cast<const float4*>(pa + r1 * SA + 16 * s + 4 * q);\n"
-                   "        u = make_float4(silu(u.x), silu(u.y), silu(u.z), silu(u.w));\n"
-                   "        v = make_float4(silu(v.x), silu(v.y), silu(v.z), silu(v.w));\n"),
-                  ("wp::muladd(pa[r * SA + k], pb", "wp::muladd(silu(pa[r * SA + k]), pb")]
     if init != "acc":
         edits += [("float4 w = *o;", f"float4 w = {bias};"),
                   ("float2 w0 = *o0, w1 = *o1;", f"float2 w0 = {bias2}, w1 = w0;")]
@@ -916,36 +908,34 @@ def matmul_ahead(rows: int, k: int, kc: int, n: int, kind: str, owner: str, a_st
 
 
 @functools.cache
-def fused_product(rows: int, k: int, n: int, kind: str, owner: str, init: str = "acc", silu_out: bool = False,
-                  silu_a: bool = False):
-    """product(a, b, acc, bias, bias_row): acc (rows, n) = [silu](init + [silu](a) @ b), init acc's values ("acc"),
-    zero ("zero") or bias[bias_row] ("bias"), b one whole K chunk as gemm(rows, k, n, kind) takes it ("native": GEMM's
-    items and K parts, _gemm_fused_source; "wgmma": _wgmma_source; silu(a) as loaded on tensor cores only, where a
-    warpgroup loads all of a): an MLP layer's bias, activation and product in one step, where a bias fill and an
-    activate step (each a pass over a tile and a barrier) came before or after the product."""
+def fused_product(rows: int, k: int, n: int, kind: str, owner: str, init: str = "acc", silu_out: bool = False):
+    """product(a, b, acc, bias, bias_row): acc (rows, n) = [silu](init + a @ b), init acc's values ("acc"), zero
+    ("zero") or bias[bias_row] ("bias"), b one whole K chunk as gemm(rows, k, n, kind) takes it ("native": GEMM's
+    items and K parts, _gemm_fused_source; "wgmma": _wgmma_source): an MLP layer's bias, activation and product in
+    one step, where a bias fill and an activate step (each a pass over a tile and a barrier) came before or after
+    the product."""
     if kind == "wgmma":
-        src, kb = _wgmma_source(silu_a=silu_a, init=init, silu_out=silu_out), 2 * k
-    elif kind == "native" and not silu_a:
+        src, kb = _wgmma_source(init=init, silu_out=silu_out), 2 * k
+    elif kind == "native":
         src, kb = _gemm_fused_source(init, silu_out), k
     else:
-        raise ValueError(f"no fused {kind} product with silu_a={silu_a}")
+        raise ValueError(f"no fused {kind} product")
 
     def product(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(kb, n)),
                 acc: wp.tile(dtype=float, shape=(rows, n)), bias: wp.array2d(dtype=float), bias_row: int): ...
 
     # a name a variant (the generated code's function names say which)
-    product.__qualname__ = f"fused_{kind}_{init}{'_silu' if silu_out else ''}{'_silu_a' if silu_a else ''}"
+    product.__qualname__ = f"fused_{kind}_{init}{'_silu' if silu_out else ''}"
     return wp.func_native(src)(product)
 
 
 @functools.cache
-def matmul_fused(rows: int, k: int, n: int, kind: str, owner: str, init: str = "acc", silu_out: bool = False,
-                 silu_a: bool = False):
+def matmul_fused(rows: int, k: int, n: int, kind: str, owner: str, init: str = "acc", silu_out: bool = False):
     """finish(a, W, row0, col0, buf, acc, bias, bias_row): fused_product's acc for W[row0:row0 + k, col0:col0 + n] in
     the buffer of matmul_ahead(rows, k, k, n, kind, owner) (one K chunk: whole weights, begun by its begin)."""
     ck = 2 * k if kind == "wgmma" else k  # the chunk's rows (tensor-core layout: two a k)
     _stage_copy, staged = stage(ck, n, owner)
-    product = fused_product(rows, k, n, kind, owner, init, silu_out, silu_a)
+    product = fused_product(rows, k, n, kind, owner, init, silu_out)
 
     @wp.func
     def finish(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
