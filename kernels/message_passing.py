@@ -32,7 +32,18 @@ from . import features
 from .decoders import node_decoder
 from .generic_tail import Tail, step_values
 from .spec import EDGE_FEATURE_WIDTH, FEATURE_WIDTH, N_GRAD, NODE_ROWS, STATE, Spec
-from .tiles import grid_step, helpers, index_steps, matmul, matmul_ahead, matmul_fused, row_vector, stage, store
+from .tiles import (
+    grid_step,
+    helpers,
+    index_steps,
+    matmul,
+    matmul_ahead,
+    matmul_fused,
+    matmul_fused_store,
+    row_vector,
+    stage,
+    store,
+)
 
 FW = FEATURE_WIDTH
 # the edge pass's shared memory with whole weights (kernels below): at most two blocks an SM on sm_80 and sm_90. On an
@@ -71,7 +82,7 @@ def encoder_kernel(spec: Spec):
     kc = spec.node_kc if spec.tile_rows == NODE_ROWS[0] and not spec.many_blocks else spec.kc
     fill, _activate, second_layer, _sums, project, _gather, ahead_parts = helpers(
         dataclasses.replace(spec, k_chunk=kc), owner)
-    w2_rows, begin_second_layer, second_layer_ahead, second_layer_activated = ahead_parts
+    w2_rows, begin_second_layer, second_layer_ahead, second_layer_activated, second_layer_stored = ahead_parts
     mm_in = matmul(T, FW, FW, F, spec.gemm, owner)
     in_rows, begin_in, finish_in = matmul_ahead(T, FW, FW, F, spec.gemm, owner)
     inline = spec.features_in_encoder  # else read from the features launch's rows
@@ -180,7 +191,7 @@ def edge_encoder_kernel(spec: Spec):
     edges = spec.edges("edge_pass")
     T, F, EW = edges.tile_rows, spec.latent, EDGE_FEATURE_WIDTH
     fill, _activate, _second_layer, _sums, _project, _gather, ahead_parts = helpers(edges, owner)
-    w2_rows, begin_second_layer, second_layer_ahead, second_layer_activated = ahead_parts
+    w2_rows, begin_second_layer, second_layer_ahead, second_layer_activated, second_layer_stored = ahead_parts
     in_rows, begin_in, finish_in = matmul_ahead(T, EW, EW, F, edges.gemm, owner)
     fused = edges.fused_layers  # h = silu(b1 + x W1) in the first product, b2 added by the second (matmul_fused)
     finish_in_act = matmul_fused(T, EW, F, edges.gemm, owner, "bias", silu_out=True) if fused else finish_in
@@ -205,12 +216,12 @@ def edge_encoder_kernel(spec: Spec):
         y = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         if wp.static(fused):
             finish_in_act(x, w1, 0, 0, w1_buf, h, b1, MESH)
-            second_layer_activated(h, w2, w2_buf, b2, gain, shift, MESH, eps, h, 0, y)
+            second_layer_stored(h, w2, w2_buf, b2, gain, shift, MESH, eps, h, 0, y, lat, row0)
         else:
             fill(h, b1, MESH)
             finish_in(x, w1, 0, 0, w1_buf, h)
             second_layer_ahead(h, w2, w2_buf, b2, gain, shift, MESH, eps, h, 0, y)
-        store_rows(y, lat, row0, 0)
+            store_rows(y, lat, row0, 0)
         # the encoder's launch before this one ended before this one does: the edge pass after waits on this launch
         # alone (overlapped graphs: kernels/pdl.py). No block may leave before this wait
         grid_step(1)
@@ -230,7 +241,7 @@ def edge_kernel(spec: Spec):
     kc_edges = edges.node_kc if spec.many_blocks else edges.kc
     _fill, _activate, second_layer, _sums, _project, gather_pair, ahead_parts = helpers(
         dataclasses.replace(edges, k_chunk=kc_edges), owner)
-    w2_rows, begin_second_layer, second_layer_ahead, second_layer_activated = ahead_parts
+    w2_rows, begin_second_layer, second_layer_ahead, second_layer_activated, second_layer_stored = ahead_parts
     mm_ff = matmul(T, F, kc_edges, F, edges.gemm, owner)
     buf_rows, begin_ff, finish_ff = matmul_ahead(T, F, edges.kc, F, edges.gemm, owner)
     # whole weights in one K chunk (small graphs, spec.k_chunk_for): a launch starts its weight copies first, so they
@@ -286,16 +297,17 @@ def edge_kernel(spec: Spec):
         gather_pair(h, b1, wi, products, ids, recv_col, send_row, F)
         loaded(e)
         o = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        if wp.static(fused):
+        if wp.static(fused):  # the rows stored by the second layer (from its registers on tensor cores)
             finish_act(e, w_e, wi * F, 0, w1_buf, h, b1, wi)
-            second_layer_activated(h, w2, w2_buf, b2, gain, shift, wi, eps, e, 1, o)
+            second_layer_stored(h, w2, w2_buf, b2, gain, shift, wi, eps, e, 1, o, lat, row0)
         elif wp.static(ahead):
             finish_ff(e, w_e, wi * F, 0, w1_buf, h)
             second_layer_ahead(h, w2, w2_buf, b2, gain, shift, wi, eps, e, 1, o)
+            store_rows(o, lat, row0, 0)
         else:
             mm_ff(e, w_e, wi * F, 0, h)
             second_layer(h, w2, b2, gain, shift, wi, eps, e, 1, o)
-        store_rows(o, lat, row0, 0)
+            store_rows(o, lat, row0, 0)
 
     return edge_pass
 
@@ -312,7 +324,7 @@ def node_kernel(spec: Spec, decode: int = 0):
     fill, _activate, second_layer, sums, _project, _gather, ahead_parts = helpers(
         dataclasses.replace(spec.nodes, k_chunk=kc_in), owner)
     segment_sums, staged_segment_sums = sums
-    w2_rows, begin_second_layer, second_layer_ahead, second_layer_activated = ahead_parts
+    w2_rows, begin_second_layer, second_layer_ahead, second_layer_activated, second_layer_stored = ahead_parts
     decoder_ahead, node_fields, node_state, node_fields_staged, node_state_staged = node_decoder(spec.nodes, owner)
     # the last pass's decoder weight (F, width): with whole weights its copy begun with the kernel's others, so its
     # product does not wait for a load of its own (DECODE_FIELDS's on the other passes, never used)
@@ -349,6 +361,13 @@ def node_kernel(spec: Spec, decode: int = 0):
     fused = ahead and spec.nodes.fused_layers
     finish_in_act = matmul_fused(T, F3, F, spec.gemm, owner, "bias", silu_out=True) if fused else finish_in
     finish_next = matmul_fused(T, F, next_cols, spec.gemm, owner, "zero") if fused else finish_out
+    # the next stage's products stored to global memory from the last K part's registers as they are added, not read
+    # back from the tile by a store step after a barrier (with the latents stored by the LayerNorm: hybrid 209.9 ->
+    # 200.5 us at 12 passes, vanilla 193.9 -> 184.7; warp_stored_rows_h200.json); native products only
+    stored_next = fused and decode != DECODE_STATE and spec.gemm == "native"
+    # the latents likewise by the LayerNorm (not where it runs from the accumulators and leaves y unwritten)
+    stored_latents = fused and decode == 0 and not spec.nodes.fused_norm
+    finish_next_stored = matmul_fused_store(T, F, next_cols, owner) if stored_next else finish_out
     load_rows, loaded = stage(T, F, owner)
     store_rows, store_products = store(T, F, owner), store(T, F3, owner)
     _stage_ids, stage_offsets = index_steps(T, owner)
@@ -407,7 +426,10 @@ def node_kernel(spec: Spec, decode: int = 0):
         if wp.static(not fused):
             fill(h, b1, p)
         y = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        if wp.static(fused):
+        if wp.static(stored_latents):  # stored by the LayerNorm as it writes them
+            finish_in_act(xin, w1, 3 * p * F, 0, w1_buf, h, b1, p)
+            second_layer_stored(h, w2, w2_buf, b2, gain, shift, p, eps, x, 1, y, lat, row0)
+        elif wp.static(fused):
             finish_in_act(xin, w1, 3 * p * F, 0, w1_buf, h, b1, p)
             second_layer_activated(h, w2, w2_buf, b2, gain, shift, p, eps, x, 1, y)
         elif wp.static(ahead):
@@ -421,11 +443,14 @@ def node_kernel(spec: Spec, decode: int = 0):
             mm_in(xin, w1, 3 * p * F, 0, h)
             second_layer(h, w2, b2, gain, shift, p, eps, x, 1, y)
         # the last pass's node latents: no launch reads them (the decoders read its products)
-        if wp.static(decode == 0):
+        if wp.static(decode == 0 and not stored_latents):
             store_rows(y, lat, row0, 0)
         # the next stage's node products, its three (F, F) blocks as one product (blocks a stage does not use are
         # zero weights, or read by no launch)
-        if wp.static(fused):
+        if wp.static(stored_next):
+            nxt = wp.tile_empty(shape=(T, next_cols), dtype=float, storage="shared")
+            finish_next_stored(y, proj, (p + 1) * F, out_col, proj_buf, nxt, b1, 0, products, row0)
+        elif wp.static(fused):
             nxt = wp.tile_empty(shape=(T, next_cols), dtype=float, storage="shared")
             finish_next(y, proj, (p + 1) * F, out_col, proj_buf, nxt, b1, 0)
         else:
@@ -434,7 +459,7 @@ def node_kernel(spec: Spec, decode: int = 0):
                 finish_out(y, proj, (p + 1) * F, out_col, proj_buf, nxt)
             else:
                 mm_out(y, proj, (p + 1) * F, out_col, nxt)
-        if wp.static(decode != DECODE_STATE):  # the vanilla's last products are read here only
+        if wp.static(decode != DECODE_STATE and not stored_next):  # the vanilla's last products are read here only
             store_products(nxt, products, row0, 0)
         # the last pass: the vanilla's decoder, zdot and the Euler step, or the hybrid's delta_v (so (dE, dS) exist
         # before its decoder's edge launch); with K chunks their weight's buffer in their own scope (node_decoder)

@@ -314,7 +314,7 @@ GEMM_DISPATCH = r"""
 GEMM = GEMM_ITEMS + GEMM_ADD + GEMM_DISPATCH
 
 
-def _gemm_fused_source(init: str, silu_out: bool) -> str:
+def _gemm_fused_source(init: str, silu_out: bool, store_out: bool = False) -> str:
     """GEMM with an MLP layer's steps around it (fused_product): the first K part's sums added to acc's values
     (``init`` "acc"), to zero or to bias[bias_row] (``bias``, ``bias_row``: a thread's CN bias columns loaded before
     its products), the last part's result activated (``silu_out``); the same sums in the same order as a tile
@@ -352,6 +352,18 @@ def _gemm_fused_source(init: str, silu_out: bool) -> str:
              "            }\n")):
         assert add.count(old) == 1, old
         add = add.replace(old, new)
+    if store_out:  # the last part's values stored into out[out_row:] too (further arguments out, out_row)
+        for old, new in (
+                ("                *q = v;\n",
+                 "                *q = v;\n"
+                 "                if (last)\n"
+                 "                    *reinterpret_cast<float4*>(row_ptr(out, out_row + r0 + i) + c0) = v;\n"),
+                ("                *q = SILU_OUT && last ? silu(v) : v;\n",
+                 "                *q = SILU_OUT && last ? silu(v) : v;\n"
+                 "                if (last)\n"
+                 "                    row_ptr(out, out_row + r0 + i)[c0 + j] = *q;\n")):
+            assert add.count(old) == 1, old
+            add = add.replace(old, new)
     dispatch = GEMM_DISPATCH
     for old, new in (
             ("            wp::float32 s[RM][CN];\n            partial(t, 0, s);\n            add(t, s);\n",
@@ -764,7 +776,7 @@ def _wgmma_norm_source() -> str:
                                  : make_float4(d[4 * j + 2 * h], d[4 * j + 2 * h + 1], t0, t1);
             const float4 e = residual ? *reinterpret_cast<const float4*>(pres + r * SR + c)
                                       : make_float4(0.f, 0.f, 0.f, 0.f);
-            *reinterpret_cast<float4*>(pc + r * SC + c) = make_float4(
+            *reinterpret_cast<float4*>(row_ptr(out, out_row + r) + c) = make_float4(
                 e.x + (v.x * rs * g.x + t.x), e.y + (v.y * rs * g.y + t.y), e.z + (v.z * rs * g.z + t.z),
                 e.w + (v.w * rs * g.w + t.w));
         }
@@ -775,7 +787,12 @@ def _wgmma_norm_source() -> str:
     const wp::float32* __restrict__ pr = res.data.ptr;
     constexpr int SR = tile_res::Layout::Stride::dim(0);
 """ + rows_layer_norm("    ", O="pc", SO="SC", ROWS="M", COLS="N", RES="pr", SRES="SR",
-                      GAIN="wp::index(gain, bias_row, c)", SHIFT="wp::index(shift, bias_row, c)") + "#endif\n", 1)
+                      GAIN="wp::index(gain, bias_row, c)", SHIFT="wp::index(shift, bias_row, c)") + r"""
+    WP_TILE_SYNC();
+    for (int i = WP_TILE_THREAD_IDX; i < M * N; i += WP_TILE_BLOCK_DIM)
+        wp::index(out, out_row + i / N, i % N) = pc[i / N * SC + i % N];
+#endif
+""", 1)
 
 
 WGMMA_NORM = _wgmma_norm_source()
@@ -949,6 +966,31 @@ def matmul_fused(rows: int, k: int, n: int, kind: str, owner: str, init: str = "
 
 
 @functools.cache
+def matmul_fused_store(rows: int, k: int, n: int, owner: str, init: str = "zero"):
+    """finish(a, W, row0, col0, buf, acc, bias, bias_row, out, out_row): matmul_fused's "native" product (no
+    activation) with the result also stored into out[out_row:] from the registers of the last K part's add, where a
+    store step read acc again after a barrier (the node pass's next-stage products)."""
+    _stage_copy, staged = stage(k, n, owner)
+
+    def product(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(k, n)),
+                acc: wp.tile(dtype=float, shape=(rows, n)), bias: wp.array2d(dtype=float), bias_row: int,
+                out: wp.array2d(dtype=float), out_row: int): ...
+
+    product.__qualname__ = f"fused_store_{init}"  # a name a variant (fused_product)
+    product = wp.func_native(_gemm_fused_source(init, False, store_out=True))(product)
+
+    @wp.func
+    def finish(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
+               buf: wp.tile(dtype=float, shape=(k, n)), acc: wp.tile(dtype=float, shape=(rows, n)),
+               bias: wp.array2d(dtype=float), bias_row: int, out: wp.array2d(dtype=float), out_row: int):
+        b = wp.tile_view(buf, offset=(0, 0), shape=(k, n))
+        staged(b)
+        product(a, b, acc, bias, bias_row, out, out_row)
+
+    return finish
+
+
+@functools.cache
 def matmul_norm(rows: int, k: int, n: int, owner: str):
     """finish(a, W, row0, col0, buf, acc, bias, row, gain, shift, eps, res, residual, scratch): acc = [res +]
     LayerNorm(bias[row] + a @ W[row0:row0 + k, col0:col0 + n]) with gain and shift of ``row``, on tensor cores with W
@@ -962,17 +1004,17 @@ def matmul_norm(rows: int, k: int, n: int, owner: str):
                 acc: wp.tile(dtype=float, shape=(rows, n)), bias: wp.array2d(dtype=float), bias_row: int,
                 gain: wp.array2d(dtype=float), shift: wp.array2d(dtype=float), eps: float,
                 res: wp.tile(dtype=float, shape=(rows, n)), residual: int,
-                scratch: wp.tile(dtype=float, shape=(4, rows))): ...
+                scratch: wp.tile(dtype=float, shape=(4, rows)), out: wp.array2d(dtype=float), out_row: int): ...
 
     @wp.func
     def finish(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
                buf: wp.tile(dtype=float, shape=(ck, n)), acc: wp.tile(dtype=float, shape=(rows, n)),
                bias: wp.array2d(dtype=float), row: int, gain: wp.array2d(dtype=float),
                shift: wp.array2d(dtype=float), eps: float, res: wp.tile(dtype=float, shape=(rows, n)), residual: int,
-               scratch: wp.tile(dtype=float, shape=(4, rows))):
+               scratch: wp.tile(dtype=float, shape=(4, rows)), out: wp.array2d(dtype=float), out_row: int):
         b = wp.tile_view(buf, offset=(0, 0), shape=(ck, n))
         staged(b)
-        product(a, b, acc, bias, row, gain, shift, eps, res, residual, scratch)
+        product(a, b, acc, bias, row, gain, shift, eps, res, residual, scratch, out, out_row)
 
     return finish
 
@@ -1112,6 +1154,27 @@ LAYER_NORM = ROW_PTR + r"""
                       GAIN="wp::index(gain, row, c)", SHIFT="wp::index(shift, row, c)") + r"""    }
     WP_TILE_SYNC();
 """
+
+# LAYER_NORM with the rows also stored into out[out_row:] as they are written (the native function's further
+# arguments ``out``, ``out_row``), where a store step read the tile again after a barrier (the node pass's latents)
+LAYER_NORM_STORE = LAYER_NORM
+for _old, _new in (
+        ("                        *reinterpret_cast<float4*>(po + r * S + col(j)) = y;\n",
+         "                        *reinterpret_cast<float4*>(po + r * S + col(j)) = y;\n"
+         "                        *reinterpret_cast<float4*>(row_ptr(out, out_row + r) + col(j)) = y;\n"),
+        ("                    for (int j = 0; j < PER; ++j)\n"
+         "                        po[r * S + col(j)] = residual ? pr[r * SR + col(j)] + x[j] : x[j];\n",
+         "                    for (int j = 0; j < PER; ++j) {\n"
+         "                        po[r * S + col(j)] = residual ? pr[r * SR + col(j)] + x[j] : x[j];\n"
+         "                        row_ptr(out, out_row + r)[col(j)] = po[r * S + col(j)];\n"
+         "                    }\n"),
+        ("    WP_TILE_SYNC();\n",
+         "    WP_TILE_SYNC();\n"
+         "    if (!done)  // off CUDA: the rows stored after\n"
+         "        for (int i = WP_TILE_THREAD_IDX; i < T * F; i += WP_TILE_BLOCK_DIM)\n"
+         "            row_ptr(out, out_row + i / F)[i % F] = po[i / F * S + i % F];\n")):
+    assert LAYER_NORM_STORE.count(_old) == 1, _old
+    LAYER_NORM_STORE = LAYER_NORM_STORE.replace(_old, _new)
 
 # silu(v): on CUDA with the fast exponential and division (__expf: 2 + 1.2 |v| ulp, far inside the tests' 1e-5; expf
 # and an IEEE division are ~20 instructions an element); the CPU keeps the exact one (ROW_STEP, ACTIVATE_FILL)
@@ -1487,6 +1550,14 @@ def helpers(spec: Spec, owner: str):
         samples, warp_stalls_h200.json)."""
         ...
 
+    @wp.func_native(LAYER_NORM_STORE)
+    def layer_norm_store(o: wp.tile(dtype=float, shape=(T, F)), gain: wp.array2d(dtype=float),
+                         shift: wp.array2d(dtype=float), row: int, eps: float,
+                         res: wp.tile(dtype=float, shape=(T, F)), residual: int, out: wp.array2d(dtype=float),
+                         out_row: int):
+        """layer_norm, the rows also stored into out[out_row:] (LAYER_NORM_STORE)."""
+        ...
+
     vec = row_vector(F)
 
     @wp.func_native(SEGMENT_SUMS)
@@ -1591,14 +1662,26 @@ def helpers(spec: Spec, owner: str):
                                o: wp.tile(dtype=float, shape=(T, F))):
         """second_layer_ahead on h = silu(first layer) already (matmul_fused's silu_out): o = [res +]
         LayerNorm(h W2 + b2), the bias added by the product."""
+        finish_bias(h, w2, row * F, 0, w2_buf, o, b2, row)
+        layer_norm(o, gain, shift, row, eps, res, residual)
+
+    @wp.func
+    def second_layer_stored(h: wp.tile(dtype=float, shape=(T, F)), w2: wp.array2d(dtype=float),
+                            w2_buf: wp.tile(dtype=float, shape=(buf_rows, F)), b2: wp.array2d(dtype=float),
+                            gain: wp.array2d(dtype=float), shift: wp.array2d(dtype=float), row: int, eps: float,
+                            res: wp.tile(dtype=float, shape=(T, F)), residual: int,
+                            o: wp.tile(dtype=float, shape=(T, F)), out: wp.array2d(dtype=float), out_row: int):
+        """second_layer_activated's rows stored into out[out_row:] (no barrier after: o is only read): on tensor
+        cores (Spec.fused_norm) written there from the accumulators and o not written (matmul_norm), so a caller
+        that reads o afterwards takes second_layer_activated there; else by the LayerNorm as it writes o."""
         if wp.static(norm):
             scratch = wp.tile_empty(shape=(4, T), dtype=float, storage="shared")
-            finish_norm(h, w2, row * F, 0, w2_buf, o, b2, row, gain, shift, eps, res, residual, scratch)
-        else:
+            finish_norm(h, w2, row * F, 0, w2_buf, o, b2, row, gain, shift, eps, res, residual, scratch, out, out_row)
+        else:  # the LayerNorm stores the rows as it writes them
             finish_bias(h, w2, row * F, 0, w2_buf, o, b2, row)
-            layer_norm(o, gain, shift, row, eps, res, residual)
+            layer_norm_store(o, gain, shift, row, eps, res, residual, out, out_row)
 
     # the last: second_layer in two parts, W2's buffer rows, the copy's start and the rest (a kernel that starts
     # its weight copies first), and the rest after a fused first layer
-    ahead = (buf_rows, begin_second_layer, second_layer_ahead, second_layer_activated)
+    ahead = (buf_rows, begin_second_layer, second_layer_ahead, second_layer_activated, second_layer_stored)
     return fill, activate, second_layer, (segment_sums, staged_segment_sums), project, gather_pair, ahead

@@ -819,15 +819,45 @@ def test_fused_layer_products_against_numpy(device, kind):
             got = out.numpy()
             assert np.abs(got - expected).max() <= 1e-5 * np.abs(expected).max(), (threads, n, init, silu_out)
             assert np.array_equal(a_out.numpy(), a), "a is read, not activated in place"
+    if tensor:
+        return
+    # matmul_fused_store (the node pass's next-stage products): the zero-init product also stored into out[3:] from
+    # the last K part's registers; acc and out both a @ W, out's rows before out_row untouched
+    for threads, rows, k, n in shapes:
+        owner = f"test_fused_store_{threads}_{k}_{n}"
+        buf_rows, begin, _finish = tiles.matmul_ahead(rows, k, k, n, kind, owner)
+        finish = tiles.matmul_fused_store(rows, k, n, owner)
+
+        @wp.kernel(enable_backward=False, module=owner)
+        def apply_store(a: wp.array2d(dtype=float), w: wp.array2d(dtype=float), bias: wp.array2d(dtype=float),
+                        c: wp.array2d(dtype=float), out: wp.array2d(dtype=float)):
+            ta = wp.tile_load(a, shape=(rows, k), storage="shared")
+            tc = wp.tile_empty(shape=(rows, n), dtype=float, storage="shared")
+            buf = wp.tile_empty(shape=(buf_rows, n), dtype=float, storage="shared")
+            begin(buf, w, 0, 0)
+            finish(ta, w, 0, 0, buf, tc, bias, 0, out, 3)
+            wp.tile_store(c, tc)
+
+        a, w, bias = (rng.standard_normal(s).astype(np.float32) for s in ((rows, k), (k, n), (1, n)))
+        c, out = (wp.full(s, np.nan, dtype=float, device=device) for s in ((rows, n), (rows + 3, n)))
+        block = threads if device != "cpu" else 1
+        wp.load_module(owner, device=device, block_dim=block)
+        wp.launch_tiled(apply_store, dim=[1], inputs=[wp.array(x, dtype=float, device=device) for x in (a, w, bias)]
+                        + [c, out], block_dim=block, device=device)
+        expected = a.astype(np.float64) @ w.astype(np.float64)
+        got = out.numpy()
+        assert np.isnan(got[:3]).all(), "rows before out_row untouched"
+        assert np.abs(got[3:] - expected).max() <= 1e-5 * np.abs(expected).max(), (threads, n)
+        assert np.array_equal(c.numpy(), got[3:]), "the tile and the stored rows the same values"
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
     not SM90, reason="wgmma needs an sm_90 GPU (H100, H200)"))])
 def test_norm_layer_product_against_numpy(device):
-    """tiles.matmul_norm (the edge pass's second layer on tensor cores with whole weights): acc = [res +]
-    LayerNorm(bias[row] + a @ W) with gain and shift of that row, the statistics from the accumulators, against
-    numpy's two-pass LayerNorm (biased variance, eps): every element of acc written (it starts as NaN), with and
-    without the residual, on one and two warpgroups (CUDA), widths of 64 and 128."""
+    """tiles.matmul_norm (the edge pass's second layer on tensor cores with whole weights): out[out_row:] = [res +]
+    LayerNorm(bias[row] + a @ W) with gain and shift of that row, stored from the accumulators, against numpy's
+    two-pass LayerNorm (biased variance, eps): every row from out_row written (it starts as NaN), none before, with
+    and without the residual, on one and two warpgroups (CUDA), widths of 64 and 128."""
     from warpgnn.kernels import tiles
     from warpgnn.kernels.shipped import arch_suffix
     from warpgnn.kernels.spec import Spec
@@ -846,12 +876,11 @@ def test_norm_layer_product_against_numpy(device):
                   residual: int, c: wp.array2d(dtype=float)):
             ta = wp.tile_load(a, shape=(64, k), storage="shared")
             tr = wp.tile_load(res, shape=(64, n), storage="shared")
-            tc = wp.tile_load(c, shape=(64, n), storage="shared")
+            tc = wp.tile_empty(shape=(64, n), dtype=float, storage="shared")
             buf = wp.tile_empty(shape=(buf_rows, n), dtype=float, storage="shared")
             begin(buf, w, 0, 0)
             scratch = wp.tile_empty(shape=(4, 64), dtype=float, storage="shared")
-            finish(ta, w, 0, 0, buf, tc, bias, 1, gain, shift, eps, tr, residual, scratch)
-            wp.tile_store(c, tc)
+            finish(ta, w, 0, 0, buf, tc, bias, 1, gain, shift, eps, tr, residual, scratch, c, 3)
 
         a, w, res = (rng.standard_normal(s).astype(np.float32) for s in ((64, k), (k, n), (64, n)))
         bias, gain, shift = (rng.standard_normal((2, n)).astype(np.float32) + o for o in (0.0, 1.0, 0.0))
@@ -861,12 +890,14 @@ def test_norm_layer_product_against_numpy(device):
         y = bias[1] + a.astype(np.float64) @ w.astype(np.float64)
         ln = (y - y.mean(1, keepdims=True)) / np.sqrt(y.var(1, keepdims=True) + eps) * gain[1] + shift[1]
         for residual in (1, 0):
-            out = wp.full((64, n), np.nan, dtype=float, device=device)
+            out = wp.full((67, n), np.nan, dtype=float, device=device)  # rows 3.. written
             arrays = [wp.array(x, dtype=float, device=device) for x in (a, tensor_core_layout(w), bias, gain, shift,
                                                                          res)]
             wp.launch_tiled(apply, dim=[1], inputs=[*arrays, residual, out], block_dim=block, device=device)
             expected = ln + res if residual else ln
-            assert np.abs(out.numpy() - expected).max() <= 1e-5 * np.abs(expected).max(), (threads, n, residual)
+            got = out.numpy()
+            assert np.isnan(got[:3]).all(), "rows before out_row untouched"
+            assert np.abs(got[3:] - expected).max() <= 1e-5 * np.abs(expected).max(), (threads, n, residual)
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
