@@ -35,6 +35,7 @@ from .tiles import (
     matmul,
     matmul_ahead,
     matmul_fused,
+    matmul_fused_store,
     row_steps,
     row_vector,
     stage,
@@ -70,18 +71,29 @@ def node_decoder(spec: Spec, owner: str):
 
     (grads_ahead, grads_mlp), (state_ahead, state_mlp) = mlp_of(N_GRAD), mlp_of(STATE)
     (grads_rows, grads_begin), (state_rows, state_begin) = grads_ahead, state_ahead
+    # whole weights (fused layers): the node pass has stored its products from the product's registers
+    # (tiles.matmul_fused_store), so delta_v's first layer is activated in place in their tile, and its second layer
+    # adds b2 in its product and stores (dE, dS) from its registers: no copy of pre, no bias fill, no store step
+    fused = spec.fused_layers and spec.gemm == "native"
+    _fill_rows, activate = row_steps(T, F, owner)
+    grads_stored = matmul_fused_store(T, F, N_GRAD, owner, "bias") if fused else None
 
     @wp.func
     def node_fields(pre: wp.tile(dtype=float, shape=(T, F)), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
                     b2: wp.array2d(dtype=float), buf: wp.tile(dtype=float, shape=(grads_rows, N_GRAD)), row0: int,
                     grads: wp.array2d(dtype=float)):
         """The hybrid's delta_v -> (dE, dS) into grads, so that they exist before the decoder's edge launch; ``pre``
-        a view of the products' tile (copied: the products' sub-views of a view would take its strides as (F, 1))."""
-        hs = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        wp.tile_assign(hs, pre)
+        a view of the products' tile (copied with K chunks: the products' sub-views of a view would take its strides as
+        (F, 1))."""
         o = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
-        grads_mlp(hs, b1, w2, b2, buf, o)
-        wp.tile_store(grads, o, offset=(row0, 0))
+        if wp.static(fused):
+            activate(pre, b1, 0, 1)
+            grads_stored(pre, w2, 0, 0, buf, o, b2, 0, grads, row0, 0)
+        else:
+            hs = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+            wp.tile_assign(hs, pre)
+            grads_mlp(hs, b1, w2, b2, buf, o)
+            wp.tile_store(grads, o, offset=(row0, 0))
 
     @wp.func
     def node_state(pre: wp.tile(dtype=float, shape=(T, F)), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),

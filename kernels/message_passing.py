@@ -92,6 +92,7 @@ def encoder_kernel(spec: Spec):
     # h = silu(b1 + x W1) in the first product, b2 added by the second (tiles.matmul_fused)
     fused = ahead and dataclasses.replace(spec, k_chunk=kc).fused_layers
     finish_in_act = matmul_fused(T, FW, F, spec.gemm, owner, "bias", silu_out=True) if fused else finish_in
+    stored = fused and not dataclasses.replace(spec, k_chunk=kc).fused_norm  # y read after: not from accumulators
     tile_features = features.tile_features(T, owner)
     load_feat, loaded_feat = stage(T, FW, owner)
     store_rows = store(T, F, owner)
@@ -161,7 +162,11 @@ def encoder_kernel(spec: Spec):
         if wp.static(not fused):
             fill(h, b1, cls)
         y = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        if wp.static(fused):
+        if wp.static(stored):  # the latents stored by the LayerNorm as it writes them (one block a tile)
+            finish_in_act(x, w1, cls * FW, 0, w1_buf, h, b1, cls)
+            lat_row = wp.where(tool_pass == 0, row0, -1)
+            second_layer_stored(h, w2, w2_buf, b2, gain, shift, cls, eps, h, 0, y, lat, lat_row)
+        elif wp.static(fused):
             finish_in_act(x, w1, cls * FW, 0, w1_buf, h, b1, cls)
             second_layer_activated(h, w2, w2_buf, b2, gain, shift, cls, eps, h, 0, y)
         elif wp.static(ahead):
@@ -170,8 +175,9 @@ def encoder_kernel(spec: Spec):
         else:
             mm_in(x, w1, cls * FW, 0, h)
             second_layer(h, w2, b2, gain, shift, cls, eps, h, 0, y)
-        if tool_pass == 0:
-            store_rows(y, lat, row0, 0)
+        if wp.static(not stored):
+            if tool_pass == 0:
+                store_rows(y, lat, row0, 0)
         if cls == 0:
             for c in range(chunk0, chunk1):  # pass 0's node products
                 project(y, proj, 0, c * F, products, row0, c * F)
@@ -449,7 +455,7 @@ def node_kernel(spec: Spec, decode: int = 0):
         # zero weights, or read by no launch)
         if wp.static(stored_next):
             nxt = wp.tile_empty(shape=(T, next_cols), dtype=float, storage="shared")
-            finish_next_stored(y, proj, (p + 1) * F, out_col, proj_buf, nxt, b1, 0, products, row0)
+            finish_next_stored(y, proj, (p + 1) * F, out_col, proj_buf, nxt, b1, 0, products, row0, 0)
         elif wp.static(fused):
             nxt = wp.tile_empty(shape=(T, next_cols), dtype=float, storage="shared")
             finish_next(y, proj, (p + 1) * F, out_col, proj_buf, nxt, b1, 0)

@@ -352,16 +352,18 @@ def _gemm_fused_source(init: str, silu_out: bool, store_out: bool = False) -> st
              "            }\n")):
         assert add.count(old) == 1, old
         add = add.replace(old, new)
-    if store_out:  # the last part's values stored into out[out_row:] too (further arguments out, out_row)
+    if store_out:  # the last part's values stored into out[out_row:, out_col:] too, none where out_row < 0 (further
+        # arguments out, out_row, out_col)
         for old, new in (
                 ("                *q = v;\n",
                  "                *q = v;\n"
-                 "                if (last)\n"
-                 "                    *reinterpret_cast<float4*>(row_ptr(out, out_row + r0 + i) + c0) = v;\n"),
+                 "                if (last && out_row >= 0)\n"
+                 "                    *reinterpret_cast<float4*>(row_ptr(out, out_row + r0 + i) + out_col + c0) =\n"
+                 "                        v;\n"),
                 ("                *q = SILU_OUT && last ? silu(v) : v;\n",
                  "                *q = SILU_OUT && last ? silu(v) : v;\n"
-                 "                if (last)\n"
-                 "                    row_ptr(out, out_row + r0 + i)[c0 + j] = *q;\n")):
+                 "                if (last && out_row >= 0)\n"
+                 "                    row_ptr(out, out_row + r0 + i)[out_col + c0 + j] = *q;\n")):
             assert add.count(old) == 1, old
             add = add.replace(old, new)
     dispatch = GEMM_DISPATCH
@@ -967,14 +969,15 @@ def matmul_fused(rows: int, k: int, n: int, kind: str, owner: str, init: str = "
 
 @functools.cache
 def matmul_fused_store(rows: int, k: int, n: int, owner: str, init: str = "zero"):
-    """finish(a, W, row0, col0, buf, acc, bias, bias_row, out, out_row): matmul_fused's "native" product (no
-    activation) with the result also stored into out[out_row:] from the registers of the last K part's add, where a
-    store step read acc again after a barrier (the node pass's next-stage products)."""
+    """finish(a, W, row0, col0, buf, acc, bias, bias_row, out, out_row, out_col): matmul_fused's "native" product
+    (no activation) with the result also stored into out[out_row:, out_col:] (nowhere where out_row < 0) from the
+    registers of the last K part's add, where a store step read acc again after a barrier (the node pass's next-stage
+    products, the encoder's pass-0 node products)."""
     _stage_copy, staged = stage(k, n, owner)
 
     def product(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(k, n)),
                 acc: wp.tile(dtype=float, shape=(rows, n)), bias: wp.array2d(dtype=float), bias_row: int,
-                out: wp.array2d(dtype=float), out_row: int): ...
+                out: wp.array2d(dtype=float), out_row: int, out_col: int): ...
 
     product.__qualname__ = f"fused_store_{init}"  # a name a variant (fused_product)
     product = wp.func_native(_gemm_fused_source(init, False, store_out=True))(product)
@@ -982,10 +985,11 @@ def matmul_fused_store(rows: int, k: int, n: int, owner: str, init: str = "zero"
     @wp.func
     def finish(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
                buf: wp.tile(dtype=float, shape=(k, n)), acc: wp.tile(dtype=float, shape=(rows, n)),
-               bias: wp.array2d(dtype=float), bias_row: int, out: wp.array2d(dtype=float), out_row: int):
+               bias: wp.array2d(dtype=float), bias_row: int, out: wp.array2d(dtype=float), out_row: int,
+               out_col: int):
         b = wp.tile_view(buf, offset=(0, 0), shape=(k, n))
         staged(b)
-        product(a, b, acc, bias, bias_row, out, out_row)
+        product(a, b, acc, bias, bias_row, out, out_row, out_col)
 
     return finish
 
@@ -1155,22 +1159,25 @@ LAYER_NORM = ROW_PTR + r"""
     WP_TILE_SYNC();
 """
 
-# LAYER_NORM with the rows also stored into out[out_row:] as they are written (the native function's further
-# arguments ``out``, ``out_row``), where a store step read the tile again after a barrier (the node pass's latents)
+# LAYER_NORM with the rows also stored into out[out_row:] as they are written, none where out_row < 0 (the native
+# function's further arguments ``out``, ``out_row``), where a store step read the tile again after a barrier (the node
+# pass's and the encoder's latents)
 LAYER_NORM_STORE = LAYER_NORM
 for _old, _new in (
         ("                        *reinterpret_cast<float4*>(po + r * S + col(j)) = y;\n",
          "                        *reinterpret_cast<float4*>(po + r * S + col(j)) = y;\n"
-         "                        *reinterpret_cast<float4*>(row_ptr(out, out_row + r) + col(j)) = y;\n"),
+         "                        if (out_row >= 0)\n"
+         "                            *reinterpret_cast<float4*>(row_ptr(out, out_row + r) + col(j)) = y;\n"),
         ("                    for (int j = 0; j < PER; ++j)\n"
          "                        po[r * S + col(j)] = residual ? pr[r * SR + col(j)] + x[j] : x[j];\n",
          "                    for (int j = 0; j < PER; ++j) {\n"
          "                        po[r * S + col(j)] = residual ? pr[r * SR + col(j)] + x[j] : x[j];\n"
-         "                        row_ptr(out, out_row + r)[col(j)] = po[r * S + col(j)];\n"
+         "                        if (out_row >= 0)\n"
+         "                            row_ptr(out, out_row + r)[col(j)] = po[r * S + col(j)];\n"
          "                    }\n"),
         ("    WP_TILE_SYNC();\n",
          "    WP_TILE_SYNC();\n"
-         "    if (!done)  // off CUDA: the rows stored after\n"
+         "    if (!done && out_row >= 0)  // off CUDA: the rows stored after\n"
          "        for (int i = WP_TILE_THREAD_IDX; i < T * F; i += WP_TILE_BLOCK_DIM)\n"
          "            row_ptr(out, out_row + i / F)[i % F] = po[i / F * S + i % F];\n")):
     assert LAYER_NORM_STORE.count(_old) == 1, _old
@@ -1601,20 +1608,28 @@ def helpers(spec: Spec, owner: str):
     buf_rows, begin_ff, finish_ff = matmul_ahead(T, F, spec.kc, F, spec.gemm, owner)
     fused = spec.fused_layers  # whole weights: the layers' biases, activations and zero tiles in their products
     finish_zero = matmul_fused(T, F, F, spec.gemm, owner, "zero") if fused else finish_ff
+    stored = fused and spec.gemm == "native"
+    finish_stored = matmul_fused_store(T, F, F, owner) if stored else finish_ff
 
     @wp.func
     def project(y: wp.tile(dtype=float, shape=(T, F)), w: wp.array2d(dtype=float), row0: int, col0: int,
                 out: wp.array2d(dtype=float), out_row: int, out_col: int):
         """out[out_row:, out_col:] = y @ W[row0:row0 + F, col0:col0 + F] (a block of node products)."""
-        if wp.static(fused):
+        if wp.static(stored):  # stored from the product's registers, no tile_store after a barrier
+            acc = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+            buf = wp.tile_empty(shape=(buf_rows, F), dtype=float, storage="shared")
+            begin_ff(buf, w, row0, col0)
+            finish_stored(y, w, row0, col0, buf, acc, w, 0, out, out_row, out_col)
+        elif wp.static(fused):
             acc = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
             buf = wp.tile_empty(shape=(buf_rows, F), dtype=float, storage="shared")
             begin_ff(buf, w, row0, col0)
             finish_zero(y, w, row0, col0, buf, acc, w, 0)
+            wp.tile_store(out, acc, offset=(out_row, out_col))
         else:
             acc = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
             mm_ff(y, w, row0, col0, acc)
-        wp.tile_store(out, acc, offset=(out_row, out_col))
+            wp.tile_store(out, acc, offset=(out_row, out_col))
 
     fill, activate = row_steps(T, F, owner)
     activate_bias = activate_fill(T, F, F, owner)
@@ -1673,7 +1688,8 @@ def helpers(spec: Spec, owner: str):
                             o: wp.tile(dtype=float, shape=(T, F)), out: wp.array2d(dtype=float), out_row: int):
         """second_layer_activated's rows stored into out[out_row:] (no barrier after: o is only read): on tensor
         cores (Spec.fused_norm) written there from the accumulators and o not written (matmul_norm), so a caller
-        that reads o afterwards takes second_layer_activated there; else by the LayerNorm as it writes o."""
+        that reads o afterwards takes second_layer_activated there; else by the LayerNorm as it writes o, and
+        nowhere where out_row < 0."""
         if wp.static(norm):
             scratch = wp.tile_empty(shape=(4, T), dtype=float, storage="shared")
             finish_norm(h, w2, row * F, 0, w2_buf, o, b2, row, gain, shift, eps, res, residual, scratch, out, out_row)

@@ -821,8 +821,9 @@ def test_fused_layer_products_against_numpy(device, kind):
             assert np.array_equal(a_out.numpy(), a), "a is read, not activated in place"
     if tensor:
         return
-    # matmul_fused_store (the node pass's next-stage products): the zero-init product also stored into out[3:] from
-    # the last K part's registers; acc and out both a @ W, out's rows before out_row untouched
+    # matmul_fused_store (the node pass's next-stage products, the encoder's pass-0 ones): the zero-init product also
+    # stored into out[3:, 4:] from the last K part's registers; acc and out both a @ W, out's rows before out_row and
+    # columns before out_col untouched, and nothing stored where out_row < 0
     for threads, rows, k, n in shapes:
         owner = f"test_fused_store_{threads}_{k}_{n}"
         buf_rows, begin, _finish = tiles.matmul_ahead(rows, k, k, n, kind, owner)
@@ -835,20 +836,21 @@ def test_fused_layer_products_against_numpy(device, kind):
             tc = wp.tile_empty(shape=(rows, n), dtype=float, storage="shared")
             buf = wp.tile_empty(shape=(buf_rows, n), dtype=float, storage="shared")
             begin(buf, w, 0, 0)
-            finish(ta, w, 0, 0, buf, tc, bias, 0, out, 3)
+            finish(ta, w, 0, 0, buf, tc, bias, 0, out, 3, 4)
+            finish(ta, w, 0, 0, buf, tc, bias, 0, out, -1, 0)
             wp.tile_store(c, tc)
 
         a, w, bias = (rng.standard_normal(s).astype(np.float32) for s in ((rows, k), (k, n), (1, n)))
-        c, out = (wp.full(s, np.nan, dtype=float, device=device) for s in ((rows, n), (rows + 3, n)))
+        c, out = (wp.full(s, np.nan, dtype=float, device=device) for s in ((rows, n), (rows + 3, n + 4)))
         block = threads if device != "cpu" else 1
         wp.load_module(owner, device=device, block_dim=block)
         wp.launch_tiled(apply_store, dim=[1], inputs=[wp.array(x, dtype=float, device=device) for x in (a, w, bias)]
                         + [c, out], block_dim=block, device=device)
         expected = a.astype(np.float64) @ w.astype(np.float64)
         got = out.numpy()
-        assert np.isnan(got[:3]).all(), "rows before out_row untouched"
-        assert np.abs(got[3:] - expected).max() <= 1e-5 * np.abs(expected).max(), (threads, n)
-        assert np.array_equal(c.numpy(), got[3:]), "the tile and the stored rows the same values"
+        assert np.isnan(got[:3]).all() and np.isnan(got[:, :4]).all(), "rows and columns before out_row, out_col"
+        assert np.abs(got[3:, 4:] - expected).max() <= 1e-5 * np.abs(expected).max(), (threads, n)
+        assert np.array_equal(c.numpy(), got[3:, 4:]), "the tile and the stored rows the same values"
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
