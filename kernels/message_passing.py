@@ -40,6 +40,7 @@ from .tiles import (
     matmul_ahead,
     matmul_fused,
     matmul_fused_store,
+    matmul_gather,
     row_vector,
     stage,
     store,
@@ -255,6 +256,10 @@ def edge_kernel(spec: Spec):
     ahead = edges.kc == F
     fused = ahead and edges.fused_layers  # h = silu(h + e W_e) in the first product, b2 added by the second
     finish_act = matmul_fused(T, F, F, edges.gemm, owner, silu_out=True) if fused else finish_ff
+    # on tensor cores the per-node parts gathered into registers before e's wait and added in the first product's
+    # epilogue (tiles.matmul_gather), not into a tile with a barrier of their own before it
+    gathered = fused and edges.gemm == "wgmma"
+    gather_regs, finish_gather = matmul_gather(T, F, F, owner) if gathered else (None, None)
     # with whole weights the edge pass holds at least EDGE_PASS_SHARED bytes of shared memory (its tiles, then a spare
     # tile), so that at most two of its blocks share an SM (sm_80: 164 KiB an SM, sm_90: 228): overlapped with the
     # node pass, its blocks (56 KiB each) were otherwise packed three to an SM beside the node pass's and ran their
@@ -300,10 +305,16 @@ def edge_kernel(spec: Spec):
         e = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         load_rows(e, lat, row0, 0)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        gather_pair(h, b1, wi, products, ids, recv_col, send_row, F)
+        if wp.static(gathered):
+            g = gather_regs(products, ids, recv_col, send_row, F)
+        else:
+            gather_pair(h, b1, wi, products, ids, recv_col, send_row, F)
         loaded(e)
         o = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-        if wp.static(fused):  # the rows stored by the second layer (from its registers on tensor cores)
+        if wp.static(gathered):
+            finish_gather(e, w_e, wi * F, 0, w1_buf, h, b1, wi, g, products, ids, recv_col, send_row, F)
+            second_layer_stored(h, w2, w2_buf, b2, gain, shift, wi, eps, e, 1, o, lat, row0)
+        elif wp.static(fused):  # the rows stored by the second layer (from its registers on tensor cores)
             finish_act(e, w_e, wi * F, 0, w1_buf, h, b1, wi)
             second_layer_stored(h, w2, w2_buf, b2, gain, shift, wi, eps, e, 1, o, lat, row0)
         elif wp.static(ahead):

@@ -524,6 +524,56 @@ def wgmma_asm(n: int, d: str, a: str, desc: str) -> str:
             f'"r"({a}[2]), "r"({a}[3]), "l"({desc}))')
 
 
+# the edge rows' receivers and senders (stage_ids) and a products row's floats, for the gathers below
+GATHER_IDS = r"""
+    const int* __restrict__ rv = ids.data.ptr;
+    const int* __restrict__ sv = rv + tile_ids::Layout::Stride::dim(0);
+    auto prow = [&](int r) { return reinterpret_cast<const wp::float32*>(row_ptr(products, r)); };
+"""
+
+# matmul_gather's loads (@N@ the product's columns): the receiver and sender products P_r, P_s of the elements a
+# thread holds in the wgmma epilogue (_wgmma_source: rows r0, r1, lane pairs swapped to 4 consecutive columns) into
+# registers, P_r's in g[0, NW / 2), P_s's in g[NW / 2, NW); loaded before the product so that their latency is spent
+# while a's rows load and its wgmmas run (the gather step, GATHER_PAIR, wrote them to a tile with a barrier first).
+# CUDA on wgmma blocks only: elsewhere g stays zero and the product gathers itself (_wgmma_source's CPU path).
+GATHER_REGS = ROW_PTR + GATHER_IDS + r"""
+    auto r = g;
+#if defined(__CUDA_ARCH__)
+    constexpr int N = @N@, WG = WP_TILE_BLOCK_DIM / 128, NW = WG > 0 ? N / WG : N;
+    if constexpr (WP_TILE_BLOCK_DIM % 128 == 0 && NW % 8 == 0) {
+        const int group = threadIdx.x / 128, warp = threadIdx.x / 32 % 4, lane = threadIdx.x % 32, q = lane % 4;
+        const int r0 = 16 * warp + lane / 4, r1 = r0 + 8, c0 = group * NW;
+        const bool odd = q & 1;
+        const wp::float32* pr[2] = {prow(rv[r0]) + recv_col, prow(rv[r1]) + recv_col};
+        const wp::float32* ps[2] = {prow(send_row + sv[r0]) + send_col, prow(send_row + sv[r1]) + send_col};
+#pragma unroll
+        for (int j = 0; j + 1 < NW / 8; j += 2) {
+#pragma unroll
+            for (int h = 0; h < 2; ++h) {
+                const int c = c0 + (odd ? 8 * j + 6 + 2 * q : 8 * j + 2 * q), i = 8 * (j / 2) + 4 * h;
+                const float4 x = *reinterpret_cast<const float4*>(pr[h] + c);
+                const float4 y = *reinterpret_cast<const float4*>(ps[h] + c);
+                r[i] = x.x; r[i + 1] = x.y; r[i + 2] = x.z; r[i + 3] = x.w;
+                r[NW / 2 + i] = y.x; r[NW / 2 + i + 1] = y.y; r[NW / 2 + i + 2] = y.z; r[NW / 2 + i + 3] = y.w;
+            }
+        }
+        if constexpr (NW % 16 == 8) {  // an odd last 8-column block: pairs of columns of rows r0, r1
+            const int c = c0 + 8 * (NW / 8 - 1) + 2 * q;
+#pragma unroll
+            for (int h = 0; h < 2; ++h) {
+                const int i = 8 * (NW / 16) + 2 * h;
+                const float2 x = *reinterpret_cast<const float2*>(pr[h] + c);
+                const float2 y = *reinterpret_cast<const float2*>(ps[h] + c);
+                r[i] = x.x; r[i + 1] = x.y;
+                r[NW / 2 + i] = y.x; r[NW / 2 + i + 1] = y.y;
+            }
+        }
+    }
+#endif
+    return r;
+"""
+
+
 def _wgmma_source(mode: str = "product", init: str = "acc", silu_out: bool = False) -> str:
     """GEMM_WGMMA's C++ (``mode`` "product"), or over K chunks the accumulators carried from chunk to chunk in the
     registers s and returned (``carry``), then added into acc after the last (``settle``), as GEMM_CARRY does: one
@@ -651,13 +701,14 @@ def _wgmma_source(mode: str = "product", init: str = "acc", silu_out: bool = Fal
 """ + ("    return s;\n" if carry else "")
     if not (silu_out or init != "acc"):
         return src
-    assert mode == "product" and init in ("acc", "zero", "bias"), "a fused product: one K chunk"
-    bias = "make_float4(0.f, 0.f, 0.f, 0.f)" if init == "zero" else "bq[j / 2]"
-    bias2 = "make_float2(0.f, 0.f)" if init == "zero" else "bt"
+    assert mode == "product" and init in ("acc", "zero", "bias", "gather"), "a fused product: one K chunk"
+    bias = {"zero": "make_float4(0.f, 0.f, 0.f, 0.f)", "bias": "bq[j / 2]", "gather": "gathered(j, h)"}.get(init)
+    bias2 = {"zero": "make_float2(0.f, 0.f)", "bias": "bt"}.get(init)
     act4 = "\n            w = make_float4(silu(w.x), silu(w.y), silu(w.z), silu(w.w));" if silu_out else ""
     act2 = ("\n        w0 = make_float2(silu(w0.x), silu(w0.y));\n        w1 = make_float2(silu(w1.x), silu(w1.y));"
             if silu_out else "")
-    cpu_init = {"acc": "pc[r * SC + c]", "zero": "wp::float32(0)", "bias": "pbias[c]"}[init]
+    cpu_init = {"acc": "pc[r * SC + c]", "zero": "wp::float32(0)", "bias": "pbias[c]",
+                "gather": "(pbias[c] + prow(rv[r])[recv_col + c]) + prow(send_row + sv[r])[send_col + c]"}[init]
     # the bias columns of the thread's epilogue (below), loaded before the wgmmas so that their latency is hidden
     preload = r"""
     float4 bq[NW / 16 > 0 ? NW / 16 : 1];
@@ -667,14 +718,30 @@ def _wgmma_source(mode: str = "product", init: str = "acc", silu_out: bool = Fal
         bq[j / 2] = *reinterpret_cast<const float4*>(pbias + c0 + ((q & 1) ? 8 * j + 6 + 2 * q : 8 * j + 2 * q));
     if constexpr (NW % 16 == 8)
         bt = *reinterpret_cast<const float2*>(pbias + c0 + 8 * (NW / 8 - 1) + 2 * q);
-""" if init == "bias" else ""
+""" if init in ("bias", "gather") else ""
+    if init == "gather":  # the rows' gathered products: g (gather_registers), added to the bias in the epilogue
+        preload += r"""
+    // (bias + P_r) + P_s at the thread's epilogue block j (of 4 columns) of row h (r0, r1), as GATHER_PAIR sums them
+    auto gathered = [&](int j, int h) {
+        const int i = 8 * (j / 2) + 4 * h;
+        return make_float4((bq[j / 2].x + g[i]) + g[NW / 2 + i], (bq[j / 2].y + g[i + 1]) + g[NW / 2 + i + 1],
+                           (bq[j / 2].z + g[i + 2]) + g[NW / 2 + i + 2], (bq[j / 2].w + g[i + 3]) + g[NW / 2 + i + 3]);
+    };
+    // the odd last 8-column block's pair of columns of row h (r0, r1)
+    auto gathered2 = [&](int h) {
+        const int i = 8 * (NW / 16) + 2 * h;
+        return make_float2((bt.x + g[i]) + g[NW / 2 + i], (bt.y + g[i + 1]) + g[NW / 2 + i + 1]);
+    };
+"""
     src = ROW_PTR + SILU + ("    const wp::float32* __restrict__ pbias = row_ptr(bias, bias_row);\n"
-                            if init == "bias" else "") + src
+                            if init in ("bias", "gather") else "") + (GATHER_IDS if init == "gather" else "") + src
     fence = "    // b was written by the block's generic-proxy copies"
     edits = [(fence, preload + fence)]
     if init != "acc":
         edits += [("float4 w = *o;", f"float4 w = {bias};"),
-                  ("float2 w0 = *o0, w1 = *o1;", f"float2 w0 = {bias2}, w1 = w0;")]
+                  ("float2 w0 = *o0, w1 = *o1;",
+                   "float2 w0 = gathered2(0), w1 = gathered2(1);" if init == "gather"
+                   else f"float2 w0 = {bias2}, w1 = w0;")]
     edits += [("            w.x += v.x; w.y += v.y; w.z += v.z; w.w += v.w;\n",
                "            w.x += v.x; w.y += v.y; w.z += v.z; w.w += v.w;" + act4 + "\n"),
               ("        w0.x += d[4 * j]; w0.y += d[4 * j + 1]; w1.x += d[4 * j + 2]; w1.y += d[4 * j + 3];\n",
@@ -965,6 +1032,50 @@ def matmul_fused(rows: int, k: int, n: int, kind: str, owner: str, init: str = "
         product(a, b, acc, bias, bias_row)
 
     return finish
+
+
+@functools.cache
+def matmul_gather(rows: int, k: int, n: int, owner: str):
+    """(gather, finish) for an edge MLP's first layer on tensor cores with whole weights, its per-node parts
+    gathered in the product's epilogue (the edge pass, batch 1 on sm_90): g = gather(products, ids, recv_col,
+    send_row, send_col) loads a thread's receiver and sender products into registers (GATHER_REGS; issue it before
+    the wait for a's rows, so that the loads are in flight with theirs and with the wgmmas), then finish(a, W, row0,
+    col0, buf, acc, bias, bias_row, g, products, ids, recv_col, send_row, send_col): acc = silu(((bias[bias_row] +
+    P[ids[0, r], recv_col:]) + P[send_row + ids[1, r], send_col:]) + a @ W) for W in the buffer of matmul_ahead(rows,
+    k, k, n, "wgmma", owner), the sums in gather_pair's order then the product's: the same values as gather_pair and
+    matmul_fused(..., silu_out=True) bit for bit, without the gathered tile's write, its barrier and its read."""
+    vec, regs = row_vector(n), wp.types.vector(length=n, dtype=float)
+    ck = 2 * k
+    _stage_copy, staged = stage(ck, n, owner)
+
+    # (Warp takes a native function's return type only under the decorator's own syntax)
+    @wp.func_native(GATHER_REGS.replace("@N@", str(n)))
+    def load(g: regs, products: wp.array2d(dtype=vec), ids: wp.tile(dtype=wp.int32, shape=(2, rows)),
+             recv_col: int, send_row: int, send_col: int) -> regs: ...
+
+    def product(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(ck, n)),
+                acc: wp.tile(dtype=float, shape=(rows, n)), bias: wp.array2d(dtype=float), bias_row: int, g: regs,
+                products: wp.array2d(dtype=vec), ids: wp.tile(dtype=wp.int32, shape=(2, rows)), recv_col: int,
+                send_row: int, send_col: int): ...
+
+    product.__qualname__ = "fused_wgmma_gather_silu"
+    product = wp.func_native(_wgmma_source(init="gather", silu_out=True))(product)
+
+    @wp.func
+    def gather(products: wp.array2d(dtype=vec), ids: wp.tile(dtype=wp.int32, shape=(2, rows)), recv_col: int,
+               send_row: int, send_col: int) -> regs:
+        return load(regs(), products, ids, recv_col, send_row, send_col)
+
+    @wp.func
+    def finish(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
+               buf: wp.tile(dtype=float, shape=(ck, n)), acc: wp.tile(dtype=float, shape=(rows, n)),
+               bias: wp.array2d(dtype=float), bias_row: int, g: regs, products: wp.array2d(dtype=vec),
+               ids: wp.tile(dtype=wp.int32, shape=(2, rows)), recv_col: int, send_row: int, send_col: int):
+        b = wp.tile_view(buf, offset=(0, 0), shape=(ck, n))
+        staged(b)
+        product(a, b, acc, bias, bias_row, g, products, ids, recv_col, send_row, send_col)
+
+    return gather, finish
 
 
 @functools.cache

@@ -855,6 +855,62 @@ def test_fused_layer_products_against_numpy(device, kind):
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
     not SM90, reason="wgmma needs an sm_90 GPU (H100, H200)"))])
+def test_gathered_first_layer_against_numpy(device):
+    """tiles.matmul_gather (the edge pass's first layer on tensor cores with whole weights, its per-node parts
+    gathered into registers and added in the product's epilogue): acc = silu(((bias[row] + P[recv, recv_col:]) +
+    P[send_row + send, send_col:]) + a @ W) for random receivers and senders, against numpy: every element written
+    (acc starts as NaN), on one and two warpgroups (CUDA), widths of 64 and 144 (two warpgroups of 72 columns: the
+    epilogue's odd last 8-column block)."""
+    from warpgnn.kernels import tiles
+    from warpgnn.kernels.shipped import arch_suffix
+    from warpgnn.kernels.spec import Spec
+    from warpgnn.kernels.weights import tensor_core_layout
+
+    rng = np.random.default_rng(13)
+    silu = lambda v: v / (1 + np.exp(-v))  # noqa: E731
+    for threads, k, n in ((128, 64, 64), (256, 64, 64), (256, 32, 144)):
+        owner = f"test_gather_{threads}_{k}_{n}"
+        buf_rows, begin, _finish = tiles.matmul_ahead(64, k, k, n, "wgmma", owner)
+        stage_ids, _offsets = tiles.index_steps(64, owner)
+        gather, finish = tiles.matmul_gather(64, k, n, owner)
+        vec = tiles.row_vector(n)
+
+        @wp.kernel(enable_backward=False, module=owner)
+        def apply(a: wp.array2d(dtype=float), w: wp.array2d(dtype=float), bias: wp.array2d(dtype=float),
+                  products: wp.array2d(dtype=vec), recv: wp.array(dtype=wp.int32), send: wp.array(dtype=wp.int32),
+                  send_row: int, c: wp.array2d(dtype=float)):
+            ids = wp.tile_empty(shape=(2, 64), dtype=wp.int32, storage="shared")
+            stage_ids(ids, recv, send, 0)
+            ta = wp.tile_load(a, shape=(64, k), storage="shared")
+            tc = wp.tile_empty(shape=(64, n), dtype=float, storage="shared")
+            buf = wp.tile_empty(shape=(buf_rows, n), dtype=float, storage="shared")
+            begin(buf, w, 0, 0)
+            g = gather(products, ids, 2 * n, send_row, n)
+            finish(ta, w, 0, 0, buf, tc, bias, 1, g, products, ids, 2 * n, send_row, n)
+            wp.tile_store(c, tc)
+
+        a, w = (rng.standard_normal(s).astype(np.float32) for s in ((64, k), (k, n)))
+        bias = rng.standard_normal((2, n)).astype(np.float32)
+        prods = rng.standard_normal((40, 3 * n)).astype(np.float32)
+        recv, send = rng.integers(0, 40, 64).astype(np.int32), rng.integers(0, 30, 64).astype(np.int32)
+        block = threads if device != "cpu" else 1
+        with arch_suffix(Spec(16, edge_rows=64, edge_gemm="wgmma")):  # sm_90a on CUDA
+            wp.load_module(owner, device=device, block_dim=block)
+        out = wp.full((64, n), np.nan, dtype=float, device=device)
+        inputs = [wp.array(x, dtype=float, device=device) for x in (a, tensor_core_layout(w), bias)]
+        inputs += [tiles.row_view(wp.array(prods, dtype=float, device=device), n),
+                   wp.array(recv, dtype=wp.int32, device=device), wp.array(send, dtype=wp.int32, device=device), 10,
+                   out]
+        wp.launch_tiled(apply, dim=[1], inputs=inputs, block_dim=block, device=device)
+        p64 = prods.astype(np.float64)
+        pre = bias[1] + p64[recv, 2 * n:] + p64[10 + send, n:2 * n] + a.astype(np.float64) @ w.astype(np.float64)
+        expected = silu(pre)
+        got = out.numpy()
+        assert np.abs(got - expected).max() <= 1e-5 * np.abs(expected).max(), (threads, n)
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
+    not SM90, reason="wgmma needs an sm_90 GPU (H100, H200)"))])
 def test_norm_layer_product_against_numpy(device):
     """tiles.matmul_norm (the edge pass's second layer on tensor cores with whole weights): out[out_row:] = [res +]
     LayerNorm(bias[row] + a @ W) with gain and shift of that row, stored from the accumulators, against numpy's
