@@ -384,6 +384,10 @@ def node_kernel(spec: Spec, decode: int = 0):
     stored_next = fused and decode != DECODE_STATE and spec.gemm == "native"
     # the latents likewise by the LayerNorm (not where it runs from the accumulators and leaves y unwritten)
     stored_latents = fused and decode == 0 and not spec.nodes.fused_norm
+    # the hybrid's delta_v activates its first layer in place in the products' tile where they are stored already
+    # (node_decoder's fields on whole weights): the two conditions must agree
+    assert not (decode == DECODE_FIELDS and ahead) or stored_next == (spec.nodes.fused_layers
+                                                                      and spec.nodes.gemm == "native")
     finish_next_stored = matmul_fused_store(T, F, next_cols, owner) if stored_next else finish_out
     load_rows, loaded = stage(T, F, owner)
     store_rows, store_products = store(T, F, owner), store(T, F3, owner)

@@ -1787,7 +1787,8 @@ def helpers(spec: Spec, owner: str):
                                res: wp.tile(dtype=float, shape=(T, F)), residual: int,
                                o: wp.tile(dtype=float, shape=(T, F))):
         """second_layer_ahead on h = silu(first layer) already (matmul_fused's silu_out): o = [res +]
-        LayerNorm(h W2 + b2), the bias added by the product."""
+        LayerNorm(h W2 + b2), the bias added by the product, then a LayerNorm step, o written on any product (the
+        LayerNorm from tensor cores' accumulators, which leaves o unwritten, is second_layer_stored's)."""
         finish_bias(h, w2, row * F, 0, w2_buf, o, b2, row)
         layer_norm(o, gain, shift, row, eps, res, residual)
 
@@ -1798,9 +1799,9 @@ def helpers(spec: Spec, owner: str):
                             res: wp.tile(dtype=float, shape=(T, F)), residual: int,
                             o: wp.tile(dtype=float, shape=(T, F)), out: wp.array2d(dtype=float), out_row: int):
         """second_layer_activated's rows stored into out[out_row:] (no barrier after: o is only read): on tensor
-        cores (Spec.fused_norm) written there from the accumulators and o not written (matmul_norm), so a caller
-        that reads o afterwards takes second_layer_activated there; else by the LayerNorm as it writes o, and
-        nowhere where out_row < 0."""
+        cores (Spec.fused_norm) written there from the accumulators and o not written (matmul_norm; out_row >= 0),
+        so a caller that reads o afterwards takes second_layer_activated there; else by the LayerNorm as it writes
+        o, and nowhere where out_row < 0. out's row stride a multiple of 4 floats (16-byte stores)."""
         if wp.static(norm):
             scratch = wp.tile_empty(shape=(4, T), dtype=float, storage="shared")
             finish_norm(h, w2, row * F, 0, w2_buf, o, b2, row, gain, shift, eps, res, residual, scratch, out, out_row)

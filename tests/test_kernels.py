@@ -12,6 +12,8 @@ Kernels compile once per latent width (one Warp module each, cached on disk); bu
 after that costs milliseconds, so the tests build many.
 """
 
+import itertools
+
 import numpy as np
 import pytest
 import torch
@@ -821,13 +823,13 @@ def test_fused_layer_products_against_numpy(device, kind):
             assert np.array_equal(a_out.numpy(), a), "a is read, not activated in place"
     if tensor:
         return
-    # matmul_fused_store (the node pass's next-stage products, the encoder's pass-0 ones): the zero-init product also
-    # stored into out[3:, 4:] from the last K part's registers; acc and out both a @ W, out's rows before out_row and
-    # columns before out_col untouched, and nothing stored where out_row < 0
-    for threads, rows, k, n in shapes:
-        owner = f"test_fused_store_{threads}_{k}_{n}"
+    # matmul_fused_store (the node pass's next-stage products, the encoder's pass-0 ones, the hybrid's (dE, dS) from
+    # bias[0]): the product also stored into out[3:, 4:] from the last K part's registers; acc and out both init + a @
+    # W, out's rows before out_row and columns before out_col untouched, and nothing stored where out_row < 0
+    for (threads, rows, k, n), init in itertools.product(shapes + [(256, 8, 64, 24)], ("zero", "bias")):
+        owner = f"test_fused_store_{threads}_{k}_{n}_{init}"
         buf_rows, begin, _finish = tiles.matmul_ahead(rows, k, k, n, kind, owner)
-        finish = tiles.matmul_fused_store(rows, k, n, owner)
+        finish = tiles.matmul_fused_store(rows, k, n, owner, init)
 
         @wp.kernel(enable_backward=False, module=owner)
         def apply_store(a: wp.array2d(dtype=float), w: wp.array2d(dtype=float), bias: wp.array2d(dtype=float),
@@ -846,11 +848,61 @@ def test_fused_layer_products_against_numpy(device, kind):
         wp.load_module(owner, device=device, block_dim=block)
         wp.launch_tiled(apply_store, dim=[1], inputs=[wp.array(x, dtype=float, device=device) for x in (a, w, bias)]
                         + [c, out], block_dim=block, device=device)
-        expected = a.astype(np.float64) @ w.astype(np.float64)
+        expected = (bias[0] if init == "bias" else 0.0) + a.astype(np.float64) @ w.astype(np.float64)
         got = out.numpy()
         assert np.isnan(got[:3]).all() and np.isnan(got[:, :4]).all(), "rows and columns before out_row, out_col"
         assert np.abs(got[3:, 4:] - expected).max() <= 1e-5 * np.abs(expected).max(), (threads, n)
         assert np.array_equal(c.numpy(), got[3:, 4:]), "the tile and the stored rows the same values"
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
+    not HAS_CUDA, reason="needs a CUDA device"))])
+def test_stored_second_layer_against_numpy(device):
+    """helpers' second_layer_stored on "native" products (the node pass's and the encoder's second layer with whole
+    weights): o = res + LayerNorm(h W2 + b2) with gain and shift of the row, the LayerNorm storing the rows into
+    out[out_row:] as it writes o (tiles.LAYER_NORM_STORE), against numpy: the stored rows equal the tile bit for bit,
+    the rows before out_row untouched, and nothing stored where out_row < 0; node tiles of 8 on 256 threads and tiles
+    of 32 on 128."""
+    from warpgnn.kernels import tiles
+    from warpgnn.kernels.spec import Spec
+
+    rng = np.random.default_rng(17)
+    F, eps = 64, 1e-5
+    for threads, T in ((256, 8), (128, 32)):
+        owner = f"test_stored_layer_{threads}_{T}"
+        ahead = tiles.helpers(Spec(F, T, 0, F), owner)[6]
+        w2_rows, begin_second_layer, _ahead, _activated, stored = ahead
+
+        @wp.kernel(enable_backward=False, module=owner)
+        def apply(h: wp.array2d(dtype=float), w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float),
+                  gain: wp.array2d(dtype=float), shift: wp.array2d(dtype=float), res: wp.array2d(dtype=float),
+                  out_row: int, o_out: wp.array2d(dtype=float), out: wp.array2d(dtype=float)):
+            th = wp.tile_load(h, shape=(T, F), storage="shared")
+            tr = wp.tile_load(res, shape=(T, F), storage="shared")
+            buf = wp.tile_empty(shape=(w2_rows, F), dtype=float, storage="shared")
+            begin_second_layer(buf, w2, 1)
+            o = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
+            stored(th, w2, buf, b2, gain, shift, 1, eps, tr, 1, o, out, out_row)
+            wp.tile_store(o_out, o)
+
+        h, res = (rng.standard_normal((T, F)).astype(np.float32) for _ in range(2))
+        w2 = rng.standard_normal((2 * F, F)).astype(np.float32) / 8
+        b2, gain, shift = (rng.standard_normal((2, F)).astype(np.float32) + o for o in (0.0, 1.0, 0.0))
+        block = threads if device != "cpu" else 1
+        wp.load_module(owner, device=device, block_dim=block)
+        y = b2[1] + h.astype(np.float64) @ w2[F:].astype(np.float64)
+        expected = res + (y - y.mean(1, keepdims=True)) / np.sqrt(y.var(1, keepdims=True) + eps) * gain[1] + shift[1]
+        for out_row in (3, -1):
+            o_out, out = wp.zeros((T, F), device=device), wp.full((T + 3, F), np.nan, dtype=float, device=device)
+            inputs = [wp.array(x, dtype=float, device=device) for x in (h, w2, b2, gain, shift, res)]
+            wp.launch_tiled(apply, dim=[1], inputs=[*inputs, out_row, o_out, out], block_dim=block, device=device)
+            tile, got = o_out.numpy(), out.numpy()
+            assert np.abs(tile - expected).max() <= 1e-5 * np.abs(expected).max(), (threads, T)
+            if out_row < 0:
+                assert np.isnan(got).all(), "nothing stored where out_row < 0"
+            else:
+                assert np.isnan(got[:3]).all(), "rows before out_row untouched"
+                assert np.array_equal(got[3:], tile), "the stored rows the tile's"
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
