@@ -36,6 +36,7 @@ from .tiles import (
     matmul_ahead,
     matmul_fused,
     matmul_fused_store,
+    matmul_gather,
     row_steps,
     row_vector,
     stage,
@@ -176,6 +177,10 @@ def kernels(spec: Spec):
     # (tiles.matmul_fused, Spec.fused_layers)
     fused = ahead and edges.fused_layers
     finish_act = matmul_fused(T, F, F, G, owner, silu_out=True) if fused else finish_ff
+    # on tensor cores the per-node parts gathered into registers and added in the first product's epilogue, as the
+    # edge pass does (tiles.matmul_gather)
+    gathered = fused and G == "wgmma"
+    gather_regs, finish_gather = matmul_gather(T, F, F, owner) if gathered else (None, None)
     finish_bias = matmul_fused(T, F, N_LM, G, owner, "bias") if fused else finish_lm
     port_terms, port_terms_to_tile = row_operators(edges, owner)
     gather_grads, gather_latents = gather_rows(T, N_GRAD, owner), gather_rows(T, F, owner)
@@ -231,9 +236,14 @@ def kernels(spec: Spec):
             else:
                 load_rows(e, lat, row0, 0)
             h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-            gather_pair(h, b1, 0, products, ids, 0, 0, F)
+            if wp.static(gathered):
+                g = gather_regs(products, ids, 0, 0, F)
+            else:
+                gather_pair(h, b1, 0, products, ids, 0, 0, F)
             loaded(e)
-            if wp.static(fused):
+            if wp.static(gathered):
+                finish_gather(e, w_e, 0, 0, w1_buf, h, b1, 0, g, products, ids, 0, 0, F)
+            elif wp.static(fused):
                 finish_act(e, w_e, 0, 0, w1_buf, h, b1, 0)
             elif wp.static(ahead):
                 finish_ff(e, w_e, 0, 0, w1_buf, h)

@@ -1037,9 +1037,10 @@ def matmul_fused(rows: int, k: int, n: int, kind: str, owner: str, init: str = "
 @functools.cache
 def matmul_gather(rows: int, k: int, n: int, owner: str):
     """(gather, finish) for an edge MLP's first layer on tensor cores with whole weights, its per-node parts
-    gathered in the product's epilogue (the edge pass, batch 1 on sm_90): g = gather(products, ids, recv_col,
-    send_row, send_col) loads a thread's receiver and sender products into registers (GATHER_REGS; issue it before
-    the wait for a's rows, so that the loads are in flight with theirs and with the wgmmas), then finish(a, W, row0,
+    gathered in the product's epilogue (the edge pass and the hybrid decoder, batch 1 on sm_90): g = gather(products,
+    ids, recv_col, send_row, send_col) loads a thread's receiver and sender products into registers (GATHER_REGS;
+    issue it before the wait for a's rows, so that the loads are in flight with theirs and with the wgmmas), then
+    finish(a, W, row0,
     col0, buf, acc, bias, bias_row, g, products, ids, recv_col, send_row, send_col): acc = silu(((bias[bias_row] +
     P[ids[0, r], recv_col:]) + P[send_row + ids[1, r], send_col:]) + a @ W) for W in the buffer of matmul_ahead(rows,
     k, k, n, "wgmma", owner), the sums in gather_pair's order then the product's: the same values as gather_pair and

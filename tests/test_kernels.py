@@ -950,9 +950,9 @@ def test_gathered_first_layer_against_numpy(device):
             wp.load_module(owner, device=device, block_dim=block)
         out = wp.full((64, n), np.nan, dtype=float, device=device)
         inputs = [wp.array(x, dtype=float, device=device) for x in (a, tensor_core_layout(w), bias)]
-        inputs += [tiles.row_view(wp.array(prods, dtype=float, device=device), n),
-                   wp.array(recv, dtype=wp.int32, device=device), wp.array(send, dtype=wp.int32, device=device), 10,
-                   out]
+        held = wp.array(prods, dtype=float, device=device)  # row_view does not hold its memory: this name does
+        inputs += [tiles.row_view(held, n), wp.array(recv, dtype=wp.int32, device=device),
+                   wp.array(send, dtype=wp.int32, device=device), 10, out]
         wp.launch_tiled(apply, dim=[1], inputs=inputs, block_dim=block, device=device)
         p64 = prods.astype(np.float64)
         pre = bias[1] + p64[recv, 2 * n:] + p64[10 + send, n:2 * n] + a.astype(np.float64) @ w.astype(np.float64)
