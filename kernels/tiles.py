@@ -18,6 +18,16 @@ import warp as wp
 
 from .spec import Spec
 
+
+def edited(text: str, edits) -> str:
+    """text with each (old, new) of ``edits`` replaced in turn, each old found exactly once (the C++ variants below
+    are their base's text, edited, not copies)."""
+    for old, new in edits:
+        assert text.count(old) == 1, old
+        text = text.replace(old, new)
+    return text
+
+
 # a row of a 2-D Warp array as a pointer, its columns contiguous (every array these steps read or write is): one
 # address a row instead of wp::index's signed 64-bit arithmetic an element (~25 instructions a 16-byte weight copy,
 # a quarter of the edge and node passes' instructions, warp_index_math_h200.json)
@@ -319,8 +329,7 @@ def _gemm_fused_source(init: str, silu_out: bool, store_out: bool = False) -> st
     (``init`` "acc"), to zero or to bias[bias_row] (``bias``, ``bias_row``: a thread's CN bias columns loaded before
     its products), the last part's result activated (``silu_out``); the same sums in the same order as a tile
     filled with the bias (or zeros), GEMM, then an activate step. GEMM_ADD's and GEMM_DISPATCH's text, edited."""
-    add = GEMM_ADD
-    for old, new in (
+    add = edited(GEMM_ADD, (
             ("    wp::float32* __restrict__ pc = acc.data.ptr;\n",
              "    wp::float32* __restrict__ pc = acc.data.ptr;\n"
              f"    constexpr int INIT = {('acc', 'zero', 'bias').index(init)};  // acc's values, zero, the bias\n"
@@ -349,12 +358,10 @@ def _gemm_fused_source(init: str, silu_out: bool, store_out: bool = False) -> st
              "                wp::float32* q = pc + (r0 + i) * SC + c0 + j;\n"
              "                const wp::float32 v = (first && INIT != 0 ? bv[j] : *q) + s[i][j];\n"
              "                *q = SILU_OUT && last ? silu(v) : v;\n"
-             "            }\n")):
-        assert add.count(old) == 1, old
-        add = add.replace(old, new)
+             "            }\n")))
     if store_out:  # the last part's values stored into out[out_row:, out_col:] too, none where out_row < 0 (further
         # arguments out, out_row, out_col)
-        for old, new in (
+        add = edited(add, (
                 ("                *q = v;\n",
                  "                *q = v;\n"
                  "                if (last && out_row >= 0)\n"
@@ -363,19 +370,14 @@ def _gemm_fused_source(init: str, silu_out: bool, store_out: bool = False) -> st
                 ("                *q = SILU_OUT && last ? silu(v) : v;\n",
                  "                *q = SILU_OUT && last ? silu(v) : v;\n"
                  "                if (last && out_row >= 0)\n"
-                 "                    row_ptr(out, out_row + r0 + i)[out_col + c0 + j] = *q;\n")):
-            assert add.count(old) == 1, old
-            add = add.replace(old, new)
-    dispatch = GEMM_DISPATCH
-    for old, new in (
+                 "                    row_ptr(out, out_row + r0 + i)[out_col + c0 + j] = *q;\n")))
+    dispatch = edited(GEMM_DISPATCH, (
             ("            wp::float32 s[RM][CN];\n            partial(t, 0, s);\n            add(t, s);\n",
              "            wp::float32 bv[CN], s[RM][CN];\n            bias_of(t, bv);\n            partial(t, 0, s);\n"
              "            add(t, s, bv, true, true);\n"),
             ("        wp::float32 s[RM][CN];\n        if (part < SPLIT)\n",
              "        wp::float32 bv[CN], s[RM][CN];\n        bias_of(t, bv);\n        if (part < SPLIT)\n"),
-            ("                add(t, s);\n", "                add(t, s, bv, q == 0, q + 1 == SPLIT);\n")):
-        assert dispatch.count(old) == 1, old
-        dispatch = dispatch.replace(old, new)
+            ("                add(t, s);\n", "                add(t, s, bv, q == 0, q + 1 == SPLIT);\n")))
     return ROW_PTR + SILU + GEMM_ITEMS + add + dispatch
 
 
@@ -749,10 +751,7 @@ def _wgmma_source(mode: str = "product", init: str = "acc", silu_out: bool = Fal
                + act2 + "\n"),
               ("        pc[r * SC + c] += s;\n",
                f"        pc[r * SC + c] = {'silu(' if silu_out else '('}{cpu_init} + s);\n")]
-    for old, new in edits:
-        assert src.count(old) == 1, old
-        src = src.replace(old, new)
-    return src
+    return edited(src, edits)
 
 
 GEMM_WGMMA = _wgmma_source()
@@ -1164,7 +1163,8 @@ def row_vector(F: int):
 
 
 def row_view(a: wp.array, latent: int):
-    """``a`` (rows, k F) floats as (rows, k F / V) row_vector(F)s, the same memory (no copy)."""
+    """``a`` (rows, k F) floats as (rows, k F / V) row_vector(F)s, the same memory (no copy): the view does not hold
+    a's memory, so the caller keeps ``a``."""
     vec = row_vector(latent)
     return wp.array(ptr=a.ptr, dtype=vec, shape=(a.shape[0], a.shape[1] // vec._length_), device=a.device,
                     capacity=a.capacity)
@@ -1274,8 +1274,7 @@ LAYER_NORM = ROW_PTR + r"""
 # LAYER_NORM with the rows also stored into out[out_row:] as they are written, none where out_row < 0 (the native
 # function's further arguments ``out``, ``out_row``), where a store step read the tile again after a barrier (the node
 # pass's and the encoder's latents)
-LAYER_NORM_STORE = LAYER_NORM
-for _old, _new in (
+LAYER_NORM_STORE = edited(LAYER_NORM, (
         ("                        *reinterpret_cast<float4*>(po + r * S + col(j)) = y;\n",
          "                        *reinterpret_cast<float4*>(po + r * S + col(j)) = y;\n"
          "                        if (out_row >= 0)\n"
@@ -1291,9 +1290,7 @@ for _old, _new in (
          "    WP_TILE_SYNC();\n"
          "    if (!done && out_row >= 0)  // off CUDA: the rows stored after\n"
          "        for (int i = WP_TILE_THREAD_IDX; i < T * F; i += WP_TILE_BLOCK_DIM)\n"
-         "            row_ptr(out, out_row + i / F)[i % F] = po[i / F * S + i % F];\n")):
-    assert LAYER_NORM_STORE.count(_old) == 1, _old
-    LAYER_NORM_STORE = LAYER_NORM_STORE.replace(_old, _new)
+         "            row_ptr(out, out_row + i / F)[i % F] = po[i / F * S + i % F];\n")))
 
 # silu(v): on CUDA with the fast exponential and division (__expf: 2 + 1.2 |v| ulp, far inside the tests' 1e-5; expf
 # and an IEEE division are ~20 instructions an element); the CPU keeps the exact one (ROW_STEP, ACTIVATE_FILL)
