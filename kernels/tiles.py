@@ -1418,10 +1418,8 @@ def vector_items(tile: str, rows: str, blocks: int = 1) -> str:
     }};"""
 
 
-GATHER_PAIR = vector_items("h", "products") + r"""
+GATHER_PAIR = vector_items("h", "products") + GATHER_IDS + r"""
     Vec a[PER], b[PER];
-    const int* __restrict__ rv = ids.data.ptr;  // the rows' receivers and senders (stage_ids)
-    const int* __restrict__ sv = rv + tile_ids::Layout::Stride::dim(0);
 #pragma unroll
     for (int k = 0; k < PER; ++k) {  // every load of the thread issued before the first use
         const unsigned idx = WP_TILE_THREAD_IDX + k * WP_TILE_BLOCK_DIM, r = idx / FV, c = idx % FV;
