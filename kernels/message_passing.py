@@ -313,9 +313,9 @@ def edge_kernel(spec: Spec):
         o = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         if wp.static(gathered):
             finish_gather(e, w_e, wi * F, 0, w1_buf, h, b1, wi, g, products, ids, recv_col, send_row, F)
-            second_layer_stored(h, w2, w2_buf, b2, gain, shift, wi, eps, e, 1, o, lat, row0)
-        elif wp.static(fused):  # the rows stored by the second layer (from its registers on tensor cores)
+        elif wp.static(fused):
             finish_act(e, w_e, wi * F, 0, w1_buf, h, b1, wi)
+        if wp.static(fused):  # the rows stored by the second layer (from its registers on tensor cores)
             second_layer_stored(h, w2, w2_buf, b2, gain, shift, wi, eps, e, 1, o, lat, row0)
         elif wp.static(ahead):
             finish_ff(e, w_e, wi * F, 0, w1_buf, h)
