@@ -54,7 +54,7 @@ def node_decoder(spec: Spec, owner: str):
     own scope, where the product is (held from the launch's start, its 3 KiB took the batch-64 last node pass from two
     blocks an SM to one: the node pass 179 -> 195 us a launch on average)."""
     T, F = spec.tile_rows, spec.latent
-    _fill, _activate, _second_layer, _sums, _project, _gather, _ahead = helpers(spec, owner)
+    _fill, activate, _second_layer, _sums, _project, _gather, _ahead = helpers(spec, owner)
 
     def mlp_of(n: int):
         buf_rows, begin, finish = matmul_ahead(T, F, spec.kc, n, spec.gemm, owner)
@@ -76,7 +76,6 @@ def node_decoder(spec: Spec, owner: str):
     # (tiles.matmul_fused_store), so delta_v's first layer is activated in place in their tile, and its second layer
     # adds b2 in its product and stores (dE, dS) from its registers: no copy of pre, no bias fill, no store step
     fused = spec.fused_layers and spec.gemm == "native"
-    _fill_rows, activate = row_steps(T, F, owner)
     grads_stored = matmul_fused_store(T, F, N_GRAD, owner, "bias") if fused else None
 
     @wp.func

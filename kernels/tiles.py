@@ -783,12 +783,11 @@ def _wgmma_norm_source() -> str:
         t4[j / 2] = *reinterpret_cast<const float4*>(ps + c);
     }
 """
-    src = ROW_PTR + _wgmma_source().replace(fence, preload + fence, 1)
+    src = ROW_PTR + edited(_wgmma_source(), ((fence, preload + fence),))
     head, tail = src.split("    const bool odd = q & 1;\n", 1)
     _epilogue, cpu = tail.split("#endif\n#else\n", 1)
-    cpu_sum = "        pc[r * SC + c] += s;\n"
-    assert cpu.count(cpu_sum) == 1
-    cpu = cpu.replace(cpu_sum, "        pc[r * SC + c] = row_ptr(bias, bias_row)[c] + s;\n")
+    cpu = edited(cpu, (("        pc[r * SC + c] += s;\n",
+                        "        pc[r * SC + c] = row_ptr(bias, bias_row)[c] + s;\n"),))
     return head + r"""
     static_assert(NW % 16 == 0, "a warpgroup's columns in 16-column pairs of blocks");
     wp::float32* __restrict__ red = scratch.data.ptr;
@@ -1722,17 +1721,15 @@ def helpers(spec: Spec, owner: str):
     def project(y: wp.tile(dtype=float, shape=(T, F)), w: wp.array2d(dtype=float), row0: int, col0: int,
                 out: wp.array2d(dtype=float), out_row: int, out_col: int):
         """out[out_row:, out_col:] = y @ W[row0:row0 + F, col0:col0 + F] (a block of node products)."""
-        if wp.static(stored):  # stored from the product's registers, no tile_store after a barrier
+        if wp.static(fused):
             acc = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
             buf = wp.tile_empty(shape=(buf_rows, F), dtype=float, storage="shared")
             begin_ff(buf, w, row0, col0)
-            finish_stored(y, w, row0, col0, buf, acc, w, 0, out, out_row, out_col)
-        elif wp.static(fused):
-            acc = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
-            buf = wp.tile_empty(shape=(buf_rows, F), dtype=float, storage="shared")
-            begin_ff(buf, w, row0, col0)
-            finish_zero(y, w, row0, col0, buf, acc, w, 0)
-            wp.tile_store(out, acc, offset=(out_row, out_col))
+            if wp.static(stored):  # stored from the product's registers, no tile_store after a barrier
+                finish_stored(y, w, row0, col0, buf, acc, w, 0, out, out_row, out_col)
+            else:
+                finish_zero(y, w, row0, col0, buf, acc, w, 0)
+                wp.tile_store(out, acc, offset=(out_row, out_col))
         else:
             acc = wp.tile_zeros(shape=(T, F), dtype=float, storage="shared")
             mm_ff(y, w, row0, col0, acc)
