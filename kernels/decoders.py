@@ -180,7 +180,8 @@ def kernels(spec: Spec):
     # edge pass does (tiles.matmul_gather)
     gathered = fused and G == "wgmma"
     gather_regs, finish_gather = matmul_gather(T, F, F, owner) if gathered else (None, None)
-    finish_bias = matmul_fused(T, F, N_LM, G, owner, "bias") if fused else finish_lm
+    # on tensor cores the second after the first's wait for every copy (W2's begun with W1's) and fence: none of its own
+    finish_bias = matmul_fused(T, F, N_LM, G, owner, "bias", fenced=G == "wgmma") if fused else finish_lm
     port_terms, port_terms_to_tile = row_operators(edges, owner)
     gather_grads, gather_latents = gather_rows(T, N_GRAD, owner), gather_rows(T, F, owner)
     load_rows, loaded = stage(T, F, owner)
@@ -239,7 +240,8 @@ def kernels(spec: Spec):
                 g = gather_regs(products, ids, 0, 0, F)
             else:
                 gather_pair(h, b1, 0, products, ids, 0, 0, F)
-            loaded(e)
+            if wp.static(not gathered):  # else the first product's wait for its weight waits for e's too, and syncs
+                loaded(e)
             if wp.static(gathered):
                 finish_gather(e, w_e, 0, 0, w1_buf, h, b1, 0, g, products, ids, 0, 0, F)
             elif wp.static(fused):

@@ -309,7 +309,8 @@ def edge_kernel(spec: Spec):
             g = gather_regs(products, ids, recv_col, send_row, F)
         else:
             gather_pair(h, b1, wi, products, ids, recv_col, send_row, F)
-        loaded(e)
+        if wp.static(not gathered):  # else the first product's wait for its weight waits for e's copy too, and syncs
+            loaded(e)
         o = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         if wp.static(gathered):
             finish_gather(e, w_e, wi * F, 0, w1_buf, h, b1, wi, g, products, ids, recv_col, send_row, F)
@@ -442,7 +443,8 @@ def node_kernel(spec: Spec, decode: int = 0):
             staged_segment_sums(xin, lat_rows, offs, mesh_row, act_row, actuators, row0, n_nodes)
         else:
             segment_sums(xin, lat_rows, mesh_off, mesh_row, act_off, act_row, actuators, row0, n_nodes)
-        loaded(x)
+        if wp.static(not fused):  # else the first product's wait for its weight waits for x's copy too, and syncs
+            loaded(x)
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         if wp.static(not fused):
             fill(h, b1, p)

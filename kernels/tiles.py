@@ -576,6 +576,20 @@ GATHER_REGS = ROW_PTR + GATHER_IDS + r"""
 """
 
 
+# a wgmma product's proxy fence and barrier for its weight's copies (_wgmma_source)
+WGMMA_FENCE = r"""
+    // b was written by the block's generic-proxy copies: visible to wgmma's async proxy after a fence and a barrier
+    asm volatile("fence.proxy.async.shared::cta;\n" ::: "memory");
+    WP_TILE_SYNC();"""[1:]
+
+
+def fenced_already(src: str) -> str:
+    """A wgmma product's C++ without its proxy fence and barrier, for a product after one on tensor cores that
+    waited for every copy begun (its weight's too) and fenced them (a's rows are read from shared memory after that
+    product's closing barrier, into registers): its caller skips the wait for the copy as well."""
+    return edited(src, ((WGMMA_FENCE, ""),))
+
+
 def _wgmma_source(mode: str = "product", init: str = "acc", silu_out: bool = False) -> str:
     """GEMM_WGMMA's C++ (``mode`` "product"), or over K chunks the accumulators carried from chunk to chunk in the
     registers s and returned (``carry``), then added into acc after the last (``settle``), as GEMM_CARRY does: one
@@ -632,9 +646,7 @@ def _wgmma_source(mode: str = "product", init: str = "acc", silu_out: bool = Fal
         split(u.z, ah[2 * s + 1][0], al[2 * s + 1][0]); split(v.z, ah[2 * s + 1][1], al[2 * s + 1][1]);
         split(u.w, ah[2 * s + 1][2], al[2 * s + 1][2]); split(v.w, ah[2 * s + 1][3], al[2 * s + 1][3]);
     }
-    // b was written by the block's generic-proxy copies: visible to wgmma's async proxy after a fence and a barrier
-    asm volatile("fence.proxy.async.shared::cta;\n" ::: "memory");
-    WP_TILE_SYNC();
+""" + WGMMA_FENCE + r"""
     const unsigned long long base = static_cast<unsigned long long>(__cvta_generic_to_shared(pb));
     // no swizzle; LBO 128 bytes (a step's two k halves), SBO 256 bytes (8-column groups): the group's first column c0
     const unsigned long long desc0 = (((base + 32 * c0) & 0x3FFFF) >> 4) | (8ull << 16) | (16ull << 32);
@@ -863,6 +875,7 @@ def _wgmma_norm_source() -> str:
 
 
 WGMMA_NORM = _wgmma_norm_source()
+WGMMA_NORM_FENCED = fenced_already(WGMMA_NORM)
 
 
 @functools.cache
@@ -992,14 +1005,18 @@ def matmul_ahead(rows: int, k: int, kc: int, n: int, kind: str, owner: str, a_st
 
 
 @functools.cache
-def fused_product(rows: int, k: int, n: int, kind: str, owner: str, init: str = "acc", silu_out: bool = False):
+def fused_product(rows: int, k: int, n: int, kind: str, owner: str, init: str = "acc", silu_out: bool = False,
+                  fenced: bool = False):
     """product(a, b, acc, bias, bias_row): acc (rows, n) = [silu](init + a @ b), init acc's values ("acc"), zero
     ("zero") or bias[bias_row] ("bias"), b one whole K chunk as gemm(rows, k, n, kind) takes it ("native": GEMM's
     items and K parts, _gemm_fused_source; "wgmma": _wgmma_source): an MLP layer's bias, activation and product in
     one step, where a bias fill and an activate step (each a pass over a tile and a barrier) came before or after
-    the product."""
+    the product. ``fenced``: on tensor cores after a product that waited for every copy and fenced it
+    (fenced_already)."""
+    assert not fenced or kind == "wgmma", "a fenced product: on tensor cores"
     if kind == "wgmma":
         src, kb = _wgmma_source(init=init, silu_out=silu_out), 2 * k
+        src = fenced_already(src) if fenced else src
     elif kind == "native":
         src, kb = _gemm_fused_source(init, silu_out), k
     else:
@@ -1009,24 +1026,27 @@ def fused_product(rows: int, k: int, n: int, kind: str, owner: str, init: str = 
                 acc: wp.tile(dtype=float, shape=(rows, n)), bias: wp.array2d(dtype=float), bias_row: int): ...
 
     # a name a variant (the generated code's function names say which)
-    product.__qualname__ = f"fused_{kind}_{init}{'_silu' if silu_out else ''}"
+    product.__qualname__ = f"fused_{kind}_{init}{'_silu' if silu_out else ''}{'_fenced' if fenced else ''}"
     return wp.func_native(src)(product)
 
 
 @functools.cache
-def matmul_fused(rows: int, k: int, n: int, kind: str, owner: str, init: str = "acc", silu_out: bool = False):
+def matmul_fused(rows: int, k: int, n: int, kind: str, owner: str, init: str = "acc", silu_out: bool = False,
+                 fenced: bool = False):
     """finish(a, W, row0, col0, buf, acc, bias, bias_row): fused_product's acc for W[row0:row0 + k, col0:col0 + n] in
-    the buffer of matmul_ahead(rows, k, k, n, kind, owner) (one K chunk: whole weights, begun by its begin)."""
+    the buffer of matmul_ahead(rows, k, k, n, kind, owner) (one K chunk: whole weights, begun by its begin);
+    ``fenced``: no wait for the copy, no proxy fence (fused_product)."""
     ck = 2 * k if kind == "wgmma" else k  # the chunk's rows (tensor-core layout: two a k)
     _stage_copy, staged = stage(ck, n, owner)
-    product = fused_product(rows, k, n, kind, owner, init, silu_out)
+    product = fused_product(rows, k, n, kind, owner, init, silu_out, fenced)
 
     @wp.func
     def finish(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
                buf: wp.tile(dtype=float, shape=(ck, n)), acc: wp.tile(dtype=float, shape=(rows, n)),
                bias: wp.array2d(dtype=float), bias_row: int):
         b = wp.tile_view(buf, offset=(0, 0), shape=(ck, n))
-        staged(b)
+        if wp.static(not fenced):
+            staged(b)
         product(a, b, acc, bias, bias_row)
 
     return finish
@@ -1105,20 +1125,23 @@ def matmul_fused_store(rows: int, k: int, n: int, owner: str, init: str = "zero"
 
 
 @functools.cache
-def matmul_norm(rows: int, k: int, n: int, owner: str):
+def matmul_norm(rows: int, k: int, n: int, owner: str, fenced: bool = False):
     """finish(a, W, row0, col0, buf, acc, bias, row, gain, shift, eps, res, residual, scratch): acc = [res +]
     LayerNorm(bias[row] + a @ W[row0:row0 + k, col0:col0 + n]) with gain and shift of ``row``, on tensor cores with W
     whole in the buffer of matmul_ahead(rows, k, k, n, "wgmma", owner) (begun by its begin), ``scratch`` a (4,
-    rows) shared tile for the rows' statistics (_wgmma_norm_source)."""
+    rows) shared tile for the rows' statistics (_wgmma_norm_source). ``fenced``: after a product on tensor cores
+    that waited for every copy begun, W's with them (WGMMA_NORM_FENCED: no wait, fence or barrier)."""
     ck = 2 * k
     _stage_copy, staged = stage(ck, n, owner)
 
-    @wp.func_native(WGMMA_NORM)
     def product(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(ck, n)),
                 acc: wp.tile(dtype=float, shape=(rows, n)), bias: wp.array2d(dtype=float), bias_row: int,
                 gain: wp.array2d(dtype=float), shift: wp.array2d(dtype=float), eps: float,
                 res: wp.tile(dtype=float, shape=(rows, n)), residual: int,
                 scratch: wp.tile(dtype=float, shape=(4, rows)), out: wp.array2d(dtype=float), out_row: int): ...
+
+    product.__qualname__ = "norm_product_fenced" if fenced else "norm_product"  # a name a variant
+    product = wp.func_native(WGMMA_NORM_FENCED if fenced else WGMMA_NORM)(product)
 
     @wp.func
     def finish(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
@@ -1127,7 +1150,8 @@ def matmul_norm(rows: int, k: int, n: int, owner: str):
                shift: wp.array2d(dtype=float), eps: float, res: wp.tile(dtype=float, shape=(rows, n)), residual: int,
                scratch: wp.tile(dtype=float, shape=(4, rows)), out: wp.array2d(dtype=float), out_row: int):
         b = wp.tile_view(buf, offset=(0, 0), shape=(ck, n))
-        staged(b)
+        if wp.static(not fenced):
+            staged(b)
         product(a, b, acc, bias, row, gain, shift, eps, res, residual, scratch, out, out_row)
 
     return finish
@@ -1771,7 +1795,9 @@ def helpers(spec: Spec, owner: str):
     finish_bias = matmul_fused(T, F, F, spec.gemm, owner, "bias") if fused else finish_ff
     # on tensor cores the LayerNorm too, from the accumulators (matmul_norm; a (4, T) tile more for its statistics)
     norm = spec.fused_norm
-    finish_norm = matmul_norm(T, F, F, owner) if norm else finish_ff
+    # its callers' first layers (edge pass, mesh-edge encoder) are whole-weight tensor-core products that waited for
+    # every copy, W2's begun with W1's: the second needs no wait or fence of its own
+    finish_norm = matmul_norm(T, F, F, owner, fenced=True) if norm else finish_ff
 
     @wp.func
     def second_layer_activated(h: wp.tile(dtype=float, shape=(T, F)), w2: wp.array2d(dtype=float),
