@@ -76,7 +76,8 @@ def node_decoder(spec: Spec, owner: str):
     # (tiles.matmul_fused_store), so delta_v's first layer is activated in place in their tile, and its second layer
     # adds b2 in its product and stores (dE, dS) from its registers: no copy of pre, no bias fill, no store step
     fused = spec.fused_layers and spec.gemm == "native"
-    grads_stored = matmul_fused_store(T, F, N_GRAD, owner, "bias") if fused else None
+    # (its weight's copy begun with the node pass's others, whose first product waited for them: no wait of its own)
+    grads_stored = matmul_fused_store(T, F, N_GRAD, owner, "bias", waited=True) if fused else None
 
     @wp.func
     def node_fields(pre: wp.tile(dtype=float, shape=(T, F)), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),
@@ -180,8 +181,8 @@ def kernels(spec: Spec):
     # edge pass does (tiles.matmul_gather)
     gathered = fused and G == "wgmma"
     gather_regs, finish_gather = matmul_gather(T, F, F, owner) if gathered else (None, None)
-    # on tensor cores the second after the first's wait for every copy (W2's begun with W1's) and fence: none of its own
-    finish_bias = matmul_fused(T, F, N_LM, G, owner, "bias", fenced=G == "wgmma") if fused else finish_lm
+    # the second after the first's wait for every copy (W2's begun with W1's; on tensor cores fenced): none of its own
+    finish_bias = matmul_fused(T, F, N_LM, G, owner, "bias", waited=True) if fused else finish_lm
     port_terms, port_terms_to_tile = row_operators(edges, owner)
     gather_grads, gather_latents = gather_rows(T, N_GRAD, owner), gather_rows(T, F, owner)
     load_rows, loaded = stage(T, F, owner)

@@ -378,7 +378,8 @@ def node_kernel(spec: Spec, decode: int = 0):
     # into a tile not zeroed first (tiles.matmul_fused)
     fused = ahead and spec.nodes.fused_layers
     finish_in_act = matmul_fused(T, F3, F, spec.gemm, owner, "bias", silu_out=True) if fused else finish_in
-    finish_next = matmul_fused(T, F, next_cols, spec.gemm, owner, "zero") if fused else finish_out
+    # (the next stage's copy begun with the others, which the first product waited for: no wait of its own)
+    finish_next = matmul_fused(T, F, next_cols, spec.gemm, owner, "zero", waited=True) if fused else finish_out
     # the next stage's products stored to global memory from the last K part's registers as they are added, not read
     # back from the tile by a store step after a barrier (with the latents stored by the LayerNorm: hybrid 209.9 ->
     # 200.5 us at 12 passes, vanilla 193.9 -> 184.7; warp_stored_rows_h200.json); native products only
@@ -389,7 +390,7 @@ def node_kernel(spec: Spec, decode: int = 0):
     # (node_decoder's fields on whole weights): the two conditions must agree
     assert not (decode == DECODE_FIELDS and ahead) or stored_next == (spec.nodes.fused_layers
                                                                       and spec.nodes.gemm == "native")
-    finish_next_stored = matmul_fused_store(T, F, next_cols, owner) if stored_next else finish_out
+    finish_next_stored = matmul_fused_store(T, F, next_cols, owner, waited=True) if stored_next else finish_out
     load_rows, loaded = stage(T, F, owner)
     store_rows, store_products = store(T, F, owner), store(T, F3, owner)
     _stage_ids, stage_offsets = index_steps(T, owner)

@@ -1032,20 +1032,21 @@ def fused_product(rows: int, k: int, n: int, kind: str, owner: str, init: str = 
 
 @functools.cache
 def matmul_fused(rows: int, k: int, n: int, kind: str, owner: str, init: str = "acc", silu_out: bool = False,
-                 fenced: bool = False):
+                 waited: bool = False):
     """finish(a, W, row0, col0, buf, acc, bias, bias_row): fused_product's acc for W[row0:row0 + k, col0:col0 + n] in
     the buffer of matmul_ahead(rows, k, k, n, kind, owner) (one K chunk: whole weights, begun by its begin);
-    ``fenced``: no wait for the copy, no proxy fence (fused_product)."""
+    ``waited``: W's copy was begun before an earlier product of the block waited for every copy (and synced; on
+    tensor cores fenced them too): no wait, barrier or proxy fence of its own (fused_product's ``fenced``)."""
     ck = 2 * k if kind == "wgmma" else k  # the chunk's rows (tensor-core layout: two a k)
     _stage_copy, staged = stage(ck, n, owner)
-    product = fused_product(rows, k, n, kind, owner, init, silu_out, fenced)
+    product = fused_product(rows, k, n, kind, owner, init, silu_out, waited and kind == "wgmma")
 
     @wp.func
     def finish(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
                buf: wp.tile(dtype=float, shape=(ck, n)), acc: wp.tile(dtype=float, shape=(rows, n)),
                bias: wp.array2d(dtype=float), bias_row: int):
         b = wp.tile_view(buf, offset=(0, 0), shape=(ck, n))
-        if wp.static(not fenced):
+        if wp.static(not waited):
             staged(b)
         product(a, b, acc, bias, bias_row)
 
@@ -1098,11 +1099,11 @@ def matmul_gather(rows: int, k: int, n: int, owner: str):
 
 
 @functools.cache
-def matmul_fused_store(rows: int, k: int, n: int, owner: str, init: str = "zero"):
+def matmul_fused_store(rows: int, k: int, n: int, owner: str, init: str = "zero", waited: bool = False):
     """finish(a, W, row0, col0, buf, acc, bias, bias_row, out, out_row, out_col): matmul_fused's "native" product
     (no activation) with the result also stored into out[out_row:, out_col:] (nowhere where out_row < 0) from the
     registers of the last K part's add, where a store step read acc again after a barrier (the node pass's next-stage
-    products, the encoder's pass-0 node products)."""
+    products, the encoder's pass-0 node products); ``waited`` as matmul_fused's."""
     _stage_copy, staged = stage(k, n, owner)
 
     def product(a: wp.tile(dtype=float, shape=(rows, k)), b: wp.tile(dtype=float, shape=(k, n)),
@@ -1118,19 +1119,20 @@ def matmul_fused_store(rows: int, k: int, n: int, owner: str, init: str = "zero"
                bias: wp.array2d(dtype=float), bias_row: int, out: wp.array2d(dtype=float), out_row: int,
                out_col: int):
         b = wp.tile_view(buf, offset=(0, 0), shape=(k, n))
-        staged(b)
+        if wp.static(not waited):
+            staged(b)
         product(a, b, acc, bias, bias_row, out, out_row, out_col)
 
     return finish
 
 
 @functools.cache
-def matmul_norm(rows: int, k: int, n: int, owner: str, fenced: bool = False):
+def matmul_norm(rows: int, k: int, n: int, owner: str, waited: bool = False):
     """finish(a, W, row0, col0, buf, acc, bias, row, gain, shift, eps, res, residual, scratch): acc = [res +]
     LayerNorm(bias[row] + a @ W[row0:row0 + k, col0:col0 + n]) with gain and shift of ``row``, on tensor cores with W
     whole in the buffer of matmul_ahead(rows, k, k, n, "wgmma", owner) (begun by its begin), ``scratch`` a (4,
-    rows) shared tile for the rows' statistics (_wgmma_norm_source). ``fenced``: after a product on tensor cores
-    that waited for every copy begun, W's with them (WGMMA_NORM_FENCED: no wait, fence or barrier)."""
+    rows) shared tile for the rows' statistics (_wgmma_norm_source). ``waited``: after a product on tensor cores
+    that waited for every copy begun, W's with them, and fenced them (WGMMA_NORM_FENCED: no wait, fence or barrier)."""
     ck = 2 * k
     _stage_copy, staged = stage(ck, n, owner)
 
@@ -1140,8 +1142,8 @@ def matmul_norm(rows: int, k: int, n: int, owner: str, fenced: bool = False):
                 res: wp.tile(dtype=float, shape=(rows, n)), residual: int,
                 scratch: wp.tile(dtype=float, shape=(4, rows)), out: wp.array2d(dtype=float), out_row: int): ...
 
-    product.__qualname__ = "norm_product_fenced" if fenced else "norm_product"  # a name a variant
-    product = wp.func_native(WGMMA_NORM_FENCED if fenced else WGMMA_NORM)(product)
+    product.__qualname__ = "norm_product_fenced" if waited else "norm_product"  # a name a variant
+    product = wp.func_native(WGMMA_NORM_FENCED if waited else WGMMA_NORM)(product)
 
     @wp.func
     def finish(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.array2d(dtype=float), row0: int, col0: int,
@@ -1150,7 +1152,7 @@ def matmul_norm(rows: int, k: int, n: int, owner: str, fenced: bool = False):
                shift: wp.array2d(dtype=float), eps: float, res: wp.tile(dtype=float, shape=(rows, n)), residual: int,
                scratch: wp.tile(dtype=float, shape=(4, rows)), out: wp.array2d(dtype=float), out_row: int):
         b = wp.tile_view(buf, offset=(0, 0), shape=(ck, n))
-        if wp.static(not fenced):
+        if wp.static(not waited):
             staged(b)
         product(a, b, acc, bias, row, gain, shift, eps, res, residual, scratch, out, out_row)
 
@@ -1791,13 +1793,13 @@ def helpers(spec: Spec, owner: str):
         second_layer_ahead(h, w2, w2_buf, b2, gain, shift, row, eps, res, residual, o)
 
     # with whole weights (one K chunk) the first layer's product may activate its output itself and the second add
-    # its bias (fused_product): no bias fill or activate step between the products (Spec.fused_layers)
-    finish_bias = matmul_fused(T, F, F, spec.gemm, owner, "bias") if fused else finish_ff
+    # its bias (fused_product): no bias fill or activate step between the products (Spec.fused_layers). Its callers
+    # (encoders, edge and node passes) begin W2's copy with W1's, and their first layer's product waits for every
+    # copy begun: the second needs no wait, barrier or fence of its own (matmul_fused's ``waited``)
+    finish_bias = matmul_fused(T, F, F, spec.gemm, owner, "bias", waited=True) if fused else finish_ff
     # on tensor cores the LayerNorm too, from the accumulators (matmul_norm; a (4, T) tile more for its statistics)
     norm = spec.fused_norm
-    # its callers' first layers (edge pass, mesh-edge encoder) are whole-weight tensor-core products that waited for
-    # every copy, W2's begun with W1's: the second needs no wait or fence of its own
-    finish_norm = matmul_norm(T, F, F, owner, fenced=True) if norm else finish_ff
+    finish_norm = matmul_norm(T, F, F, owner, waited=True) if norm else finish_ff
 
     @wp.func
     def second_layer_activated(h: wp.tile(dtype=float, shape=(T, F)), w2: wp.array2d(dtype=float),

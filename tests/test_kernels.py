@@ -872,6 +872,7 @@ def test_stored_second_layer_against_numpy(device):
         owner = f"test_stored_layer_{threads}_{T}"
         ahead = tiles.helpers(Spec(F, T, 0, F), owner)[6]
         w2_rows, begin_second_layer, _ahead, _activated, stored = ahead
+        _copy, staged = tiles.stage(w2_rows, F, owner)
 
         @wp.kernel(enable_backward=False, module=owner)
         def apply(h: wp.array2d(dtype=float), w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float),
@@ -881,6 +882,8 @@ def test_stored_second_layer_against_numpy(device):
             tr = wp.tile_load(res, shape=(T, F), storage="shared")
             buf = wp.tile_empty(shape=(w2_rows, F), dtype=float, storage="shared")
             begin_second_layer(buf, w2, 1)
+            # its callers' first layer waits for every copy begun, W2's too: here no product does
+            staged(buf)
             o = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
             stored(th, w2, buf, b2, gain, shift, 1, eps, tr, 1, o, out, out_row)
             wp.tile_store(o_out, o)
