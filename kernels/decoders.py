@@ -76,7 +76,10 @@ def node_decoder(spec: Spec, owner: str):
     # (tiles.matmul_fused_store), so delta_v's first layer is activated in place in their tile, and its second layer
     # adds b2 in its product and stores (dE, dS) from its registers: no copy of pre, no bias fill, no store step
     fused = spec.fused_layers and spec.gemm == "native"
-    # (its weight's copy begun with the node pass's others, whose first product waited for them: no wait of its own)
+    # (its weight's copy begun with the node pass's others, whose first product waited for them: no wait of its own;
+    # node_fields_staged begins it itself, so fused layers must mean whole weights, where the node pass takes
+    # node_fields)
+    assert not fused or spec.kc == spec.latent, "fused decoder layers: whole weights only"
     grads_stored = matmul_fused_store(T, F, N_GRAD, owner, "bias", waited=True) if fused else None
 
     @wp.func
