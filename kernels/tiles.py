@@ -581,6 +581,7 @@ WGMMA_FENCE = r"""
     // b was written by the block's generic-proxy copies: visible to wgmma's async proxy after a fence and a barrier
     asm volatile("fence.proxy.async.shared::cta;\n" ::: "memory");
     WP_TILE_SYNC();"""[1:]
+FENCE_LINE = WGMMA_FENCE.split("\n", 1)[0]  # where the fused variants' preloads go, just before the fence
 
 
 def fenced_already(src: str) -> str:
@@ -749,7 +750,7 @@ def _wgmma_source(mode: str = "product", init: str = "acc", silu_out: bool = Fal
 """
     src = ROW_PTR + SILU + ("    const wp::float32* __restrict__ pbias = row_ptr(bias, bias_row);\n"
                             if init in ("bias", "gather") else "") + (GATHER_IDS if init == "gather" else "") + src
-    fence = "    // b was written by the block's generic-proxy copies"
+    fence = FENCE_LINE
     edits = [(fence, preload + fence)]
     if init != "acc":
         edits += [("float4 w = *o;", f"float4 w = {bias};"),
@@ -778,7 +779,7 @@ def _wgmma_norm_source() -> str:
     a LayerNorm step read the tile again after the product's epilogue had written it (tiles.LAYER_NORM: the same
     two-pass statistics, summed in another order). The bias, gain and shift columns of a thread are loaded before
     the wgmmas."""
-    fence = "    // b was written by the block's generic-proxy copies"
+    fence = FENCE_LINE
     preload = r"""
     const wp::float32* __restrict__ pbias = row_ptr(bias, bias_row);
     const wp::float32* __restrict__ pg = row_ptr(gain, bias_row);
