@@ -149,6 +149,10 @@ def node_decoder(spec: Spec, owner: str):
 
 
 EO_ALIGN = 4  # floats: the row length of the decoder's shared e / o tile, a multiple of this
+# the row lengths of the decoder's shared (l, m) and senders' (dE, dS) tiles, which generic_tail.PORT_TERMS reads a
+# row a thread by 16-byte loads: 4 floats past a multiple of 8, so that 8 lanes' loads fall on 8 different banks' quads
+LM_COLS, X_COLS = N_LM + 4, N_GRAD + 4
+MANY_BLOCKS_REGISTERS = 128  # a thread of hybrid_fields where blocks queue for the SMs (kernels below)
 LM_CHUNK = 16  # K rows of the (F, 144) weight's chunks where blocks queue for the SMs (Spec.many_blocks)
 
 
@@ -170,7 +174,7 @@ def kernels(spec: Spec):
     # queue for the SMs three fit an SM instead of two (78 -> 68 KiB): batch 64 879 -> 723 us (a row of 160 floats
     # instead of 144, 128-byte aligned: 750 us; bench/results/warp_occupancy_h200.json)
     shared_eo = not ahead
-    eo_cols = -(-max(F, N_LM) // EO_ALIGN) * EO_ALIGN
+    eo_cols = -(-max(F, LM_COLS) // EO_ALIGN) * EO_ALIGN
     mm_ff = matmul(T, F, edges.kc, F, G, owner, eo_cols if shared_eo else 0)  # e's rows eo_cols apart
     ff_rows, begin_ff, finish_ff = matmul_ahead(T, F, edges.kc, F, G, owner)
     lm_rows, begin_lm, finish_lm = matmul_ahead(T, F, edges.kc, N_LM, G, owner)
@@ -228,7 +232,8 @@ def kernels(spec: Spec):
                 lo, hi = tail.mesh_off[i] - e0, tail.mesh_off[i + 1] - e0
                 zc, dti, kind, tool, weight, rest_c = step_values(i, a, tail)
             grid_step(1)
-            x = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
+            x_rows = wp.tile_empty(shape=(T, X_COLS), dtype=float, storage="shared")
+            x = wp.tile_view(x_rows, offset=(0, 0), shape=(T, N_GRAD))
             gather_grads(x, grads, ids, 1)  # the senders' (dE, dS) for the port terms, in flight with the loads below
             if wp.static(shared_eo):
                 eo = wp.tile_empty(shape=(T, eo_cols), dtype=float, storage="shared")
@@ -259,7 +264,8 @@ def kernels(spec: Spec):
                 o = wp.tile_view(eo, offset=(0, 0), shape=(T, N_LM))
                 fill_lm(o, b2, 0)
             else:
-                o = wp.tile_empty(shape=(T, N_LM), dtype=float, storage="shared")
+                o_rows = wp.tile_empty(shape=(T, LM_COLS), dtype=float, storage="shared")
+                o = wp.tile_view(o_rows, offset=(0, 0), shape=(T, N_LM))
                 if wp.static(not fused):
                     activate_lm(h, b1, 0, 0, o, b2, 0)
             if wp.static(fused):
@@ -268,10 +274,9 @@ def kernels(spec: Spec):
                 finish_lm(h, w2, 0, 0, w2_buf, o)
             else:
                 mm_lm(h, w2, 0, 0, o)
-            y = wp.tile_empty(shape=(T, N_GRAD), dtype=float, storage="shared")
             if wp.static(grouped):
                 pt = wp.tile_empty(shape=(T, PT), dtype=float, storage="shared")
-                port_terms_to_tile(o, x, y, self0, self1, pt)
+                port_terms_to_tile(o, x, self0, self1, pt)
                 items = (n1 - n0) * STATE
                 if items <= wp.block_dim():
                     if lane < items:
@@ -285,7 +290,7 @@ def kernels(spec: Spec):
                         node_sums(pt, n0, k, a, self0, tail.mesh_off[n0 + k] - e0, tail.mesh_off[n0 + k + 1] - e0,
                                   hold(a, zc, dti, kind, tool, weight, rest_c, tail.u_next), tail)
             else:
-                port_terms(o, x, y, out_row, self1, node0, ports, node_terms)
+                port_terms(o, x, out_row, self1, node0, ports, node_terms)
 
         return edge_fields
 
@@ -309,8 +314,11 @@ def kernels(spec: Spec):
         settle(n0 + k, a, pt[ne + k, a] - incoming, b, tail)
 
     edge_fields, grouped_fields = edge_fields_of(False), edge_fields_of(True)
+    # where blocks queue for the SMs two 256-thread blocks an SM: the port terms' rows in registers (a thread a row)
+    # would take its registers 114 -> 250 and the blocks an SM to one (the launch 495 -> 547 us at batch 64)
+    capped = {"cuda_max_registers": MANY_BLOCKS_REGISTERS} if spec.many_blocks else {}
 
-    @wp.kernel(enable_backward=False, module=owner)
+    @wp.kernel(enable_backward=False, module=owner, **capped)
     def hybrid_fields(lat: wp.array2d(dtype=float), row_recv: wp.array(dtype=wp.int32),
                       row_send: wp.array(dtype=wp.int32), products: wp.array2d(dtype=row_vector(F)),
                       de_e: wp.array2d(dtype=float), de_b1: wp.array2d(dtype=float), de_w2: wp.array2d(dtype=float),

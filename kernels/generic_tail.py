@@ -32,57 +32,131 @@ from .tiles import grid_step
 # launch's start (tiles.gather_rows: asynchronous copies in flight with the launch's row copies and gathers, complete
 # once the next tiles.stage wait has passed, which must come before x is read). (Gathered between the products before,
 # a chain of dependent loads a thread, the port terms took 6.5 us a block at batch 1, now 5.6; the batch-64 decoder
-# launch 1072 -> 1013 us: bench/results/warp_timeline_h200.json, warp_sums_grads_h200.json.) Then two block steps
-# over the tile, each one loop and one barrier: (B^T x)[b] a (row, b) item (x = dS; on self-loops dE too), then each
-# (row, a) item's (L x)[a] = sum_{b<a} A[a, b] x_b - sum_{b>a} A[b, a] x_b and (M x)[a] = sum_{b<=a} B[a, b]
-# (B^T x)_b, in the order of additions of the reference's loops. B^T x is formed once a row instead of once a
-# component: the decoder launch 37 -> 26 us at batch 1, 247 -> 130 registers (its loops as Warp code, 12 x 12 branches
-# an item, held ~30 % of its stall samples; bench/results/warp_step_trims_h200.json). Where its results go (is_self,
-# put) is the variant's: a global ports buffer (PORTS_TO_BUFFERS) or a shared tile (PORTS_TO_TILE).
+# launch 1072 -> 1013 us: bench/results/warp_timeline_h200.json, warp_sums_grads_h200.json.) Then a thread a row:
+# every operator fully unrolled on constant indices, the row's entries streamed from shared memory by 16-byte loads,
+# so that its twelve components are twelve independent chains of multiply-adds and no index arithmetic is left (a
+# thread a (row, component) item before, in two block steps of strided loops: ~2,000 instructions a row against
+# ~400, each item's chain one after another at two warps a scheduler). A self-loop's extra shares (L dS, M dE and
+# dS . M dS) are a second thread's, in other warps, beside the first. The entries stream row by row through each
+# operator, which gives every output its terms in the order of the reference loops': (A x)[a] over b, (B^T x)[b]
+# over c >= b, (B y)[a] over b <= a. The row strides of the (l, m) and x tiles (SL, SX) are best 4 floats off a
+# multiple of 8 (decoders.LM_COLS, X_COLS): 8 lanes' 16-byte loads then fall on 8 different banks' quads.
 PORT_TERMS = r"""
-    constexpr int T = tile_lm::Layout::Shape::dim(0), S = 12, NL = S * (S - 1) / 2;
+    constexpr int T = tile_lm::Layout::Shape::dim(0), S = 12, NL = S * (S - 1) / 2, NLM = NL + S * (S + 1) / 2;
     constexpr int SL = tile_lm::Layout::Stride::dim(0), SX = tile_x::Layout::Stride::dim(0);
-    const wp::float32* __restrict__ l = lm.data.ptr;
-    wp::float32* __restrict__ px = x.data.ptr;
-    wp::float32* __restrict__ py = y.data.ptr;
-    for (int i = WP_TILE_THREAD_IDX; i < T * S; i += WP_TILE_BLOCK_DIM) {  // y = (B^T dE | B^T dS)
-        const int r = i / S, b = i - r * S;
-        const bool sl = is_self(r);
-        const wp::float32* B = l + r * SL + NL;
-        wp::float32 ye = 0, ys = 0;
-        for (int c = b; c < S; ++c) {
-            const wp::float32 w = B[c * (c + 1) / 2 + b];
-            ys += w * px[r * SX + S + c];
-            if (sl)
-                ye += w * px[r * SX + c];
+    static_assert(SL % 4 == 0 && SX % 4 == 0 && NLM % 4 == 0, "16-byte rows");
+    // 16-byte loads and stores on CUDA (every row 16-byte aligned; 12 scalar stores a row scattered a lane's row over
+    // 12 store instructions)
+    auto load4 = [](const wp::float32* __restrict__ from, wp::float32* to) {
+#if defined(__CUDA_ARCH__)
+        const float4 q = *reinterpret_cast<const float4*>(from);
+        to[0] = q.x, to[1] = q.y, to[2] = q.z, to[3] = q.w;
+#else
+        for (int j = 0; j < 4; ++j)
+            to[j] = from[j];
+#endif
+    };
+    auto put_row = [](wp::float32* __restrict__ to, const wp::float32* from, int n) {  // n: a multiple of 4
+#pragma unroll
+        for (int k = 0; k < n; k += 4) {
+#if defined(__CUDA_ARCH__)
+            *reinterpret_cast<float4*>(to + k) = make_float4(from[k], from[k + 1], from[k + 2], from[k + 3]);
+#else
+            for (int j = 0; j < 4; ++j)
+                to[k + j] = from[k + j];
+#endif
         }
-        py[r * SX + b] = ye;
-        py[r * SX + S + b] = ys;
-    }
-    WP_TILE_SYNC();
-    for (int i = WP_TILE_THREAD_IDX; i < T * S; i += WP_TILE_BLOCK_DIM) {
-        const int r = i / S, a = i - r * S;
-        const bool sl = is_self(r);
-        const wp::float32* A = l + r * SL;
-        const wp::float32* B = A + NL;
-        const wp::float32* xe = px + r * SX;
-        const wp::float32* xs = xe + S;
-        wp::float32 l_de = 0, l_ds = 0, m_ds = 0, m_de = 0;
-        for (int b = 0; b < S; ++b) {  // (A - A^T) x; the diagonal a zero weight, selected rather than branched
-            // around (unrolled, a branch an iteration held a convergence barrier: ~16 % of the decoder's stall samples)
-            const wp::float32 v = A[b < a ? a * (a - 1) / 2 + b : b * (b - 1) / 2 + a];  // b == a: A[66] at most,
-            const wp::float32 w = b < a ? v : b > a ? -v : wp::float32(0);                // still in the row
-            l_de += w * xe[b];
-            if (sl)
-                l_ds += w * xs[b];
+    };
+    // Each operator streams its triangle's entries from the row l in shared memory, a 16-byte chunk at a time (c: the
+    // chunk holding entry k, loaded where k starts a chunk or the triangle), so that no more of the row than a chunk
+    // needs registers. (A - A^T) x: out[a] = sum_{b<a} A[a, b] x[b] - sum_{b>a} A[b, a] x[b], A strict lower,
+    // row-major packed
+    auto skew = [&](const wp::float32* l, const wp::float32* x, wp::float32* out) {
+        wp::float32 c[4];
+#pragma unroll
+        for (int a = 0; a < S; ++a)
+            out[a] = 0;
+#pragma unroll
+        for (int i = 1; i < S; ++i)
+#pragma unroll
+            for (int j = 0; j < i; ++j) {
+                const int k = i * (i - 1) / 2 + j;
+                if (k % 4 == 0)
+                    load4(l + k, c);
+                out[i] += c[k % 4] * x[j];
+                out[j] -= c[k % 4] * x[i];
+            }
+    };
+    // B^T x: out[b] = sum_{c>=b} B[c, b] x[c], B lower with its diagonal, row-major packed after A's
+    auto lower_t = [&](const wp::float32* l, const wp::float32* x, wp::float32* out) {
+        wp::float32 c[4];
+#pragma unroll
+        for (int b = 0; b < S; ++b)
+            out[b] = 0;
+#pragma unroll
+        for (int i = 0; i < S; ++i)
+#pragma unroll
+            for (int b = 0; b <= i; ++b) {
+                const int k = NL + i * (i + 1) / 2 + b;
+                if (k % 4 == 0 || k == NL)
+                    load4(l + (k & ~3), c);
+                out[b] += c[k % 4] * x[i];
+            }
+    };
+    // B y: out[a] = sum_{b<=a} B[a, b] y[b]; B read again rather than held in registers since lower_t (fence)
+    auto lower = [&](const wp::float32* l, const wp::float32* y, wp::float32* out) {
+#if defined(__CUDA_ARCH__)
+        asm volatile("" ::: "memory");
+#endif
+        wp::float32 c[4];
+#pragma unroll
+        for (int a = 0; a < S; ++a) {
+            out[a] = 0;
+#pragma unroll
+            for (int b = 0; b <= a; ++b) {
+                const int k = NL + a * (a + 1) / 2 + b;
+                if (k % 4 == 0 || k == NL)
+                    load4(l + (k & ~3), c);
+                out[a] += c[k % 4] * y[b];
+            }
         }
-        for (int b = 0; b <= a; ++b) {  // B (B^T x)
-            const wp::float32 w = B[a * (a + 1) / 2 + b];
-            m_ds += w * py[r * SX + S + b];
-            if (sl)
-                m_de += w * py[r * SX + b];
+    };
+    for (int w = WP_TILE_THREAD_IDX; w < 2 * T; w += WP_TILE_BLOCK_DIM) {  // rows' port terms, then self-loop shares
+        const int r = w < T ? w : w - T;
+        const bool shares = w >= T;
+        if (shares && !is_self(r))
+            continue;
+        const wp::float32* l = lm.data.ptr + r * SL;  // the row's (l, m)
+        wp::float32 grad[2 * S];  // its sender's (dE, dS)
+#pragma unroll
+        for (int k = 0; k < 2 * S; k += 4)
+            load4(x_ptr + r * SX + k, grad + k);
+        const wp::float32* xe = grad;
+        const wp::float32* xs = grad + S;
+        wp::float32 x_l[S], l_x[S], ys[S], m_ds[S];  // L x_l: L dE (L dS for a self-loop's shares); B^T dS, M dS
+#pragma unroll
+        for (int a = 0; a < S; ++a)
+            x_l[a] = shares ? xs[a] : xe[a];  // selected, not a pointer chosen at run time: registers, not memory
+        skew(l, x_l, l_x);
+        lower_t(l, xs, ys);
+        lower(l, ys, m_ds);
+        if (!shares) {
+#pragma unroll
+            for (int a = 0; a < S; ++a)
+                l_x[a] += m_ds[a];
+            put_row(port_at(r), l_x, S);
+        } else {
+            wp::float32 ye[S], m_de[S];
+            lower_t(l, xe, ye);
+            lower(l, ye, m_de);
+            wp::float32 terms[2 * S];  // the degeneracy's, then the entropy production's
+#pragma unroll
+            for (int a = 0; a < S; ++a) {
+                terms[a] = l_x[a] * l_x[a] + m_de[a] * m_de[a];
+                terms[S + a] = xs[a] * m_ds[a];
+            }
+            put_row(shares_at(r), terms, 2 * S);
         }
-        put(r, a, sl, l_de + m_ds, l_ds * l_ds + m_de * m_de, xs[a] * m_ds);
     }
     WP_TILE_SYNC();
 """
@@ -90,14 +164,10 @@ PORT_TERMS = r"""
 # the decoder's edge launch: ports[out_row + r] a row, the degeneracy and entropy shares node_terms[node0 + r] on
 # self-loop tiles (self_loops != 0: a tile is all self-loops or none), for the tail launch to sum
 PORTS_TO_BUFFERS = r"""
+    const wp::float32* x_ptr = x.data.ptr;
     auto is_self = [&](int) { return self_loops != 0; };
-    auto put = [&](int r, int a, bool sl, wp::float32 port, wp::float32 degeneracy, wp::float32 entropy) {
-        wp::index(ports, out_row + r, a) = port;
-        if (sl) {
-            wp::index(node_terms, node0 + r, a) = degeneracy;
-            wp::index(node_terms, node0 + r, 12 + a) = entropy;
-        }
-    };
+    auto port_at = [&](int r) { return &wp::index(ports, out_row + r, 0); };
+    auto shares_at = [&](int r) { return &wp::index(node_terms, node0 + r, 0); };
 """
 
 # a block of receiver-owned rows (decoders.hybrid_step): rows self0 .. self1 - 1 are self-loops; out[r, 0:12] the
@@ -105,13 +175,10 @@ PORTS_TO_BUFFERS = r"""
 PORTS_TO_TILE = r"""
     auto is_self = [&](int r) { return r >= self0 && r < self1; };
     constexpr int SO = tile_out::Layout::Stride::dim(0);
-    auto put = [&](int r, int a, bool sl, wp::float32 port, wp::float32 degeneracy, wp::float32 entropy) {
-        out.data.ptr[r * SO + a] = port;
-        if (sl) {
-            out.data.ptr[r * SO + 12 + a] = degeneracy;
-            out.data.ptr[r * SO + 24 + a] = entropy;
-        }
-    };
+    const wp::float32* x_ptr = x.data.ptr;
+    static_assert(SO % 4 == 0, "16-byte rows");
+    auto port_at = [&](int r) { return out.data.ptr + r * SO; };
+    auto shares_at = [&](int r) { return out.data.ptr + r * SO + 12; };
 """
 
 
@@ -119,24 +186,24 @@ PORTS_TO_TILE = r"""
 @functools.cache
 def row_operators(spec: Spec, owner: str):
     """(port_terms, port_terms_to_tile) on (T, 144) tiles of delta_e's outputs, x the rows' senders' (dE, dS)
-    (gathered: tiles.gather_rows) and y a (T, 24) shared scratch tile. port_terms(lm, x, y, out_row, self_loops,
-    node0, ports, node_terms): ports[out_row + r, a] = (L_r dE_j + M_r dS_j)[a] for each row r, j the row's sender
-    (the node itself on a self-loop), L x = A x - A^T x and M x = B (B^T x) from the packed triangles; on self-loop
-    tiles (self_loops != 0, node node0 + r) also node_terms[node, a] = (L dS)[a]^2 + (M dE)[a]^2 and node_terms[node,
-    12 + a] = dS[a] (M dS)[a]. port_terms_to_tile(lm, x, y, self0, self1, out): the same into the shared (T, 36) tile
-    out, its rows self0 .. self1 - 1 the self-loops (columns 0:12 the port term, 12:36 a self-loop's shares). Cached
-    by ``owner``, the module of the kernel using them (as tiles.py's factories)."""
+    (gathered: tiles.gather_rows), either tile's rows possibly padded (decoders.LM_COLS, X_COLS). port_terms(lm, x,
+    out_row, self_loops, node0, ports, node_terms): ports[out_row + r, a] = (L_r dE_j + M_r dS_j)[a] for each row r,
+    j the row's sender (the node itself on a self-loop), L x = A x - A^T x and M x = B (B^T x) from the packed
+    triangles; on self-loop tiles (self_loops != 0, node node0 + r) also node_terms[node, a] = (L dS)[a]^2 +
+    (M dE)[a]^2 and node_terms[node, 12 + a] = dS[a] (M dS)[a]. port_terms_to_tile(lm, x, self0, self1, out): the
+    same into the shared (T, 36) tile out, its rows self0 .. self1 - 1 the self-loops (columns 0:12 the port term,
+    12:36 a self-loop's shares). Cached by ``owner``, the module of the kernel using them (as tiles.py's
+    factories)."""
     T = spec.tile_rows
 
     @wp.func_native(PORTS_TO_BUFFERS + PORT_TERMS)
     def port_terms(lm: wp.tile(dtype=float, shape=(T, N_LM)), x: wp.tile(dtype=float, shape=(T, N_GRAD)),
-                   y: wp.tile(dtype=float, shape=(T, N_GRAD)), out_row: int, self_loops: int, node0: int,
-                   ports: wp.array2d(dtype=float), node_terms: wp.array2d(dtype=float)): ...
+                   out_row: int, self_loops: int, node0: int, ports: wp.array2d(dtype=float),
+                   node_terms: wp.array2d(dtype=float)): ...
 
     @wp.func_native(PORTS_TO_TILE + PORT_TERMS)
     def port_terms_to_tile(lm: wp.tile(dtype=float, shape=(T, N_LM)), x: wp.tile(dtype=float, shape=(T, N_GRAD)),
-                           y: wp.tile(dtype=float, shape=(T, N_GRAD)), self0: int, self1: int,
-                           out: wp.tile(dtype=float, shape=(T, N_GRAD + STATE))): ...
+                           self0: int, self1: int, out: wp.tile(dtype=float, shape=(T, N_GRAD + STATE))): ...
 
     return port_terms, port_terms_to_tile
 

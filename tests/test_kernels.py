@@ -528,6 +528,7 @@ def test_port_terms_against_dense_operators(monkeypatch, device, self_loops):
     """The hybrid decoder's port terms from a (rows, 144) tile of packed (l, m) triangles (generic_tail.PORT_TERMS):
     L dE + M dS with L = A - A^T and M = B B^T formed densely in numpy, and on self-loop rows the degeneracy and
     entropy shares (L dS)^2 + (M dE)^2 and dS (M dS)."""
+    from warpgnn.kernels.decoders import LM_COLS, X_COLS
     from warpgnn.kernels.generic_tail import row_operators
     from warpgnn.kernels.spec import N_LM, STATE, Spec
 
@@ -539,13 +540,13 @@ def test_port_terms_against_dense_operators(monkeypatch, device, self_loops):
     @wp.kernel(enable_backward=False, module=owner)
     def apply(lm: wp.array2d(dtype=float), x: wp.array2d(dtype=float), self_loops: int,
               ports: wp.array2d(dtype=float), terms: wp.array2d(dtype=float)):
-        tl = wp.tile_load(lm, shape=(T, N_LM), storage="shared")
-        tx = wp.tile_load(x, shape=(T, S2), storage="shared")
-        y = wp.tile_empty(shape=(T, S2), dtype=float, storage="shared")
-        port_terms(tl, tx, y, 0, self_loops, 0, ports, terms)
+        # rows padded as the decoder's (decoders.LM_COLS, X_COLS): views of wider shared tiles
+        tl = wp.tile_view(wp.tile_load(lm, shape=(T, LM_COLS), storage="shared"), offset=(0, 0), shape=(T, N_LM))
+        tx = wp.tile_view(wp.tile_load(x, shape=(T, X_COLS), storage="shared"), offset=(0, 0), shape=(T, S2))
+        port_terms(tl, tx, 0, self_loops, 0, ports, terms)
 
     rng = np.random.default_rng(5 + self_loops)
-    lm, x = rng.standard_normal((T, N_LM)).astype(np.float32), rng.standard_normal((T, S2)).astype(np.float32)
+    lm, x = rng.standard_normal((T, LM_COLS)).astype(np.float32), rng.standard_normal((T, X_COLS)).astype(np.float32)
     ports = wp.zeros((T, S), dtype=float, device=device)
     terms = wp.zeros((T, S2), dtype=float, device=device)
     wp.launch_tiled(apply, dim=[1], inputs=[wp.array(lm, dtype=float, device=device),
@@ -555,9 +556,9 @@ def test_port_terms_against_dense_operators(monkeypatch, device, self_loops):
     low, tri = np.tril_indices(S, -1), np.tril_indices(S)
     for r in range(T):
         A, B = np.zeros((S, S)), np.zeros((S, S))
-        A[low], B[tri] = lm[r, :len(low[0])], lm[r, len(low[0]):]
+        A[low], B[tri] = lm[r, :len(low[0])], lm[r, len(low[0]):N_LM]
         L, M = A - A.T, B @ B.T
-        dE, dS = x[r, :S].astype(np.float64), x[r, S:].astype(np.float64)
+        dE, dS = x[r, :S].astype(np.float64), x[r, S:S2].astype(np.float64)
         np.testing.assert_allclose(got[r], L @ dE + M @ dS, rtol=1e-5, atol=1e-4)
         shares = np.concatenate([(L @ dS) ** 2 + (M @ dE) ** 2, dS * (M @ dS)]) if self_loops else np.zeros(S2)
         np.testing.assert_allclose(got_terms[r], shares, rtol=1e-5, atol=1e-3)
