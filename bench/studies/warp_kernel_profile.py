@@ -103,6 +103,8 @@ def main():
     ap.add_argument("--threads", default=None,
                     help="Spec.threads as KERNEL=N,... ('none': every kernel on the shape's block; default: a "
                     "Network's pick, spec.threads_for)")
+    ap.add_argument("--edge-encoder", choices=("pick", "on", "off"), default="pick",
+                    help="the mesh-edge rows' encoder a launch of its own (Network's edge_encoder; pick: its default)")
     ap.add_argument("--repeats", type=int, default=300, help="captured steps timed a case")
     ap.add_argument("--without", default="", help="kernels whose launches each step leaves out, comma-separated "
                     "(timing only: the outputs are then wrong), e.g. node_pass: what a launch costs the step")
@@ -139,7 +141,8 @@ def main():
             kind, passes, batch = item.split(":")
             case = base.stacked(int(batch))
             net = Network(random_model(kind, int(passes), a.latent), case.topology, device="cuda:0", block_dim=B,
-                          threads=threads, **tiles)
+                          threads=threads, edge_encoder={"pick": None, "on": True, "off": False}[a.edge_encoder],
+                          **tiles)
             if a.without:  # a probe: the step less these launches
                 left_out = set(a.without.split(","))
                 net._launches = [x for x in net._launches if x.kernel.key.rsplit("__", 1)[-1] not in left_out]
@@ -153,7 +156,7 @@ def main():
             cases.append({"model": kind, "passes": int(passes), "batch": int(batch), "latent": a.latent,
                           "tile_rows": T_used, "node_rows": N_used, "block_dim": B, "k_chunk": K_used, "gemm": G,
                           "edge_rows": net.spec.edge_tile, "edge_gemm": net.spec.edge_gemm or G,
-                          "edge_kernels": list(net.spec.edge_kernels),
+                          "edge_kernels": list(net.spec.edge_kernels), "edge_encoder": net.edge_encoder,
                           "threads": dict(net.spec.threads),
                           "step_ms": median, "step_p10_ms": p10, "step_p90_ms": p90, "launches": net.n_launches,
                           "kernels_alone_us": alone, "kernels": kernels})
