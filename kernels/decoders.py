@@ -152,7 +152,6 @@ EO_ALIGN = 4  # floats: the row length of the decoder's shared e / o tile, a mul
 # the row lengths of the decoder's shared (l, m) and senders' (dE, dS) tiles, which generic_tail.PORT_TERMS reads a
 # row a thread by 16-byte loads: 4 floats past a multiple of 8, so that 8 lanes' loads fall on 8 different banks' quads
 LM_COLS, X_COLS = N_LM + 4, N_GRAD + 4
-MANY_BLOCKS_REGISTERS = 128  # a thread of hybrid_fields where blocks queue for the SMs (kernels below)
 LM_CHUNK = 16  # K rows of the (F, 144) weight's chunks where blocks queue for the SMs (Spec.many_blocks)
 
 
@@ -314,11 +313,8 @@ def kernels(spec: Spec):
         settle(n0 + k, a, pt[ne + k, a] - incoming, b, tail)
 
     edge_fields, grouped_fields = edge_fields_of(False), edge_fields_of(True)
-    # where blocks queue for the SMs two 256-thread blocks an SM: the port terms' rows in registers (a thread a row)
-    # would take its registers 114 -> 250 and the blocks an SM to one (the launch 495 -> 547 us at batch 64)
-    capped = {"cuda_max_registers": MANY_BLOCKS_REGISTERS} if spec.many_blocks else {}
 
-    @wp.kernel(enable_backward=False, module=owner, **capped)
+    @wp.kernel(enable_backward=False, module=owner, **spec.kernel_options("hybrid_fields"))
     def hybrid_fields(lat: wp.array2d(dtype=float), row_recv: wp.array(dtype=wp.int32),
                       row_send: wp.array(dtype=wp.int32), products: wp.array2d(dtype=row_vector(F)),
                       de_e: wp.array2d(dtype=float), de_b1: wp.array2d(dtype=float), de_w2: wp.array2d(dtype=float),

@@ -45,8 +45,8 @@ PORT_TERMS = r"""
     constexpr int T = tile_lm::Layout::Shape::dim(0), S = 12, NL = S * (S - 1) / 2, NLM = NL + S * (S + 1) / 2;
     constexpr int SL = tile_lm::Layout::Stride::dim(0), SX = tile_x::Layout::Stride::dim(0);
     static_assert(SL % 4 == 0 && SX % 4 == 0 && NLM % 4 == 0, "16-byte rows");
-    // 16-byte loads and stores on CUDA (every row 16-byte aligned; 12 scalar stores a row scattered a lane's row over
-    // 12 store instructions)
+    const wp::float32* x_ptr = x.data.ptr;  // x: the lambdas below name their own operands x
+    // 16-byte loads and stores on CUDA (every row 16-byte aligned: a lane's 12 or 24 results in 3 or 6 stores)
     auto load4 = [](const wp::float32* __restrict__ from, wp::float32* to) {
 #if defined(__CUDA_ARCH__)
         const float4 q = *reinterpret_cast<const float4*>(from);
@@ -164,7 +164,6 @@ PORT_TERMS = r"""
 # the decoder's edge launch: ports[out_row + r] a row, the degeneracy and entropy shares node_terms[node0 + r] on
 # self-loop tiles (self_loops != 0: a tile is all self-loops or none), for the tail launch to sum
 PORTS_TO_BUFFERS = r"""
-    const wp::float32* x_ptr = x.data.ptr;
     auto is_self = [&](int) { return self_loops != 0; };
     auto port_at = [&](int r) { return &wp::index(ports, out_row + r, 0); };
     auto shares_at = [&](int r) { return &wp::index(node_terms, node0 + r, 0); };
@@ -175,7 +174,6 @@ PORTS_TO_BUFFERS = r"""
 PORTS_TO_TILE = r"""
     auto is_self = [&](int r) { return r >= self0 && r < self1; };
     constexpr int SO = tile_out::Layout::Stride::dim(0);
-    const wp::float32* x_ptr = x.data.ptr;
     static_assert(SO % 4 == 0, "16-byte rows");
     auto port_at = [&](int r) { return out.data.ptr + r * SO; };
     auto shares_at = [&](int r) { return out.data.ptr + r * SO + 12; };

@@ -52,23 +52,10 @@ FW = FEATURE_WIDTH
 # hybrid from 139.0 to 132.3 us at 5 passes and from 291.3 to 271.9 us at 12 (block-stamped steps,
 # bench/results/warp_edge_occupancy_h200.json)
 EDGE_PASS_SHARED = 80 * 1024
-# registers a thread of the edge pass and the encoders where blocks queue for the SMs (Spec.many_blocks), so that
-# their blocks an SM are bound by shared memory, not registers (128 threads: 5 edge blocks of 41 KiB instead of 4 at
-# 127 registers, 4 encoder blocks of 52 KiB instead of 3 at 129): batch 64 edge pass 390 -> 373 us, encoders 404 ->
-# 372 (bench/results/warp_occupancy_h200.json)
-MANY_BLOCKS_REGISTERS = {"edge_pass": 96, "encode": 128}
 DECODE_FIELDS, DECODE_STATE = 1, 2  # node_kernel's decode on the last pass: the hybrid's delta_v, the vanilla's decoder
 # Warp keys by decode, each ending in __node_pass as a key Warp derives (factory__locals__name), so that studies and
 # Network.overlap's names take all three as the node pass
 NODE_PASS_NAMES = tuple(f"node_kernel{v}__locals__node_pass" for v in ("", "_fields", "_state"))
-
-
-def _options(spec: Spec, kernel: str) -> dict:
-    """Kernel options of ``kernel`` (MANY_BLOCKS_REGISTERS; not the tensor-core edge pass: its 64-row blocks on 256
-    threads, their registers uncapped as measured)."""
-    tensor = kernel == "edge_pass" and spec.edges("edge_pass").gemm == "wgmma"
-    capped = spec.many_blocks and kernel in MANY_BLOCKS_REGISTERS and not tensor
-    return {"cuda_max_registers": MANY_BLOCKS_REGISTERS[kernel]} if capped else {}
 
 
 @functools.cache
@@ -98,7 +85,7 @@ def encoder_kernel(spec: Spec):
     load_feat, loaded_feat = stage(T, FW, owner)
     store_rows = store(T, F, owner)
 
-    @wp.kernel(enable_backward=False, module=owner, **_options(spec, "encode"))
+    @wp.kernel(enable_backward=False, module=owner, **spec.kernel_options("encode"))
     def encode(raw: features.Inputs, feat: wp.array2d(dtype=float), w1: wp.array2d(dtype=float),
                b1: wp.array2d(dtype=float),
                w2: wp.array2d(dtype=float), b2: wp.array2d(dtype=float), gain: wp.array2d(dtype=float),
@@ -274,7 +261,7 @@ def edge_kernel(spec: Spec):
     store_rows = store(T, F, owner)
     stage_ids, _stage_offsets = index_steps(T, owner)
 
-    @wp.kernel(enable_backward=False, module=owner, **_options(spec, "edge_pass"))
+    @wp.kernel(enable_backward=False, module=owner, **spec.kernel_options("edge_pass"))
     def edge_pass(lat: wp.array2d(dtype=float), row_recv: wp.array(dtype=wp.int32),
                   row_send: wp.array(dtype=wp.int32), products: wp.array2d(dtype=row_vector(F)),
                   w_e: wp.array2d(dtype=float), b1: wp.array2d(dtype=float), w2: wp.array2d(dtype=float),

@@ -25,6 +25,13 @@ EDGE_FEATURE_WIDTH = 16
 GEMMS = ("native", "scalar", "mathdx", "fp16", "wgmma")  # the first is the default
 TILE_KERNELS = ("encode", "edge_pass", "node_pass", "hybrid_fields")  # Spec.threads may name them
 EDGE_KERNELS = ("edge_pass", "hybrid_fields")  # the edge-row launches (Spec.edge_kernels may name them)
+# registers a thread where blocks queue for the SMs (Spec.many_blocks), so that their blocks an SM are bound by shared
+# memory, not registers (Spec.kernel_options): the edge pass and the encoders on 128 threads, 5 edge blocks of 41 KiB
+# instead of 4 at 127 registers and 4 encoder blocks of 52 KiB instead of 3 at 129 (batch 64 edge pass 390 -> 373 us,
+# encoders 404 -> 372; bench/results/warp_occupancy_h200.json); the hybrid decoder's edge tiles, two 256-thread blocks
+# an SM, where its port terms a thread a row took it to 250 registers and one block (the launch 495 -> 547 us, capped
+# 443; warp_port_terms_a_row_h200.json)
+MANY_BLOCKS_REGISTERS = {"edge_pass": 96, "encode": 128, "hybrid_fields": 128}
 
 
 @dataclass(frozen=True)
@@ -129,6 +136,13 @@ class Spec:
         93.2 / 196.9 -> 33.3 / 91.35 / 192.65, the outputs within 6.5e-7 relative (the statistics summed in another
         order; bench/results/warp_fused_layers_h200.json, call S18f)."""
         return self.fused_layers and self.gemm == "wgmma"
+
+    def kernel_options(self, kernel: str) -> dict:
+        """Warp kernel options of ``kernel``: its register cap where blocks queue for the SMs (MANY_BLOCKS_REGISTERS);
+        not the edge pass on tensor cores (64-row blocks on 256 threads, their registers uncapped as measured)."""
+        tensor = kernel == "edge_pass" and self.edges("edge_pass").gemm == "wgmma"
+        capped = self.many_blocks and kernel in MANY_BLOCKS_REGISTERS and not tensor
+        return {"cuda_max_registers": MANY_BLOCKS_REGISTERS[kernel]} if capped else {}
 
     @property
     def many_blocks(self) -> bool:
