@@ -67,10 +67,15 @@ PORT_TERMS = r"""
 #endif
         }
     };
-    // Each operator streams its triangle's entries from the row l in shared memory, a 16-byte chunk at a time (c: the
-    // chunk holding entry k, loaded where k starts a chunk or the triangle), so that no more of the row than a chunk
-    // needs registers. (A - A^T) x: out[a] = sum_{b<a} A[a, b] x[b] - sum_{b>a} A[b, a] x[b], A strict lower,
-    // row-major packed
+    // Each operator streams its triangle's entries from the row l in shared memory, a 16-byte chunk at a time, so that
+    // no more of the row than a chunk needs registers: entry k of a walk in order from entry ``first``, its chunk c
+    // loaded where k starts a chunk or the walk
+    auto entry = [&](const wp::float32* l, int k, int first, wp::float32* c) {
+        if (k % 4 == 0 || k == first)
+            load4(l + (k & ~3), c);
+        return c[k % 4];
+    };
+    // (A - A^T) x: out[a] = sum_{b<a} A[a, b] x[b] - sum_{b>a} A[b, a] x[b], A strict lower, row-major packed
     auto skew = [&](const wp::float32* l, const wp::float32* x, wp::float32* out) {
         wp::float32 c[4];
 #pragma unroll
@@ -80,11 +85,9 @@ PORT_TERMS = r"""
         for (int i = 1; i < S; ++i)
 #pragma unroll
             for (int j = 0; j < i; ++j) {
-                const int k = i * (i - 1) / 2 + j;
-                if (k % 4 == 0)
-                    load4(l + k, c);
-                out[i] += c[k % 4] * x[j];
-                out[j] -= c[k % 4] * x[i];
+                const wp::float32 w = entry(l, i * (i - 1) / 2 + j, 0, c);
+                out[i] += w * x[j];
+                out[j] -= w * x[i];
             }
     };
     // B^T x: out[b] = sum_{c>=b} B[c, b] x[c], B lower with its diagonal, row-major packed after A's
@@ -96,12 +99,8 @@ PORT_TERMS = r"""
 #pragma unroll
         for (int i = 0; i < S; ++i)
 #pragma unroll
-            for (int b = 0; b <= i; ++b) {
-                const int k = NL + i * (i + 1) / 2 + b;
-                if (k % 4 == 0 || k == NL)
-                    load4(l + (k & ~3), c);
-                out[b] += c[k % 4] * x[i];
-            }
+            for (int b = 0; b <= i; ++b)
+                out[b] += entry(l, NL + i * (i + 1) / 2 + b, NL, c) * x[i];
     };
     // B y: out[a] = sum_{b<=a} B[a, b] y[b]; B read again rather than held in registers since lower_t (fence)
     auto lower = [&](const wp::float32* l, const wp::float32* y, wp::float32* out) {
@@ -113,12 +112,8 @@ PORT_TERMS = r"""
         for (int a = 0; a < S; ++a) {
             out[a] = 0;
 #pragma unroll
-            for (int b = 0; b <= a; ++b) {
-                const int k = NL + a * (a + 1) / 2 + b;
-                if (k % 4 == 0 || k == NL)
-                    load4(l + (k & ~3), c);
-                out[a] += c[k % 4] * y[b];
-            }
+            for (int b = 0; b <= a; ++b)
+                out[a] += entry(l, NL + a * (a + 1) / 2 + b, NL, c) * y[b];
         }
     };
     for (int w = WP_TILE_THREAD_IDX; w < 2 * T; w += WP_TILE_BLOCK_DIM) {  // rows' port terms, then self-loop shares
