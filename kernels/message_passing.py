@@ -28,7 +28,7 @@ import functools
 
 import warp as wp
 
-from . import features
+from . import features, register_edges
 from .decoders import node_decoder
 from .generic_tail import Tail, step_values
 from .spec import EDGE_FEATURE_WIDTH, FEATURE_WIDTH, N_GRAD, NODE_ROWS, STATE, Spec
@@ -491,7 +491,10 @@ def node_kernel(spec: Spec, decode: int = 0):
 def launches(net) -> list:
     """The encoder launch (and the mesh-edge encoder's: Network.edge_encoder) and two launches per pass, recorded
     (wp.Launch) for replay."""
-    encode, edge_pass = encoder_kernel(net.spec), edge_kernel(net.spec)
+    encode = encoder_kernel(net.spec)
+    # the edge pass in warpgroups' registers (register_edges), its grid, tile walk and weights; else a block a tile
+    wgs = net.spec.edge_warpgroups
+    edge_pass = register_edges.edge_registers_kernel(net.spec) if wgs else edge_kernel(net.spec)
     lay, w, dev = net.layout, net.weights, net.device
     A = 1 if w.actuator_graphs else 0
     pass_chunks = 3 if A else 2
@@ -521,12 +524,15 @@ def launches(net) -> list:
             inputs=[raw, enc_w1, w.enc_b1, enc_w2, w.enc_b2, w.enc_g, w.enc_be, w.eps, lay.mesh_row, net.lat]))
     mesh_tiles = lay.edges_pad // edges.tile_rows
     edge_tiles = mesh_tiles + lay.act_pad // edges.tile_rows
-    ew_e, ew_w2 = w.for_products(edges.gemm, "ew_e", "ew_w2")  # tensor-core products: in tf32 parts
+    blocks = register_edges.blocks_for(net.spec, edge_tiles, dev) if wgs else edge_tiles
+    ew_e, ew_w2 = w.for_products("registers" if wgs else edges.gemm, "ew_e", "ew_w2")  # tensor cores: tf32 parts
+    tile_walk = [edge_tiles, blocks * wgs, wgs] if wgs else []
     for p in range(w.passes):
         out.append(wp.launch_tiled(
-            edge_pass, dim=[edge_tiles], block_dim=net.block_dim_of("edge_pass"), device=dev, record_cmd=True,
+            edge_pass, dim=[blocks], block_dim=net.block_dim_of("edge_pass"), device=dev, record_cmd=True,
             inputs=[net.lat, net.graph.row_recv, net.graph.row_send, net.product_rows, ew_e, w.ew_b1, ew_w2,
-                    w.ew_b2, w.ew_g, w.ew_be, w.eps, p, lay.mesh_row, mesh_tiles, lay.act_row, lay.tools_pad]))
+                    w.ew_b2, w.ew_g, w.ew_be, w.eps, p, lay.mesh_row, mesh_tiles, lay.act_row, lay.tools_pad,
+                    *tile_walk]))
         last = p == w.passes - 1  # then the decoder's node MLP too, on the third block of proj
         node_pass = node_kernel(net.spec, (DECODE_FIELDS if w.kind == "hybrid" else DECODE_STATE) if last else 0)
         out.append(wp.launch_tiled(

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from . import decoders, features, generic_tail, integrate, message_passing, shipped
+from . import decoders, features, generic_tail, integrate, message_passing, register_edges, shipped
 from .graph import build
 from .pdl import overlap_launches
 from .spec import (
@@ -47,8 +47,11 @@ def build_kernels(spec: Spec) -> None:
     for module in (features, decoders, generic_tail, integrate):
         module.kernels(spec)
     message_passing.encoder_kernel(spec)
-    message_passing.edge_encoder_kernel(spec)
-    message_passing.edge_kernel(spec)
+    if spec.edge_warpgroups:  # its module (block size) holds the register edge pass alone
+        register_edges.edge_registers_kernel(spec)
+    else:
+        message_passing.edge_encoder_kernel(spec)
+        message_passing.edge_kernel(spec)
     for decode in (0, message_passing.DECODE_FIELDS, message_passing.DECODE_STATE):
         message_passing.node_kernel(spec, decode)
     for module in spec.modules:
@@ -90,7 +93,8 @@ class Network:
                  k_chunk: int | None = None, weights=None, node_rows: int | None = None, gemm: str = Spec.gemm,
                  threads: dict | None = None, edge_rows: int | None = None, edge_gemm: str | None = None,
                  edge_kernels: tuple | None = None, receiver_groups: bool | None = None,
-                 split_products: bool | None = None, edge_encoder: bool | None = None):
+                 split_products: bool | None = None, edge_encoder: bool | None = None,
+                 edge_warpgroups: int | None = None):
         """``model``: a warpgnn TIGNN (its config and weights are read once); ``topology``: a
         warpgnn.graphs.Topology, one simulation or a stacked batch. ``tile_rows``, ``node_rows``, ``k_chunk``,
         ``gemm``, ``edge_rows``, ``edge_gemm``, ``edge_kernels``: the kernels' Spec (node_rows and k_chunk None: by the
@@ -109,7 +113,9 @@ class Network:
         12-pass step 626.8 -> 628.5 (bench/results/warp_vanilla_last_products_h200.json). ``edge_encoder``: the
         mesh-edge rows' encoder in a launch of its own on the edge pass's tiles and products
         (message_passing.edge_encoder_kernel); None: where the edge pass runs on tensor cores with K chunks and the
-        encoder computes the features (F = 128 on small graphs on sm_90)."""
+        encoder computes the features (F = 128 on small graphs on sm_90). ``edge_warpgroups``: the edge pass with each
+        64-row tile in a warpgroup's registers, this many a block (Spec.edge_warpgroups; kernels/register_edges.py);
+        None: off."""
         self.device = wp.get_device(device)
         self.weights = w = weights if weights is not None else pack(model, self.device)
         if not node_rows:  # by the graph's size, a divisor of tile_rows where given
@@ -124,7 +130,7 @@ class Network:
         arch = self.device.arch if self.device.is_cuda else None
         # None: by the GPU and the graph's size
         edge = edge_products(edge_rows, edge_gemm, k_chunk, w.latent, arch, small, edge_kernels, tiles_per_sm,
-                             tile_rows or Spec.tile_rows)
+                             tile_rows or Spec.tile_rows, edge_warpgroups)
         tile_rows = tile_rows or tile_rows_for(node_rows, w.latent, edge)
         threads = threads_for(k_chunk, w.latent, self.device.is_cuda, edge) if threads is None else threads
         self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm, threads=tuple(dict(threads).items()), **edge)
@@ -141,6 +147,8 @@ class Network:
         # launches not overlapping enough to gain
         tensor = self.spec.edges("edge_pass").gemm == "wgmma" and self.spec.features_in_encoder
         self.edge_encoder = tensor and self.spec.kc != w.latent if edge_encoder is None else edge_encoder
+        if self.edge_encoder and self.spec.edge_warpgroups:
+            raise ValueError("edge_encoder: not with the register edge pass (Spec.edge_warpgroups)")
         if self.edge_encoder and not self.spec.features_in_encoder:
             raise ValueError("edge_encoder: only where the encoder computes the features (Spec.features_in_encoder)")
         hybrid = w.kind == "hybrid"

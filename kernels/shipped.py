@@ -23,7 +23,7 @@ from pathlib import Path
 
 import warp as wp
 
-from .spec import FEW_NODE_TILES, NODE_ROWS, Spec, edge_products_for, k_chunk_for, node_rows_allowed, threads_for
+from .spec import NODE_ROWS, RESIDENT_NODE_TILES, Spec, edge_products_for, k_chunk_for, node_rows_allowed, threads_for
 
 FOLDER = Path(__file__).resolve().parent / "aot"
 LATENTS = (64,)  # the shipped network's width, with each of spec.NODE_ROWS (a Network picks by graph size)
@@ -41,8 +41,8 @@ def specs(arch: int) -> list[Spec]:
     shapes = [(F, n, k_chunk_for(n, F)) for F in LATENTS for n in node_rows_allowed(F)]
     shapes += [(F, NODE_ROWS[0], k_chunk_for(NODE_ROWS[0], F, max_shared=0)) for F in LATENTS]
     small = NODE_ROWS[0]  # the small graphs' node tiles
-    # the largest node tiles serve graphs of any size above: their picks at up to FEW_NODE_TILES an SM and beyond
-    loads = {n: (1.0, 2 * FEW_NODE_TILES) if n == NODE_ROWS[-1] else (1.0,) for n in NODE_ROWS}
+    # the largest node tiles serve graphs of any size above: their picks at up to RESIDENT_NODE_TILES an SM and beyond
+    loads = {n: (1.0, 2 * RESIDENT_NODE_TILES) if n == NODE_ROWS[-1] else (1.0,) for n in NODE_ROWS}
     edges = [(F, n, k, edge_products_for(k, F, arch, n == small, load)) for F, n, k in shapes for load in loads[n]]
     out = [Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, edge), **edge) for F, n, k, edge in edges]
     return list({s.module: s for s in out}.values())

@@ -70,6 +70,9 @@ class Spec:
     # of TILE_KERNELS). Each lives in a module of its block size (module_of): Warp builds a module for one. A Network
     # picks them (threads_for)
     threads: tuple = ()
+    # the edge pass with each 64-row tile in one warpgroup's registers (kernels/register_edges.py; edge_gemm "wgmma",
+    # F = 64): this many warpgroups a block, 1 a block a tile, more resident blocks looping over tiles; 0: off
+    edge_warpgroups: int = 0
 
     def __post_init__(self):
         for gemm in (self.gemm, self.edge_gemm or self.gemm):
@@ -83,6 +86,9 @@ class Spec:
                                                        or self.kc % 16):
             raise ValueError("wgmma products: the edge-row launches' only (edge_gemm), on edge tiles of 64 rows, F "
                              "and its K chunk multiples of 16")
+        if self.edge_warpgroups and (self.edge_gemm != "wgmma" or self.latent != 64
+                                     or "edge_pass" not in self.edge_kernels or self.edge_warpgroups > 4):
+            raise ValueError("edge_warpgroups: the edge pass on wgmma (edge_gemm) at F = 64, 1 to 4 warpgroups")
         kernels = tuple(k for k in EDGE_KERNELS if k in self.edge_kernels)
         if len(kernels) != len(set(self.edge_kernels)) or not kernels:
             raise ValueError(f"edge_kernels {self.edge_kernels!r}: expected some of {', '.join(EDGE_KERNELS)}")
@@ -202,6 +208,8 @@ class Spec:
             gemm += f"_E{self.edge_tile}{self.edge_gemm}"
             if self.edge_kernels != EDGE_KERNELS:  # on some of the edge-row launches only
                 gemm += "".join(f"_{k}" for k in self.edge_kernels)
+            if self.edge_warpgroups:
+                gemm += f"_R{self.edge_warpgroups}"
         # kernels moved to a module of another block size (threads) leave this one: its name says which, so that two
         # specs differing only there never share (and mix the kernels of) one Warp module
         moved = "".join(f"_{k}{n}" for k, n in self.threads)
@@ -290,25 +298,27 @@ def tile_rows_for(node_rows: int, latent: int, edge: dict) -> int:
 WIDE = 256  # threads a block of the kernels threads_for names
 
 
-# node tiles an SM up to which the edge pass takes wgmma too on graphs with K chunks at F = 64 (edge_products_for)
-FEW_NODE_TILES = 2.0
+# node tiles an SM from which the register edge pass runs resident blocks of three warpgroups (edge_products_for)
+RESIDENT_NODE_TILES = 6.0
 
 
 def edge_products_for(k_chunk: int, latent: int, arch: int | None, small: bool = False,
                       node_tiles_per_sm: float = 0.0, tile_rows: int = Spec.tile_rows) -> dict:
-    """Spec's edge_rows, edge_gemm and edge_kernels for a Network on a GPU of compute capability ``arch`` (None: not
-    a GPU): on sm_90 (H100, H200) the edge-row launches on tiles of 64 rows with wgmma products (tiles.GEMM_WGMMA) on
-    two warpgroups (threads_for). Both, the edge pass and the hybrid decoder, for small graphs (``small``: node tiles
-    of 8, at most one an SM; at F = 64 whole weights, k_chunk_for, which says as much) and, at F = 64, for graphs of
-    up to FEW_NODE_TILES node tiles an SM (``node_tiles_per_sm``); the hybrid decoder alone on larger ones at F = 64.
-    On an H200 (L5, 5-pass hybrid steps; bench/results/warp_wgmma_edge_pass_h200.json, warp_wgmma_decoder_h200.json):
-    batch 1 62.2 / 130.3 / 249.9 -> 61.1 / 126.5 / 241.0 us at 1 / 5 / 12 passes with the edge pass, -> 58.2 / 124.1
-    / 239.1 with the decoder too; F = 128, 12 passes, 676.8 -> 639.7 us. With K chunks, against the fp32 launches: the
-    decoder alone 214 -> 208 us at batch 2, 331 -> 321 at 4, 575 -> 562 at 8, 3818 -> 3707 at 64 (its launch 689 ->
-    575 us); both, against the decoder alone, 207.8 -> 191.7 us at batch 2, 321.1 -> 300.6 at 4, 560.3 -> 540.3 at 8
-    (node tiles of 8, 16, 32: 1.27 an SM each), and slower at 16 (1055 -> 1059, 2.5 tiles an SM), 32 (1942 -> 1962)
-    and 64 (the edge pass's launch 367 -> 375 us). Else {} (the launches' tiles and products as the others'), as
-    where wgmma cannot take the shape (K chunks not a multiple of 16, ``tile_rows`` not dividing 64)."""
+    """Spec's edge_rows, edge_gemm, edge_kernels and edge_warpgroups for a Network on a GPU of compute capability
+    ``arch`` (None: not a GPU): on sm_90 (H100, H200) the edge-row launches on tiles of 64 rows with wgmma products
+    (tiles.GEMM_WGMMA) on two warpgroups (threads_for) for small graphs (``small``: node tiles of 8, at most one an SM;
+    at F = 64 whole weights, k_chunk_for, which says as much). At F = 64 on larger graphs (K chunks) the edge pass
+    with each tile in a warpgroup's registers (kernels/register_edges.py), a block a tile up to RESIDENT_NODE_TILES
+    node tiles an SM (``node_tiles_per_sm``), resident blocks of three warpgroups above, the hybrid decoder on the
+    two-warpgroup tiles. On an H200 (L5, 5-pass hybrid steps, bench/results/warp_register_edges_h200.json), against
+    the block-tile edge pass on wgmma (batch 2 to 8) or fp32 (16 on), a block a tile / resident blocks of three:
+    batch 2 186.8 -> 158.8 / 166.4 us, 4 304.5 -> 237.4 / 258.3, 8 558.7 -> 394.9 / 421.6, 16 948.4 -> 756.9 /
+    778.5, 32 1746 -> 1382.6 / 1382.5, 64 3316 -> 2594 / 2540 (the edge pass's launch 339 -> 198 / 172 us); not at
+    batch 1 (43.9 / 95.7 -> 46.2 / 109.5 us at 1 / 5 passes), whose small graph keeps the block tiles: there batch 1
+    62.2 / 130.3 / 249.9 -> 61.1 / 126.5 / 241.0 us at 1 / 5 / 12 passes with the wgmma edge pass, -> 58.2 / 124.1 /
+    239.1 with the decoder too; F = 128, 12 passes, 676.8 -> 639.7 us (warp_wgmma_edge_pass_h200.json,
+    warp_wgmma_decoder_h200.json). Else {} (the launches' tiles and products as the others'), as where wgmma cannot
+    take the shape (K chunks not a multiple of 16, ``tile_rows`` not dividing 64)."""
     if arch != 90 or k_chunk % 16 or 64 % tile_rows:
         return {}
     tensor = {"edge_rows": 64, "edge_gemm": "wgmma"}
@@ -316,19 +326,21 @@ def edge_products_for(k_chunk: int, latent: int, arch: int | None, small: bool =
         return tensor if small else {}
     if latent != 64:
         return {}
-    if k_chunk == latent or node_tiles_per_sm <= FEW_NODE_TILES:
+    if k_chunk == latent:
         return tensor
-    return tensor | {"edge_kernels": ("hybrid_fields",)}
+    return tensor | {"edge_warpgroups": 3 if node_tiles_per_sm > RESIDENT_NODE_TILES else 1}
 
 
 def edge_products(edge_rows: int | None, edge_gemm: str | None, k_chunk: int, latent: int, arch: int | None,
                   small: bool, edge_kernels: tuple | None = None, node_tiles_per_sm: float = 0.0,
-                  tile_rows: int = Spec.tile_rows) -> dict:
-    """Spec's edge_rows, edge_gemm and edge_kernels: those given, or where none is (None) edge_products_for's
-    pick."""
+                  tile_rows: int = Spec.tile_rows, edge_warpgroups: int | None = None) -> dict:
+    """Spec's edge_rows, edge_gemm, edge_kernels and edge_warpgroups: those given, or where none is (None)
+    edge_products_for's pick."""
     if edge_rows is None and edge_gemm is None and edge_kernels is None:
-        return edge_products_for(k_chunk, latent, arch, small, node_tiles_per_sm, tile_rows)
-    return {"edge_rows": edge_rows or 0, "edge_gemm": edge_gemm or "", "edge_kernels": edge_kernels or EDGE_KERNELS}
+        edge = edge_products_for(k_chunk, latent, arch, small, node_tiles_per_sm, tile_rows)
+    else:
+        edge = {"edge_rows": edge_rows or 0, "edge_gemm": edge_gemm or "", "edge_kernels": edge_kernels or EDGE_KERNELS}
+    return edge | ({"edge_warpgroups": edge_warpgroups} if edge_warpgroups else {})
 
 
 def threads_for(k_chunk: int, latent: int, cuda: bool, edge: dict | None = None) -> tuple:
@@ -345,6 +357,8 @@ def threads_for(k_chunk: int, latent: int, cuda: bool, edge: dict | None = None)
     wide = [("node_pass", WIDE)] if cuda and k_chunk == latent else []
     tensor = cuda and edge and edge.get("edge_gemm") == "wgmma"
     edges = [(k, WIDE) for k in edge.get("edge_kernels", EDGE_KERNELS)] if tensor else []
+    if tensor and edge.get("edge_warpgroups"):  # the register edge pass: a warpgroup a tile (kernels/register_edges)
+        edges = [(k, n) for k, n in edges if k != "edge_pass"] + [("edge_pass", 128 * edge["edge_warpgroups"])]
     return tuple(sorted(edges + wide))
 
 

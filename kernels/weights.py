@@ -37,16 +37,19 @@ class Weights:
             raise AttributeError(name) from None
 
     def for_products(self, gemm: str, *names: str) -> tuple:
-        """The weights ``names`` as products of kind ``gemm`` read them: in tensor_core_layout for "wgmma", else as
-        packed."""
-        return tuple(self.tensor_core(n) if gemm == "wgmma" else self.arrays[n] for n in names)
+        """The weights ``names`` as products of kind ``gemm`` read them: in tensor_core_layout for "wgmma", in
+        register_layout for "registers" (kernels/register_edges.py), else as packed."""
+        return tuple(self.tensor_core(n, gemm == "registers") if gemm in ("wgmma", "registers") else self.arrays[n]
+                     for n in names)
 
-    def tensor_core(self, name: str):
-        """Weight ``name`` in tensor_core_layout (the wgmma products'), packed on first use and kept."""
-        key = f"{name}_tf32"
+    def tensor_core(self, name: str, registers: bool = False):
+        """Weight ``name`` in tensor_core_layout (the wgmma products'), or register_layout, packed on first use and
+        kept."""
+        key = f"{name}_tf32{'_registers' if registers else ''}"
         if key not in self.arrays:
             w = self.arrays[name]
-            self.arrays[key] = wp.array(tensor_core_layout(w.numpy()), dtype=float, device=w.device)
+            layout = register_layout if registers else tensor_core_layout
+            self.arrays[key] = wp.array(layout(w.numpy()), dtype=float, device=w.device)
         return self.arrays[key]
 
 
@@ -56,21 +59,30 @@ def tf32(x: np.ndarray) -> np.ndarray:
     return ((bits + np.uint32(0x1000)) & np.uint32(0xFFFFE000)).view(np.float32)
 
 
-def tensor_core_layout(w: np.ndarray) -> np.ndarray:
+def tensor_core_layout(w: np.ndarray, registers: bool = False) -> np.ndarray:
     """A (K, N) weight (or weights stacked by rows), K a multiple of 16, as tiles.GEMM_WGMMA reads it: (2 K, N)
     floats, each 16 rows of k as 32 rows: their tf32 hi parts, then their lo parts (w - hi rounded again), each in
     wgmma's no-swizzle core matrices [k step j of 2][8-column group][k half h][column][4 k], logical k 8 j + 4 h + t
     holding row 4 t + 2 j + h. So any K chunk of 16 rows' multiple is contiguous, and a lane's A values of two k
-    steps are one 16-byte load of the tile's row (k 4 t .. 4 t + 3 hold steps (0, 0), (0, 1), (1, 0), (1, 1))."""
+    steps are one 16-byte load of the tile's row (k 4 t .. 4 t + 3 hold steps (0, 0), (0, 1), (1, 0), (1, 1)).
+    ``registers``: logical k 8 j + 4 h + t holding row 8 j + 2 t + h instead (register_layout)."""
     K, N = w.shape
     if K % 16 or N % 8:
         raise ValueError(f"a ({K}, {N}) weight: tensor-core layout needs K % 16 == 0 and N % 8 == 0")
     b, j, nb, h, r, t = np.meshgrid(np.arange(K // 16), np.arange(2), np.arange(N // 8), np.arange(2), np.arange(8),
                                     np.arange(4), indexing="ij")
-    vals = np.asarray(w, np.float32)[16 * b + 4 * t + 2 * j + h, 8 * nb + r].reshape(K // 16, 16 * N)
+    k = 16 * b + 8 * j + 2 * t + h if registers else 16 * b + 4 * t + 2 * j + h
+    vals = np.asarray(w, np.float32)[k, 8 * nb + r].reshape(K // 16, 16 * N)
     hi = tf32(vals)
     lo = tf32(vals - hi)
     return np.concatenate([hi, lo], axis=1).reshape(2 * K, N)
+
+
+def register_layout(w: np.ndarray) -> np.ndarray:
+    """tensor_core_layout with k permuted so that a lane's A fragment of k step j (k 8 j + 2 q and 8 j + 2 q + 1 of
+    rows r0, r1) is where a wgmma accumulator holds its columns 8 j + 2 q, + 1: a product's output is the next one's
+    A as it is, and a row's values serve as A and as residual alike (kernels/register_edges.py)."""
+    return tensor_core_layout(w, registers=True)
 
 
 def _t(w) -> np.ndarray:

@@ -385,17 +385,20 @@ def test_tiles_by_graph_size():
 
 
 def test_edge_products_and_threads_by_gpu():
-    """The edge-row launches (edge pass, hybrid decoder) on wgmma (64-row tiles, two warpgroups) only on sm_90: both for
-    small graphs (whole F = 64 weights; F = 128 with node tiles of 8 at most one an SM) and at F = 64 for graphs of up
-    to two node tiles an SM, the decoder alone for larger ones at F = 64; their blocks then on 256 threads; elsewhere as
-    the other launches (spec.edge_products_for, spec.threads_for); off a GPU never."""
+    """The edge-row launches (edge pass, hybrid decoder) on wgmma only on sm_90: on 64-row tiles of two warpgroups for
+    small graphs (whole F = 64 weights; F = 128 with node tiles of 8 at most one an SM), and at F = 64 with K chunks
+    the edge pass in warpgroups' registers (a warpgroup a block up to six node tiles an SM, three above); the blocks
+    of two warpgroups on 256 threads; elsewhere as the other launches (spec.edge_products_for, spec.threads_for); off
+    a GPU never."""
     from warpgnn.kernels.spec import edge_products_for, threads_for
 
     tensor = {"edge_rows": 64, "edge_gemm": "wgmma"}
     assert edge_products_for(64, 64, 90) == edge_products_for(32, 128, 90, small=True) == tensor
-    assert edge_products_for(32, 64, 90, node_tiles_per_sm=1.27) == edge_products_for(32, 64, 90) == tensor
-    # larger graphs at F = 64 (K chunks): the hybrid decoder alone
-    assert edge_products_for(32, 64, 90, node_tiles_per_sm=2.5) == tensor | {"edge_kernels": ("hybrid_fields",)}
+    # larger graphs at F = 64 (K chunks): the edge pass in warpgroups' registers, resident blocks of three from 6
+    # node tiles an SM
+    assert edge_products_for(32, 64, 90, node_tiles_per_sm=1.27) == edge_products_for(32, 64, 90) == tensor | {
+        "edge_warpgroups": 1} == edge_products_for(32, 64, 90, node_tiles_per_sm=5.1)
+    assert edge_products_for(32, 64, 90, node_tiles_per_sm=10.2) == tensor | {"edge_warpgroups": 3}
     assert edge_products_for(64, 64, 80) == edge_products_for(64, 64, None) == {}
     assert edge_products_for(16, 16, 90, True) == edge_products_for(32, 128, 90) == edge_products_for(32, 128, 80,
                                                                                                       True) == {}
@@ -407,6 +410,7 @@ def test_edge_products_and_threads_by_gpu():
     assert threads_for(64, 64, True, tensor) == (("edge_pass", 256), ("hybrid_fields", 256), ("node_pass", 256))
     assert threads_for(64, 64, True, {}) == threads_for(64, 64, True) == (("node_pass", 256),)
     assert threads_for(32, 64, True, decoder) == (("hybrid_fields", 256),)
+    assert threads_for(32, 64, True, tensor | {"edge_warpgroups": 3}) == (("edge_pass", 384), ("hybrid_fields", 256))
     assert threads_for(32, 64, True, {}) == threads_for(64, 64, False, tensor) == ()
     # only edge kernels named, the edge tiles and products the others': one Spec, one module
     from warpgnn.kernels.spec import Spec
@@ -584,6 +588,21 @@ def test_tensor_core_edge_pass(monkeypatch, kind, edge_kernels):
         assert (edges.tile_rows, edges.gemm) == ((64, "wgmma") if kernel in on else (32, "native"))
 
 
+@pytest.mark.parametrize("warpgroups", [1, 3])
+def test_register_edge_pass(warpgroups):
+    """The edge pass with each 64-row tile in a warpgroup's registers (kernels/register_edges.py; Spec.edge_warpgroups)
+    and its weights in register_layout: the reference's answer with one warpgroup a block (a block a tile) and with
+    three (blocks taking three tiles at once, both edge sets' weights), 2 passes, mesh and actuator tiles."""
+    from warpgnn.kernels.spec import Spec
+
+    net, _ = check(random_model("hybrid", 2, 64, seed=21), tool_topology(box((5, 4, 3)), 3, seed=21), seed=21,
+                   edge_rows=64, edge_gemm="wgmma", edge_warpgroups=warpgroups)
+    assert net.spec.edge_warpgroups == warpgroups and "_R" in net.spec.module
+    assert any(x.kernel.key.startswith("edge_registers_kernel") for x in net._launches)
+    with pytest.raises(ValueError, match="edge_warpgroups"):
+        Spec(32, edge_rows=64, edge_gemm="wgmma", edge_warpgroups=1)
+
+
 @pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
 @pytest.mark.parametrize("latent,shape,actuator_graphs", [
     (32, {"edge_rows": 64, "edge_gemm": "wgmma", "k_chunk": 32, "edge_encoder": True}, True),
@@ -680,19 +699,22 @@ def captured_equals_eager(model, seed, **kw):
 @pytest.mark.skipif(not SM90, reason="wgmma needs an sm_90 GPU (H100, H200)")
 def test_tensor_core_edge_pass_on_hopper():
     """The wgmma edge-row launches on an H100 / H200 on 128 threads with K chunks (not a Network's pick there: their
-    sm_90a module built on first use, Network.__init__), the pick with K chunks (the medium graphs': both on 256
-    threads; shipped) and the larger graphs' (the hybrid decoder alone; shipped); the small graphs' pick (256
-    threads, whole weights) runs in test_cuda_graph_step_equals_eager."""
+    sm_90a module built on first use, Network.__init__), the pick with K chunks (the edge pass in a warpgroup's
+    registers, a block a tile on 128 threads, the decoder on 256; shipped), the largest graphs' (resident blocks of
+    three warpgroups; shipped) and the hybrid decoder alone on tensor cores; the small graphs' pick (256 threads,
+    whole weights) runs in test_cuda_graph_step_equals_eager."""
     model = random_model("hybrid", 2, 64, seed=17)
     net = captured_equals_eager(model, 17, edge_rows=64, edge_gemm="wgmma", k_chunk=32, threads={})
     assert not net.spec.threads and not net.shipped_module
     net = captured_equals_eager(model, 17, k_chunk=32)
-    assert net.spec.edge_kernels == ("edge_pass", "hybrid_fields") and dict(net.spec.threads)["edge_pass"] == 256
+    assert net.spec.edge_warpgroups == 1 and net.spec.threads == (("edge_pass", 128), ("hybrid_fields", 256))
     assert net.shipped_module
+    net = captured_equals_eager(model, 17, k_chunk=32, node_rows=32, edge_rows=64, edge_gemm="wgmma",
+                                edge_warpgroups=3)
+    assert net.spec.threads == (("edge_pass", 384), ("hybrid_fields", 256)) and net.shipped_module
     net = captured_equals_eager(model, 17, k_chunk=32, node_rows=32, edge_rows=64, edge_gemm="wgmma",
                                 edge_kernels=("hybrid_fields",))
     assert net.spec.edge_kernels == ("hybrid_fields",) and net.spec.threads == (("hybrid_fields", 256),)
-    assert net.shipped_module
 
 
 @pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device")

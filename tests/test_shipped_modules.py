@@ -50,7 +50,8 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
     227 KiB (sm_80, sm_90) whole weights; each pick is shipped, and its largest kernel's shared memory (the .meta
     Warp wrote at the build) fits with 1 KiB to spare for Warp's static allocations; with whole weights the edge pass
     holds enough that at most two of its blocks share an SM; on sm_90 the edge-row launches take wgmma (an sm_90a
-    build), on the largest graphs the hybrid decoder's alone."""
+    build), with K chunks the edge pass in warpgroups' registers (a block a tile, resident blocks of three on the
+    largest graphs)."""
     from warpgnn.kernels.message_passing import EDGE_PASS_SHARED
     from warpgnn.kernels.spec import (
         NODE_ROWS,
@@ -69,17 +70,17 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
         shipped_specs = {s.module: s for s in shipped.specs(arch)}
         for F in shipped.LATENTS:
             # (node tiles, node tiles an SM): each size at a tile an SM, the small tiles at more (K chunks: batch 2 of
-            # L5), the largest at more than FEW_NODE_TILES (batch 16 on)
+            # L5), the largest at more than RESIDENT_NODE_TILES (batch 64)
             cases = [(n, 1.0) for n in node_rows_allowed(F, max_shared)]
             cases += [(NODE_ROWS[0], 1.27), (node_rows_allowed(F, max_shared)[-1], 10.0)]
             for n, load in cases:
                 k = k_chunk_for(n, F, max_shared, load)
                 edge = edge_products_for(k, F, arch, n == NODE_ROWS[0] and load <= 1, load)
                 spec = Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, edge), **edge)
-                # on sm_90 the edge-row launches' products on wgmma (an sm_90a build); on graphs of more than
-                # FEW_NODE_TILES node tiles an SM with K chunks the decoder's alone
-                assert spec.sm90a == (arch == 90)
-                assert (spec.sm90a and "edge_pass" in spec.edge_kernels) == (arch == 90 and (k == F or load <= 2))
+                # on sm_90 the edge-row launches' products on wgmma (an sm_90a build); with K chunks the edge pass in
+                # warpgroups' registers, three a block on graphs of more than RESIDENT_NODE_TILES node tiles an SM
+                assert spec.sm90a == (arch == 90) and spec.edge_kernels == ("edge_pass", "hybrid_fields")
+                assert spec.edge_warpgroups == (0 if arch != 90 or k == F else 3 if load > 6 else 1)
                 module = spec.module
                 assert shipped_specs.get(module) == spec, f"{module} (a GPU of {max_shared} B a block) is not shipped"
                 meta = {}  # every kernel's shared memory, from the .meta of each of the spec's modules
