@@ -28,7 +28,7 @@ import functools
 
 import warp as wp
 
-from . import features, register_edges
+from . import features, register_edges, register_nodes
 from .decoders import node_decoder
 from .generic_tail import Tail, step_values
 from .spec import EDGE_FEATURE_WIDTH, FEATURE_WIDTH, N_GRAD, NODE_ROWS, STATE, Spec
@@ -516,17 +516,31 @@ def launches(net) -> list:
                 lay.tool_row, lay.nodes_pad, lay.tools_pad, pass_chunks, first_chunks, row_tiles,
                 later_tools, lay.tiles(lay.mesh_row), mesh_skip, int(net.edge_encoder), net.lat, net.products])]
     edges = net.spec.edges("edge_pass")  # its tiles (within the layout's edge_tile padding) and products
-    if net.edge_encoder:
+    mesh_tiles = lay.edges_pad // edges.tile_rows
+    edge_tiles = mesh_tiles + lay.act_pad // edges.tile_rows
+    blocks = register_edges.blocks_for(net.spec, edge_tiles, dev) if wgs else edge_tiles
+    if net.edge_encoder and wgs:  # in warpgroups' registers, from the features launch's rows, as the edge pass
+        enc_w1, enc_w2 = w.for_products("registers", "enc_edge_w1", "enc_w2")
+        enc_blocks = register_edges.blocks_for(net.spec, mesh_tiles, dev)
+        out.append(wp.launch_tiled(
+            register_edges.encoder_registers_kernel(net.spec), dim=[enc_blocks], block_dim=net.block_dim_of("edge_pass"),
+            device=dev, record_cmd=True,
+            inputs=[net.feat, enc_w1, w.enc_b1, enc_w2, w.enc_b2, w.enc_g, w.enc_be, w.eps, lay.mesh_row, net.lat,
+                    mesh_tiles, enc_blocks * wgs, wgs]))
+    elif net.edge_encoder:
         enc_w1, enc_w2 = w.for_products(edges.gemm, "enc_edge_w1", "enc_w2")
         out.append(wp.launch_tiled(
             edge_encoder_kernel(net.spec), dim=[lay.edges_pad // edges.tile_rows],
             block_dim=net.block_dim_of("edge_pass"), device=dev, record_cmd=True,
             inputs=[raw, enc_w1, w.enc_b1, enc_w2, w.enc_b2, w.enc_g, w.enc_be, w.eps, lay.mesh_row, net.lat]))
-    mesh_tiles = lay.edges_pad // edges.tile_rows
-    edge_tiles = mesh_tiles + lay.act_pad // edges.tile_rows
-    blocks = register_edges.blocks_for(net.spec, edge_tiles, dev) if wgs else edge_tiles
     ew_e, ew_w2 = w.for_products("registers" if wgs else edges.gemm, "ew_e", "ew_w2")  # tensor cores: tf32 parts
     tile_walk = [edge_tiles, blocks * wgs, wgs] if wgs else []
+    # the passes before the last in warpgroups' registers (register_nodes), on their weights in register_layout
+    node_wgs = net.spec.node_warpgroups
+    if node_wgs:
+        node_tiles = register_nodes.tiles_of(lay.n_nodes)
+        node_blocks = register_nodes.blocks_for(net.spec, node_tiles, dev)
+        nv_w1, nv_w2, proj = w.for_products("registers", "nv_w1", "nv_w2", "proj")
     for p in range(w.passes):
         out.append(wp.launch_tiled(
             edge_pass, dim=[blocks], block_dim=net.block_dim_of("edge_pass"), device=dev, record_cmd=True,
@@ -534,6 +548,15 @@ def launches(net) -> list:
                     w.ew_b2, w.ew_g, w.ew_be, w.eps, p, lay.mesh_row, mesh_tiles, lay.act_row, lay.tools_pad,
                     *tile_walk]))
         last = p == w.passes - 1  # then the decoder's node MLP too, on the third block of proj
+        fields = last and w.kind == "hybrid"  # delta_v after the decoder's products (the vanilla's: node_kernel)
+        if node_wgs and (fields or not last):
+            out.append(wp.launch_tiled(
+                register_nodes.node_registers_kernel(net.spec), dim=[node_blocks],
+                block_dim=net.block_dim_of("node_registers"), device=dev, record_cmd=True,
+                inputs=[net.lat, net.graph.mesh_off, net.graph.act_off, nv_w1, w.nv_b1, nv_w2, w.nv_b2, w.nv_g,
+                        w.nv_be, proj, net.products, w.eps, p, lay.mesh_row, lay.act_row, lay.n_nodes, A, int(fields),
+                        *net.node_decoder_args, node_tiles, node_blocks * node_wgs, node_wgs]))
+            continue
         node_pass = node_kernel(net.spec, (DECODE_FIELDS if w.kind == "hybrid" else DECODE_STATE) if last else 0)
         out.append(wp.launch_tiled(
             node_pass, dim=[lay.nodes_pad // net.spec.node_tile], block_dim=net.block_dim_of("node_pass"), device=dev,

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from . import decoders, features, generic_tail, integrate, message_passing, register_edges, shipped
+from . import decoders, features, generic_tail, integrate, message_passing, register_edges, register_nodes, shipped
 from .graph import build
 from .pdl import overlap_launches
 from .spec import (
@@ -47,11 +47,14 @@ def build_kernels(spec: Spec) -> None:
     for module in (features, decoders, generic_tail, integrate):
         module.kernels(spec)
     message_passing.encoder_kernel(spec)
-    if spec.edge_warpgroups:  # its module (block size) holds the register edge pass alone
+    if spec.edge_warpgroups:  # its module (block size) holds the register edge pass and mesh-edge encoder alone
         register_edges.edge_registers_kernel(spec)
+        register_edges.encoder_registers_kernel(spec)
     else:
         message_passing.edge_encoder_kernel(spec)
         message_passing.edge_kernel(spec)
+    if spec.node_warpgroups:
+        register_nodes.node_registers_kernel(spec)
     for decode in (0, message_passing.DECODE_FIELDS, message_passing.DECODE_STATE):
         message_passing.node_kernel(spec, decode)
     for module in spec.modules:
@@ -94,7 +97,7 @@ class Network:
                  threads: dict | None = None, edge_rows: int | None = None, edge_gemm: str | None = None,
                  edge_kernels: tuple | None = None, receiver_groups: bool | None = None,
                  split_products: bool | None = None, edge_encoder: bool | None = None,
-                 edge_warpgroups: int | None = None):
+                 edge_warpgroups: int | None = None, node_warpgroups: int | None = None):
         """``model``: a warpgnn TIGNN (its config and weights are read once); ``topology``: a
         warpgnn.graphs.Topology, one simulation or a stacked batch. ``tile_rows``, ``node_rows``, ``k_chunk``,
         ``gemm``, ``edge_rows``, ``edge_gemm``, ``edge_kernels``: the kernels' Spec (node_rows and k_chunk None: by the
@@ -115,7 +118,8 @@ class Network:
         (message_passing.edge_encoder_kernel); None: where the edge pass runs on tensor cores with K chunks and the
         encoder computes the features (F = 128 on small graphs on sm_90). ``edge_warpgroups``: the edge pass with each
         64-row tile in a warpgroup's registers, this many a block (Spec.edge_warpgroups; kernels/register_edges.py);
-        None: off."""
+        None: by the GPU and the graph's size. ``node_warpgroups``: the node passes before the last likewise, this many
+        warpgroups a resident block (Spec.node_warpgroups; kernels/register_nodes.py); None: by those."""
         self.device = wp.get_device(device)
         self.weights = w = weights if weights is not None else pack(model, self.device)
         if not node_rows:  # by the graph's size, a divisor of tile_rows where given
@@ -130,7 +134,8 @@ class Network:
         arch = self.device.arch if self.device.is_cuda else None
         # None: by the GPU and the graph's size
         edge = edge_products(edge_rows, edge_gemm, k_chunk, w.latent, arch, small, edge_kernels, tiles_per_sm,
-                             tile_rows or Spec.tile_rows, edge_warpgroups)
+                             tile_rows or Spec.tile_rows, edge_warpgroups, node_warpgroups,
+                             node_rows)
         tile_rows = tile_rows or tile_rows_for(node_rows, w.latent, edge)
         threads = threads_for(k_chunk, w.latent, self.device.is_cuda, edge) if threads is None else threads
         self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm, threads=tuple(dict(threads).items()), **edge)
@@ -145,11 +150,19 @@ class Network:
         # 20 us); not with whole weights (F = 64): 52.9 / 117.7 -> 59.8 / 124.4 us at 1 / 5 passes, the encoder's
         # other rows alone still 15.5 us (its node rows' chain, not the mesh edges' blocks, bounds it) and the two
         # launches not overlapping enough to gain
+        # with the edge pass in registers (Spec.edge_warpgroups), the mesh-edge encoder on its tiles, from the features
+        # launch's rows (register_edges.encoder_registers_kernel), where the node pass runs in registers too (the large
+        # graphs': spec.edge_products_for); on the smaller ones the encoder's launch alone was faster (H200, L5,
+        # 5-pass hybrid: batch 2 155.7 against 160.0 us, 4 227.7 against 234.3; warp_register_nodes_h200.json)
         tensor = self.spec.edges("edge_pass").gemm == "wgmma" and self.spec.features_in_encoder
-        self.edge_encoder = tensor and self.spec.kc != w.latent if edge_encoder is None else edge_encoder
-        if self.edge_encoder and self.spec.edge_warpgroups:
-            raise ValueError("edge_encoder: not with the register edge pass (Spec.edge_warpgroups)")
-        if self.edge_encoder and not self.spec.features_in_encoder:
+        registers = bool(self.spec.edge_warpgroups)
+        large = registers and bool(self.spec.node_warpgroups) and not self.spec.features_in_encoder
+        picked = large or (tensor and self.spec.kc != w.latent)
+        self.edge_encoder = picked if edge_encoder is None else edge_encoder
+        if self.edge_encoder and registers and self.spec.features_in_encoder:
+            raise ValueError("edge_encoder: with the register edge pass, only where a features launch computes the "
+                             "features (not Spec.features_in_encoder)")
+        if self.edge_encoder and not registers and not self.spec.features_in_encoder:
             raise ValueError("edge_encoder: only where the encoder computes the features (Spec.features_in_encoder)")
         hybrid = w.kind == "hybrid"
         groups = small and not self.spec.many_blocks if receiver_groups is None else receiver_groups

@@ -39,19 +39,21 @@ from .spec import (
 
 def _specs(latents, max_shared: int | None, arch: int | None, **shape) -> list[Spec]:
     """The Spec of each width, its kernels built. ``shape``: Spec's tile_rows, node_rows, k_chunk, threads, edge_rows,
-    edge_gemm, edge_kernels, edge_warpgroups (its defaults where absent; k_chunk None: the one a Network with those node
+    edge_gemm, edge_kernels, edge_warpgroups, node_warpgroups (its defaults where absent; k_chunk None: the one a Network with those node
     tiles picks on a GPU allowing a block ``max_shared`` bytes, spec.k_chunk_for; threads and the edge products None: a
     Network's on a GPU of compute capability ``arch``, spec.threads_for and spec.edge_products_for)."""
     k_chunk, threads = shape.pop("k_chunk", None), shape.pop("threads", None)
     edge_rows, edge_gemm = shape.pop("edge_rows", None), shape.pop("edge_gemm", None)
     edge_kernels, edge_warpgroups = shape.pop("edge_kernels", None), shape.pop("edge_warpgroups", None)
+    node_warpgroups = shape.pop("node_warpgroups", None)
     node_rows = shape.get("node_rows", Spec.node_rows)
     specs = []
     for F in latents:
         k = k_chunk_for(node_rows, F, max_shared) if k_chunk is None else k_chunk
         small = node_rows == NODE_ROWS[0]  # the small graphs' node tiles
         edge = edge_products(edge_rows, edge_gemm, k, F, arch, small, edge_kernels,
-                             tile_rows=shape.get("tile_rows") or Spec.tile_rows, edge_warpgroups=edge_warpgroups)
+                             tile_rows=shape.get("tile_rows") or Spec.tile_rows, edge_warpgroups=edge_warpgroups,
+                             node_warpgroups=node_warpgroups, node_rows=node_rows)
         tiles = {"tile_rows": shape.get("tile_rows") or tile_rows_for(node_rows, F, edge)}
         specs.append(Spec(F, k_chunk=k, threads=threads_for(k, F, True, edge) if threads is None else threads,
                           **edge, **(shape | tiles)))
@@ -106,7 +108,8 @@ def ship(log=print) -> None:
                 seconds = compile_ahead([spec.latent], arch, tmp, tile_rows=spec.tile_rows, node_rows=spec.node_rows,
                                         k_chunk=spec.k_chunk, threads=spec.threads, edge_rows=spec.edge_rows,
                                         edge_gemm=spec.edge_gemm, edge_kernels=spec.edge_kernels,
-                                        edge_warpgroups=spec.edge_warpgroups)
+                                        edge_warpgroups=spec.edge_warpgroups,
+                                        node_warpgroups=spec.node_warpgroups)
                 for cubin, meta in shipped.files(spec, arch):
                     cubin.write_bytes(lzma.compress((Path(tmp) / cubin.stem).read_bytes(), preset=6))
                     shutil.copy(Path(tmp) / meta.name, meta)
@@ -148,6 +151,9 @@ def main(argv=None) -> None:
     parser.add_argument("--edge-warpgroups", type=int, default=None,
                         help="Spec.edge_warpgroups: the edge pass in warpgroups' registers, this many a block "
                              "(with --edge-rows 64 --edge-gemm wgmma; not --ship)")
+    parser.add_argument("--node-warpgroups", type=int, default=None,
+                        help="Spec.node_warpgroups: the node passes before the last in warpgroups' registers, this "
+                             "many a block (with --edge-rows 64 --edge-gemm wgmma; not --ship)")
     parser.add_argument("--threads", default=None,
                         help="Spec.threads as KERNEL=N,... (default: a Network's pick on a GPU; 'none': every "
                              "kernel on --block-dim; not --ship)")
@@ -158,7 +164,7 @@ def main(argv=None) -> None:
              "threads": None if args.threads is None else parse_threads(args.threads),
              "edge_rows": args.edge_rows, "edge_gemm": args.edge_gemm,
              "edge_kernels": tuple(k.strip() for k in args.edge_kernels.split(",")) if args.edge_kernels else None,
-             "edge_warpgroups": args.edge_warpgroups}
+             "edge_warpgroups": args.edge_warpgroups, "node_warpgroups": args.node_warpgroups}
     if args.ship:
         ship()
     elif args.arch is not None:

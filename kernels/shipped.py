@@ -43,7 +43,8 @@ def specs(arch: int) -> list[Spec]:
     small = NODE_ROWS[0]  # the small graphs' node tiles
     # the largest node tiles serve graphs of any size above: their picks at up to RESIDENT_NODE_TILES an SM and beyond
     loads = {n: (1.0, 2 * RESIDENT_NODE_TILES) if n == NODE_ROWS[-1] else (1.0,) for n in NODE_ROWS}
-    edges = [(F, n, k, edge_products_for(k, F, arch, n == small, load)) for F, n, k in shapes for load in loads[n]]
+    edges = [(F, n, k, edge_products_for(k, F, arch, n == small, load, node_rows=n)) for F, n, k in shapes
+             for load in loads[n]]
     out = [Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, edge), **edge) for F, n, k, edge in edges]
     return list({s.module: s for s in out}.values())
 

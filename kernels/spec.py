@@ -23,7 +23,7 @@ STAT_WIDTH = 9  # widest standardised raw feature set (the node's v, sigma)
 # (message_passing.edge_encoder_kernel)
 EDGE_FEATURE_WIDTH = 16
 GEMMS = ("native", "scalar", "mathdx", "fp16", "wgmma")  # the first is the default
-TILE_KERNELS = ("encode", "edge_pass", "node_pass", "hybrid_fields")  # Spec.threads may name them
+TILE_KERNELS = ("encode", "edge_pass", "node_pass", "hybrid_fields", "node_registers")  # Spec.threads may name them
 EDGE_KERNELS = ("edge_pass", "hybrid_fields")  # the edge-row launches (Spec.edge_kernels may name them)
 # registers a thread where blocks queue for the SMs (Spec.many_blocks), so that their blocks an SM are bound by shared
 # memory, not registers (Spec.kernel_options): the edge pass and the encoders on 128 threads, 5 edge blocks of 41 KiB
@@ -73,6 +73,9 @@ class Spec:
     # the edge pass with each 64-row tile in one warpgroup's registers (kernels/register_edges.py; edge_gemm "wgmma",
     # F = 64): this many warpgroups a block, 1 a block a tile, more resident blocks looping over tiles; 0: off
     edge_warpgroups: int = 0
+    # the node passes before the last with each 64-row tile in one warpgroup's registers (kernels/register_nodes.py;
+    # edge_gemm "wgmma", F = 64): this many warpgroups a resident block, one block an SM; 0: off
+    node_warpgroups: int = 0
 
     def __post_init__(self):
         for gemm in (self.gemm, self.edge_gemm or self.gemm):
@@ -89,6 +92,9 @@ class Spec:
         if self.edge_warpgroups and (self.edge_gemm != "wgmma" or self.latent != 64
                                      or "edge_pass" not in self.edge_kernels or self.edge_warpgroups > 4):
             raise ValueError("edge_warpgroups: the edge pass on wgmma (edge_gemm) at F = 64, 1 to 4 warpgroups")
+        if self.node_warpgroups and (self.edge_gemm != "wgmma" or self.latent != 64 or self.node_warpgroups > 4):
+            raise ValueError("node_warpgroups: with wgmma edge products (edge_gemm, an sm_90a build) at F = 64, 1 to 4 "
+                             "warpgroups")
         kernels = tuple(k for k in EDGE_KERNELS if k in self.edge_kernels)
         if len(kernels) != len(set(self.edge_kernels)) or not kernels:
             raise ValueError(f"edge_kernels {self.edge_kernels!r}: expected some of {', '.join(EDGE_KERNELS)}")
@@ -210,6 +216,8 @@ class Spec:
                 gemm += "".join(f"_{k}" for k in self.edge_kernels)
             if self.edge_warpgroups:
                 gemm += f"_R{self.edge_warpgroups}"
+            if self.node_warpgroups:
+                gemm += f"_V{self.node_warpgroups}"
         # kernels moved to a module of another block size (threads) leave this one: its name says which, so that two
         # specs differing only there never share (and mix the kernels of) one Warp module
         moved = "".join(f"_{k}{n}" for k, n in self.threads)
@@ -303,8 +311,9 @@ RESIDENT_NODE_TILES = 6.0
 
 
 def edge_products_for(k_chunk: int, latent: int, arch: int | None, small: bool = False,
-                      node_tiles_per_sm: float = 0.0, tile_rows: int = Spec.tile_rows) -> dict:
-    """Spec's edge_rows, edge_gemm, edge_kernels and edge_warpgroups for a Network on a GPU of compute capability
+                      node_tiles_per_sm: float = 0.0, tile_rows: int = Spec.tile_rows, node_rows: int = 0) -> dict:
+    """Spec's edge_rows, edge_gemm, edge_kernels, edge_warpgroups and node_warpgroups for a Network on a GPU of
+    compute capability
     ``arch`` (None: not a GPU): on sm_90 (H100, H200) the edge-row launches on tiles of 64 rows with wgmma products
     (tiles.GEMM_WGMMA) on two warpgroups (threads_for) for small graphs (``small``: node tiles of 8, at most one an SM;
     at F = 64 whole weights, k_chunk_for, which says as much). At F = 64 on larger graphs (K chunks) the edge pass
@@ -317,8 +326,14 @@ def edge_products_for(k_chunk: int, latent: int, arch: int | None, small: bool =
     batch 1 (43.9 / 95.7 -> 46.2 / 109.5 us at 1 / 5 passes), whose small graph keeps the block tiles: there batch 1
     62.2 / 130.3 / 249.9 -> 61.1 / 126.5 / 241.0 us at 1 / 5 / 12 passes with the wgmma edge pass, -> 58.2 / 124.1 /
     239.1 with the decoder too; F = 128, 12 passes, 676.8 -> 639.7 us (warp_wgmma_edge_pass_h200.json,
-    warp_wgmma_decoder_h200.json). Else {} (the launches' tiles and products as the others'), as where wgmma cannot
-    take the shape (K chunks not a multiple of 16, ``tile_rows`` not dividing 64)."""
+    warp_wgmma_decoder_h200.json). Where the graph takes node tiles of 32 (``node_rows``, node_rows_for: L5 from
+    batch 8) also the node passes before the last (and the hybrid's last) in registers, resident blocks of two
+    warpgroups (kernels/register_nodes.py), and the mesh-edge rows' encoder on the edge pass's tiles (Network's
+    edge_encoder): 5-pass hybrid on an H200 (bench/results/warp_register_nodes_h200.json), batch 8 388.6 -> 372.2 us,
+    16 734.5 -> 603.8, 32 1336 -> 1157.8, 64 2450 -> 1995 (the node pass's launch 164 -> 101 us, the encoder's 330 ->
+    115 + 72); not on the smaller graphs' tiles of 8 and 16: batch 2 155.7 -> 232.3, 4 227.7 -> 276.0 (a single tile's
+    chain, its 224 KiB of weights staged for it, bounds the launch). Else {} (the launches' tiles and products as the
+    others'), as where wgmma cannot take the shape (K chunks not a multiple of 16, ``tile_rows`` not dividing 64)."""
     if arch != 90 or k_chunk % 16 or 64 % tile_rows:
         return {}
     tensor = {"edge_rows": 64, "edge_gemm": "wgmma"}
@@ -328,19 +343,22 @@ def edge_products_for(k_chunk: int, latent: int, arch: int | None, small: bool =
         return {}
     if k_chunk == latent:
         return tensor
-    return tensor | {"edge_warpgroups": 3 if node_tiles_per_sm > RESIDENT_NODE_TILES else 1}
+    nodes = {"node_warpgroups": 2} if node_rows == NODE_ROWS[-1] else {}
+    return tensor | {"edge_warpgroups": 3 if node_tiles_per_sm > RESIDENT_NODE_TILES else 1} | nodes
 
 
 def edge_products(edge_rows: int | None, edge_gemm: str | None, k_chunk: int, latent: int, arch: int | None,
                   small: bool, edge_kernels: tuple | None = None, node_tiles_per_sm: float = 0.0,
-                  tile_rows: int = Spec.tile_rows, edge_warpgroups: int | None = None) -> dict:
-    """Spec's edge_rows, edge_gemm, edge_kernels and edge_warpgroups: those given, or where none is (None)
-    edge_products_for's pick."""
+                  tile_rows: int = Spec.tile_rows, edge_warpgroups: int | None = None,
+                  node_warpgroups: int | None = None, node_rows: int = 0) -> dict:
+    """Spec's edge_rows, edge_gemm, edge_kernels, edge_warpgroups and node_warpgroups: those given, or where none is
+    (None) edge_products_for's pick."""
     if edge_rows is None and edge_gemm is None and edge_kernels is None:
-        edge = edge_products_for(k_chunk, latent, arch, small, node_tiles_per_sm, tile_rows)
+        edge = edge_products_for(k_chunk, latent, arch, small, node_tiles_per_sm, tile_rows, node_rows)
     else:
         edge = {"edge_rows": edge_rows or 0, "edge_gemm": edge_gemm or "", "edge_kernels": edge_kernels or EDGE_KERNELS}
-    return edge | ({"edge_warpgroups": edge_warpgroups} if edge_warpgroups else {})
+    given = {"edge_warpgroups": edge_warpgroups, "node_warpgroups": node_warpgroups}
+    return edge | {k: v for k, v in given.items() if v is not None}
 
 
 def threads_for(k_chunk: int, latent: int, cuda: bool, edge: dict | None = None) -> tuple:
@@ -359,6 +377,8 @@ def threads_for(k_chunk: int, latent: int, cuda: bool, edge: dict | None = None)
     edges = [(k, WIDE) for k in edge.get("edge_kernels", EDGE_KERNELS)] if tensor else []
     if tensor and edge.get("edge_warpgroups"):  # the register edge pass: a warpgroup a tile (kernels/register_edges)
         edges = [(k, n) for k, n in edges if k != "edge_pass"] + [("edge_pass", 128 * edge["edge_warpgroups"])]
+    if tensor and edge.get("node_warpgroups"):  # the register node pass (kernels/register_nodes)
+        edges += [("node_registers", 128 * edge["node_warpgroups"])]
     return tuple(sorted(edges + wide))
 
 

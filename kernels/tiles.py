@@ -515,6 +515,16 @@ assert "half_round(av" in GEMM_F16
 WGMMA_N = (32, 64, 72, 128, 144)  # a warpgroup's widths built (F = 64 and the decoder's 144 on one or two, F = 128)
 
 
+# x as tf32 hi and lo parts (hi = x rounded to tf32, lo = the rest rounded): a 3xTF32 product's A operands
+TF32_SPLIT = r"""
+    auto tf32_split = [](wp::float32 x, unsigned& hi, unsigned& lo) {
+        asm("cvt.rna.tf32.f32 %0, %1;\n" : "=r"(hi) : "f"(x));
+        const wp::float32 rest = x - __uint_as_float(hi);
+        asm("cvt.rna.tf32.f32 %0, %1;\n" : "=r"(lo) : "f"(rest));
+    };
+"""
+
+
 def wgmma_asm(n: int, d: str, a: str, desc: str) -> str:
     """The C++ statement d[0:n / 2] += a (a warpgroup's tf32 A fragments in registers, a[0:4]) x desc (a shared-memory
     descriptor of k8 x n tf32): one wgmma m64n{n}k8 with fp32 accumulators, no semicolon (the caller's)."""
@@ -633,19 +643,14 @@ def _wgmma_source(mode: str = "product", init: str = "acc", silu_out: bool = Fal
         d[i] = 0.f;
 """) + ("" if settle else r"""
     unsigned ah[K / 8][4], al[K / 8][4];
-    auto split = [](wp::float32 x, unsigned& hi, unsigned& lo) {
-        asm("cvt.rna.tf32.f32 %0, %1;\n" : "=r"(hi) : "f"(x));
-        const wp::float32 rest = x - __uint_as_float(hi);
-        asm("cvt.rna.tf32.f32 %0, %1;\n" : "=r"(lo) : "f"(rest));
-    };
-#pragma unroll
+""" + TF32_SPLIT + r"""#pragma unroll
     for (int s = 0; s < K / 16; ++s) {  // k 16 s + 4 q .. + 3 of rows r0, r1: steps (2 s, 2 s + 1) x columns (q, q + 4)
         const float4 u = *reinterpret_cast<const float4*>(pa + r0 * SA + 16 * s + 4 * q);
         const float4 v = *reinterpret_cast<const float4*>(pa + r1 * SA + 16 * s + 4 * q);
-        split(u.x, ah[2 * s][0], al[2 * s][0]); split(v.x, ah[2 * s][1], al[2 * s][1]);
-        split(u.y, ah[2 * s][2], al[2 * s][2]); split(v.y, ah[2 * s][3], al[2 * s][3]);
-        split(u.z, ah[2 * s + 1][0], al[2 * s + 1][0]); split(v.z, ah[2 * s + 1][1], al[2 * s + 1][1]);
-        split(u.w, ah[2 * s + 1][2], al[2 * s + 1][2]); split(v.w, ah[2 * s + 1][3], al[2 * s + 1][3]);
+        tf32_split(u.x, ah[2 * s][0], al[2 * s][0]); tf32_split(v.x, ah[2 * s][1], al[2 * s][1]);
+        tf32_split(u.y, ah[2 * s][2], al[2 * s][2]); tf32_split(v.y, ah[2 * s][3], al[2 * s][3]);
+        tf32_split(u.z, ah[2 * s + 1][0], al[2 * s + 1][0]); tf32_split(v.z, ah[2 * s + 1][1], al[2 * s + 1][1]);
+        tf32_split(u.w, ah[2 * s + 1][2], al[2 * s + 1][2]); tf32_split(v.w, ah[2 * s + 1][3], al[2 * s + 1][3]);
     }
 """ + WGMMA_FENCE + r"""
     const unsigned long long base = static_cast<unsigned long long>(__cvta_generic_to_shared(pb));

@@ -387,8 +387,8 @@ def test_tiles_by_graph_size():
 def test_edge_products_and_threads_by_gpu():
     """The edge-row launches (edge pass, hybrid decoder) on wgmma only on sm_90: on 64-row tiles of two warpgroups for
     small graphs (whole F = 64 weights; F = 128 with node tiles of 8 at most one an SM), and at F = 64 with K chunks
-    the edge pass in warpgroups' registers (a warpgroup a block up to six node tiles an SM, three above); the blocks
-    of two warpgroups on 256 threads; elsewhere as the other launches (spec.edge_products_for, spec.threads_for); off
+    the edge pass in warpgroups' registers (a warpgroup a block up to six node tiles an SM, three above), and on node
+    tiles of 32 the node passes too (two warpgroups a block); the blocks of two warpgroups on 256 threads; elsewhere as the other launches (spec.edge_products_for, spec.threads_for); off
     a GPU never."""
     from warpgnn.kernels.spec import edge_products_for, threads_for
 
@@ -399,6 +399,11 @@ def test_edge_products_and_threads_by_gpu():
     assert edge_products_for(32, 64, 90, node_tiles_per_sm=1.27) == edge_products_for(32, 64, 90) == tensor | {
         "edge_warpgroups": 1} == edge_products_for(32, 64, 90, node_tiles_per_sm=5.1)
     assert edge_products_for(32, 64, 90, node_tiles_per_sm=10.2) == tensor | {"edge_warpgroups": 3}
+    # graphs of node tiles of 32 (L5 from batch 8): the node passes in registers too, two warpgroups a block
+    assert edge_products_for(32, 64, 90, node_tiles_per_sm=10.2, node_rows=32) == tensor | {"edge_warpgroups": 3,
+                                                                                            "node_warpgroups": 2}
+    assert edge_products_for(32, 64, 90, node_tiles_per_sm=1.27, node_rows=16) == tensor | {"edge_warpgroups": 1}
+    assert edge_products_for(64, 64, 90, node_rows=32) == tensor
     assert edge_products_for(64, 64, 80) == edge_products_for(64, 64, None) == {}
     assert edge_products_for(16, 16, 90, True) == edge_products_for(32, 128, 90) == edge_products_for(32, 128, 80,
                                                                                                       True) == {}
@@ -411,6 +416,8 @@ def test_edge_products_and_threads_by_gpu():
     assert threads_for(64, 64, True, {}) == threads_for(64, 64, True) == (("node_pass", 256),)
     assert threads_for(32, 64, True, decoder) == (("hybrid_fields", 256),)
     assert threads_for(32, 64, True, tensor | {"edge_warpgroups": 3}) == (("edge_pass", 384), ("hybrid_fields", 256))
+    assert threads_for(32, 64, True, tensor | {"edge_warpgroups": 3, "node_warpgroups": 2}) == (
+        ("edge_pass", 384), ("hybrid_fields", 256), ("node_registers", 256))
     assert threads_for(32, 64, True, {}) == threads_for(64, 64, False, tensor) == ()
     # only edge kernels named, the edge tiles and products the others': one Spec, one module
     from warpgnn.kernels.spec import Spec
@@ -603,6 +610,30 @@ def test_register_edge_pass(warpgroups):
         Spec(32, edge_rows=64, edge_gemm="wgmma", edge_warpgroups=1)
 
 
+@pytest.mark.parametrize("kind,warpgroups,actuator_graphs", [("hybrid", 2, True), ("vanilla", 3, True),
+                                                             ("hybrid", 2, False)])
+def test_register_node_pass(kind, warpgroups, actuator_graphs):
+    """The node passes before the last with each 64-row tile in a warpgroup's registers (kernels/register_nodes.py;
+    Spec.node_warpgroups), f_v's first layer over x and both CSR sums, the next stage's products, the weights in
+    register_layout, and the hybrid's last pass with delta_v: the reference's answer, 3 passes on a graph of 120 nodes
+    (a tile's rows past the nodes neither summed nor written), with and without actuator graphs, beside the register
+    edge pass and mesh-edge encoder (register_edges: K chunks, so a features launch)."""
+    from warpgnn.kernels.spec import Spec
+
+    net, _ = check(random_model(kind, 3, 64, actuator_graphs, seed=23), tool_topology(box((5, 4, 3)), 3, seed=23),
+                   seed=23, k_chunk=32, edge_rows=64, edge_gemm="wgmma", edge_warpgroups=1,
+                   node_warpgroups=warpgroups)
+    assert net.spec.node_warpgroups == warpgroups and "_V" in net.spec.module and net.layout.n_nodes % 64
+    keys = [x.kernel.key for x in net._launches]
+    # K chunks: a features launch, the mesh-edge rows encoded on the register edge pass's tiles
+    assert net.edge_encoder and "encoder_registers_kernel__locals__edge_encode" in keys
+    last_here = kind == "hybrid"  # with delta_v; the vanilla's last pass (decoder, Euler step) in node_kernel
+    assert sum(k.startswith("node_registers_kernel") for k in keys) == 2 + last_here
+    assert sum(k.startswith("node_kernel") for k in keys) == 1 - last_here
+    with pytest.raises(ValueError, match="node_warpgroups"):
+        Spec(64, node_warpgroups=2)
+
+
 @pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
 @pytest.mark.parametrize("latent,shape,actuator_graphs", [
     (32, {"edge_rows": 64, "edge_gemm": "wgmma", "k_chunk": 32, "edge_encoder": True}, True),
@@ -681,10 +712,10 @@ def test_cuda_graph_step_equals_eager(kind):
     captured_equals_eager(random_model(kind, 2, 64, seed=13), 13)
 
 
-def captured_equals_eager(model, seed, **kw):
-    """A Network on cuda:0 (``kw``: its Spec) on a 5 x 4 x 3 box with 3 tools: the reference's answer, its captured
-    replay equal to the launches one by one; the Network."""
-    top = tool_topology(box((5, 4, 3)), 3, seed=seed)
+def captured_equals_eager(model, seed, top=None, **kw):
+    """A Network on cuda:0 (``kw``: its Spec) on ``top`` (None: a 5 x 4 x 3 box with 3 tools): the reference's answer,
+    its captured replay equal to the launches one by one; the Network."""
+    top = top or tool_topology(box((5, 4, 3)), 3, seed=seed)
     z, u_now, u_next = random_inputs(top, seed)
     net = Network(model, top, device="cuda:0", **kw)
     eager = run(net, z, u_now, u_next)
@@ -701,7 +732,8 @@ def test_tensor_core_edge_pass_on_hopper():
     """The wgmma edge-row launches on an H100 / H200 on 128 threads with K chunks (not a Network's pick there: their
     sm_90a module built on first use, Network.__init__), the pick with K chunks (the edge pass in a warpgroup's
     registers, a block a tile on 128 threads, the decoder on 256; shipped), the largest graphs' (resident blocks of
-    three warpgroups; shipped) and the hybrid decoder alone on tensor cores; the small graphs' pick (256 threads,
+    three warpgroups, the node passes and mesh-edge encoder in registers too; shipped) and the hybrid decoder alone
+    on tensor cores; the small graphs' pick (256 threads,
     whole weights) runs in test_cuda_graph_step_equals_eager."""
     model = random_model("hybrid", 2, 64, seed=17)
     net = captured_equals_eager(model, 17, edge_rows=64, edge_gemm="wgmma", k_chunk=32, threads={})
@@ -710,11 +742,25 @@ def test_tensor_core_edge_pass_on_hopper():
     assert net.spec.edge_warpgroups == 1 and net.spec.threads == (("edge_pass", 128), ("hybrid_fields", 256))
     assert net.shipped_module
     net = captured_equals_eager(model, 17, k_chunk=32, node_rows=32, edge_rows=64, edge_gemm="wgmma",
-                                edge_warpgroups=3)
-    assert net.spec.threads == (("edge_pass", 384), ("hybrid_fields", 256)) and net.shipped_module
+                                edge_warpgroups=3, node_warpgroups=2)
+    assert net.spec.threads == (("edge_pass", 384), ("hybrid_fields", 256), ("node_registers", 256))
+    assert net.shipped_module and net.edge_encoder
     net = captured_equals_eager(model, 17, k_chunk=32, node_rows=32, edge_rows=64, edge_gemm="wgmma",
                                 edge_kernels=("hybrid_fields",))
     assert net.spec.edge_kernels == ("hybrid_fields",) and net.spec.threads == (("hybrid_fields", 256),)
+
+
+@pytest.mark.skipif(not SM90, reason="wgmma needs an sm_90 GPU (H100, H200)")
+@pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
+def test_register_node_pass_on_hopper(kind):
+    """The register node pass and mesh-edge encoder on an H100 / H200 (Spec.node_warpgroups: resident blocks of two
+    warpgroups looping over 64-node tiles; the hybrid's last pass with delta_v) on a graph of 19,200 nodes, more tiles
+    than the blocks have warpgroups (each warpgroup's loop takes a next tile): the reference's answer, the captured
+    replay equal to the launches one by one."""
+    model = random_model(kind, 3, 64, seed=19)
+    net = captured_equals_eager(model, 19, top=tool_topology(box((39, 23, 19)), 3, seed=19), k_chunk=32, node_rows=32,
+                                edge_rows=64, edge_gemm="wgmma", edge_warpgroups=3, node_warpgroups=2)
+    assert net.edge_encoder and -(-net.layout.n_nodes // 64) > 2 * net.device.sm_count
 
 
 @pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device")

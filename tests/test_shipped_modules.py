@@ -75,12 +75,14 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
             cases += [(NODE_ROWS[0], 1.27), (node_rows_allowed(F, max_shared)[-1], 10.0)]
             for n, load in cases:
                 k = k_chunk_for(n, F, max_shared, load)
-                edge = edge_products_for(k, F, arch, n == NODE_ROWS[0] and load <= 1, load)
+                edge = edge_products_for(k, F, arch, n == NODE_ROWS[0] and load <= 1, load, node_rows=n)
                 spec = Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, edge), **edge)
                 # on sm_90 the edge-row launches' products on wgmma (an sm_90a build); with K chunks the edge pass in
-                # warpgroups' registers, three a block on graphs of more than RESIDENT_NODE_TILES node tiles an SM
+                # warpgroups' registers, three a block on graphs of more than RESIDENT_NODE_TILES node tiles an SM,
                 assert spec.sm90a == (arch == 90) and spec.edge_kernels == ("edge_pass", "hybrid_fields")
                 assert spec.edge_warpgroups == (0 if arch != 90 or k == F else 3 if load > 6 else 1)
+                # and the node passes too on the largest node tiles' graphs (L5 from batch 8)
+                assert spec.node_warpgroups == (2 if spec.edge_warpgroups and n == NODE_ROWS[-1] else 0)
                 module = spec.module
                 assert shipped_specs.get(module) == spec, f"{module} (a GPU of {max_shared} B a block) is not shipped"
                 meta = {}  # every kernel's shared memory, from the .meta of each of the spec's modules
