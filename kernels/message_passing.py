@@ -523,8 +523,8 @@ def launches(net) -> list:
         enc_w1, enc_w2 = w.for_products("registers", "enc_edge_w1", "enc_w2")
         enc_blocks = register_edges.blocks_for(net.spec, mesh_tiles, dev)
         out.append(wp.launch_tiled(
-            register_edges.encoder_registers_kernel(net.spec), dim=[enc_blocks], block_dim=net.block_dim_of("edge_pass"),
-            device=dev, record_cmd=True,
+            register_edges.encoder_registers_kernel(net.spec), dim=[enc_blocks],
+            block_dim=net.block_dim_of("edge_pass"), device=dev, record_cmd=True,
             inputs=[net.feat, enc_w1, w.enc_b1, enc_w2, w.enc_b2, w.enc_g, w.enc_be, w.eps, lay.mesh_row, net.lat,
                     mesh_tiles, enc_blocks * wgs, wgs]))
     elif net.edge_encoder:
@@ -535,7 +535,12 @@ def launches(net) -> list:
             inputs=[raw, enc_w1, w.enc_b1, enc_w2, w.enc_b2, w.enc_g, w.enc_be, w.eps, lay.mesh_row, net.lat]))
     ew_e, ew_w2 = w.for_products("registers" if wgs else edges.gemm, "ew_e", "ew_w2")  # tensor cores: tf32 parts
     tile_walk = [edge_tiles, blocks * wgs, wgs] if wgs else []
-    # the passes before the last in warpgroups' registers (register_nodes), on their weights in register_layout
+    for kernel, n in (("edge_pass", wgs), ("node_registers", net.spec.node_warpgroups)):
+        if n and dev.is_cuda and net.block_dim_of(kernel) != 128 * n:  # else tiles go unwalked or walked twice
+            raise ValueError(f"{kernel}: {n} warpgroups a block need {128 * n} threads (Spec.threads), not "
+                             f"{net.block_dim_of(kernel)}")
+    # the node passes (the vanilla's last excepted) in warpgroups' registers (register_nodes), on their weights in
+    # register_layout
     node_wgs = net.spec.node_warpgroups
     if node_wgs:
         node_tiles = register_nodes.tiles_of(lay.n_nodes)

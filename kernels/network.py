@@ -118,8 +118,9 @@ class Network:
         (message_passing.edge_encoder_kernel); None: where the edge pass runs on tensor cores with K chunks and the
         encoder computes the features (F = 128 on small graphs on sm_90). ``edge_warpgroups``: the edge pass with each
         64-row tile in a warpgroup's registers, this many a block (Spec.edge_warpgroups; kernels/register_edges.py);
-        None: by the GPU and the graph's size. ``node_warpgroups``: the node passes before the last likewise, this many
-        warpgroups a resident block (Spec.node_warpgroups; kernels/register_nodes.py); None: by those."""
+        None: by the GPU and the graph's size. ``node_warpgroups``: the node passes (the vanilla's last excepted)
+        likewise, this many warpgroups a resident block (Spec.node_warpgroups; kernels/register_nodes.py); None: by
+        those."""
         self.device = wp.get_device(device)
         self.weights = w = weights if weights is not None else pack(model, self.device)
         if not node_rows:  # by the graph's size, a divisor of tile_rows where given

@@ -39,9 +39,10 @@ from .spec import (
 
 def _specs(latents, max_shared: int | None, arch: int | None, **shape) -> list[Spec]:
     """The Spec of each width, its kernels built. ``shape``: Spec's tile_rows, node_rows, k_chunk, threads, edge_rows,
-    edge_gemm, edge_kernels, edge_warpgroups, node_warpgroups (its defaults where absent; k_chunk None: the one a Network with those node
-    tiles picks on a GPU allowing a block ``max_shared`` bytes, spec.k_chunk_for; threads and the edge products None: a
-    Network's on a GPU of compute capability ``arch``, spec.threads_for and spec.edge_products_for)."""
+    edge_gemm, edge_kernels, edge_warpgroups, node_warpgroups (its defaults where absent; k_chunk None: the one a
+    Network with those node tiles picks on a GPU allowing a block ``max_shared`` bytes, spec.k_chunk_for; threads and
+    the edge products None: a Network's on a GPU of compute capability ``arch``, spec.threads_for and
+    spec.edge_products_for)."""
     k_chunk, threads = shape.pop("k_chunk", None), shape.pop("threads", None)
     edge_rows, edge_gemm = shape.pop("edge_rows", None), shape.pop("edge_gemm", None)
     edge_kernels, edge_warpgroups = shape.pop("edge_kernels", None), shape.pop("edge_warpgroups", None)
@@ -152,7 +153,8 @@ def main(argv=None) -> None:
                         help="Spec.edge_warpgroups: the edge pass in warpgroups' registers, this many a block "
                              "(with --edge-rows 64 --edge-gemm wgmma; not --ship)")
     parser.add_argument("--node-warpgroups", type=int, default=None,
-                        help="Spec.node_warpgroups: the node passes before the last in warpgroups' registers, this "
+                        help="Spec.node_warpgroups: the node passes (the vanilla's last excepted) in warpgroups' "
+                             "registers, this "
                              "many a block (with --edge-rows 64 --edge-gemm wgmma; not --ship)")
     parser.add_argument("--threads", default=None,
                         help="Spec.threads as KERNEL=N,... (default: a Network's pick on a GPU; 'none': every "

@@ -12,11 +12,12 @@ hold half of the columns, so the LayerNorm's statistics cross warpgroups through
 * the second product's accumulators start at b2; a row's LayerNorm is two quad shuffles; the rows are written from
   registers, in place.
 
-The products are 3xTF32 wgmma (fp32's accuracy). A block of W warpgroups (Spec.edge_warpgroups) runs W tiles at once with no barrier between them
-but the one after its weights are staged: with W = 1 a block a tile (its edge set's weights, 64 KiB); with W > 1 the
-blocks are resident (as many as the SMs, each staging both edge sets' weights once, 128 KiB, and looping over tiles
-W apart), so the weights' copies leave the tiles' chains. Off CUDA one thread a block computes the same rows in
-plain fp32 over the packed parts (hi + lo), so Warp's CPU device checks the layout and the tile walk.
+The products are 3xTF32 wgmma (fp32's accuracy). A block of W warpgroups (Spec.edge_warpgroups) runs W tiles at once
+with no barrier between them but the one after its weights are staged: with W = 1 a block a tile (its edge set's
+weights, 64 KiB); with W > 1 the blocks are resident (as many as the SMs, each staging both edge sets' weights once, 128
+KiB, and looping over tiles W apart), so the weights' copies leave the tiles' chains. Off CUDA one thread a block
+computes the same rows in plain fp32 over the packed parts (hi + lo), so Warp's CPU device checks the layout and the
+tile walk.
 """
 
 # No `from __future__ import annotations`: the kernel's vector annotation is evaluated when defined.
@@ -43,7 +44,7 @@ EDGE_ROWS_IN_REGISTERS = register_source(r"""
         recv_col = s ? 2 * F : 0;  // actuator edges: the receiver's f_w product; senders are this pass's tools
         send_row = s ? p * tools_pad : 0;
     };
-""", r"""    const int first = blk * wgs;  // the block's first tile; its warpgroup wg takes first + wg, then every stride-th
+""", r"""    const int first = blk * wgs;  // the block's first tile (its warpgroups walk from first + wg: t, stride)
     // the weights: both edge sets' (SETS 2, set s at rows 2 WROWS s), else the set of the block's tiles
     const int set0 = SETS == 2 ? 0 : (first >= mesh_tiles ? 1 : 0);
     const unsigned w0 = static_cast<unsigned>(__cvta_generic_to_shared(wbuf.data.ptr));

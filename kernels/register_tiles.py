@@ -9,8 +9,8 @@ step j's lane q holds k 8 j + 2 q and 8 j + 2 q + 1). A row's 64 columns lie in 
 sums are two shuffles. A product is three wgmma m64n64k8 a k step on the tf32 hi and lo parts (3xTF32, fp32's
 accuracy), its weight in shared memory.
 
-register_source(common, cuda, cpu) is a native function's C++: ``common`` then, on CUDA (an sm_90a build), REGISTER_STEPS
-and ``cuda``, elsewhere ROW_MLP and ``cpu``. REGISTER_STEPS:
+register_source(common, cuda, cpu) is a native function's C++: ``common`` then, on CUDA (an sm_90a build),
+REGISTER_STEPS and ``cuda``, elsewhere ROW_MLP and ``cpu``. REGISTER_STEPS:
 
 * the thread's warpgroup ``wg`` in its block, ``q``, its rows ``r0``, ``r1`` of the warpgroup's tile, and the
   warpgroup's walk over tiles: ``t`` from blk wgs + wg by ``stride`` (the native function's ``blk``, ``wgs`` and
@@ -90,7 +90,7 @@ REGISTER_STEPS = TF32_SPLIT + r"""
         const unsigned long long desc0 = ((w & 0x3FFFF) >> 4) | (8ull << 16) | (16ull << 32);
         asm volatile("wgmma.fence.sync.aligned;\n" ::: "memory");
 #pragma unroll
-        for (int j = 0; j < steps; ++j) {  // step j's hi part: 16-k block j / 2 (128 n bytes a block), half j % 2 (32 n)
+        for (int j = 0; j < steps; ++j) {  // step j's hi part: 16-k block j / 2 (128 n bytes), its step j % 2 (32 n)
             const unsigned long long dh = desc0 + (((j / 2) * 128 * n + (j % 2) * 32 * n) >> 4);
             const unsigned long long dl = dh + ((64 * n) >> 4);
             mma(al[j], dh);

@@ -73,7 +73,7 @@ class Spec:
     # the edge pass with each 64-row tile in one warpgroup's registers (kernels/register_edges.py; edge_gemm "wgmma",
     # F = 64): this many warpgroups a block, 1 a block a tile, more resident blocks looping over tiles; 0: off
     edge_warpgroups: int = 0
-    # the node passes before the last with each 64-row tile in one warpgroup's registers (kernels/register_nodes.py;
+    # the node passes (the vanilla's last excepted) with each 64-row tile in one warpgroup's registers (register_nodes;
     # edge_gemm "wgmma", F = 64): this many warpgroups a resident block, one block an SM; 0: off
     node_warpgroups: int = 0
 
@@ -92,8 +92,9 @@ class Spec:
         if self.edge_warpgroups and (self.edge_gemm != "wgmma" or self.latent != 64
                                      or "edge_pass" not in self.edge_kernels or self.edge_warpgroups > 4):
             raise ValueError("edge_warpgroups: the edge pass on wgmma (edge_gemm) at F = 64, 1 to 4 warpgroups")
-        if self.node_warpgroups and (self.edge_gemm != "wgmma" or self.latent != 64 or self.node_warpgroups > 4):
-            raise ValueError("node_warpgroups: with wgmma edge products (edge_gemm, an sm_90a build) at F = 64, 1 to 4 "
+        # at most two: the register node pass takes 255 registers a thread (three warpgroups a block would not launch)
+        if self.node_warpgroups and (self.edge_gemm != "wgmma" or self.latent != 64 or self.node_warpgroups > 2):
+            raise ValueError("node_warpgroups: with wgmma edge products (edge_gemm, an sm_90a build) at F = 64, 1 or 2 "
                              "warpgroups")
         kernels = tuple(k for k in EDGE_KERNELS if k in self.edge_kernels)
         if len(kernels) != len(set(self.edge_kernels)) or not kernels:
@@ -327,7 +328,7 @@ def edge_products_for(k_chunk: int, latent: int, arch: int | None, small: bool =
     62.2 / 130.3 / 249.9 -> 61.1 / 126.5 / 241.0 us at 1 / 5 / 12 passes with the wgmma edge pass, -> 58.2 / 124.1 /
     239.1 with the decoder too; F = 128, 12 passes, 676.8 -> 639.7 us (warp_wgmma_edge_pass_h200.json,
     warp_wgmma_decoder_h200.json). Where the graph takes node tiles of 32 (``node_rows``, node_rows_for: L5 from
-    batch 8) also the node passes before the last (and the hybrid's last) in registers, resident blocks of two
+    batch 8) also the node passes (the vanilla's last excepted) in registers, resident blocks of two
     warpgroups (kernels/register_nodes.py), and the mesh-edge rows' encoder on the edge pass's tiles (Network's
     edge_encoder): 5-pass hybrid on an H200 (bench/results/warp_register_nodes_h200.json), batch 8 388.6 -> 372.2 us,
     16 734.5 -> 603.8, 32 1336 -> 1157.8, 64 2450 -> 1995 (the node pass's launch 164 -> 101 us, the encoder's 330 ->

@@ -388,8 +388,8 @@ def test_edge_products_and_threads_by_gpu():
     """The edge-row launches (edge pass, hybrid decoder) on wgmma only on sm_90: on 64-row tiles of two warpgroups for
     small graphs (whole F = 64 weights; F = 128 with node tiles of 8 at most one an SM), and at F = 64 with K chunks
     the edge pass in warpgroups' registers (a warpgroup a block up to six node tiles an SM, three above), and on node
-    tiles of 32 the node passes too (two warpgroups a block); the blocks of two warpgroups on 256 threads; elsewhere as the other launches (spec.edge_products_for, spec.threads_for); off
-    a GPU never."""
+    tiles of 32 the node passes too (two warpgroups a block); the blocks of two warpgroups on 256 threads; elsewhere
+    as the other launches (spec.edge_products_for, spec.threads_for); off a GPU never."""
     from warpgnn.kernels.spec import edge_products_for, threads_for
 
     tensor = {"edge_rows": 64, "edge_gemm": "wgmma"}
@@ -610,7 +610,7 @@ def test_register_edge_pass(warpgroups):
         Spec(32, edge_rows=64, edge_gemm="wgmma", edge_warpgroups=1)
 
 
-@pytest.mark.parametrize("kind,warpgroups,actuator_graphs", [("hybrid", 2, True), ("vanilla", 3, True),
+@pytest.mark.parametrize("kind,warpgroups,actuator_graphs", [("hybrid", 2, True), ("vanilla", 1, True),
                                                              ("hybrid", 2, False)])
 def test_register_node_pass(kind, warpgroups, actuator_graphs):
     """The node passes before the last with each 64-row tile in a warpgroup's registers (kernels/register_nodes.py;
@@ -630,8 +630,9 @@ def test_register_node_pass(kind, warpgroups, actuator_graphs):
     last_here = kind == "hybrid"  # with delta_v; the vanilla's last pass (decoder, Euler step) in node_kernel
     assert sum(k.startswith("node_registers_kernel") for k in keys) == 2 + last_here
     assert sum(k.startswith("node_kernel") for k in keys) == 1 - last_here
-    with pytest.raises(ValueError, match="node_warpgroups"):
-        Spec(64, node_warpgroups=2)
+    for bad in ({}, {"edge_rows": 64, "edge_gemm": "wgmma", "node_warpgroups": 3}):
+        with pytest.raises(ValueError, match="node_warpgroups"):
+            Spec(64, **({"node_warpgroups": 2} | bad))
 
 
 @pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
