@@ -135,8 +135,7 @@ class Network:
         arch = self.device.arch if self.device.is_cuda else None
         # None: by the GPU and the graph's size
         edge = edge_products(edge_rows, edge_gemm, k_chunk, w.latent, arch, small, edge_kernels, tiles_per_sm,
-                             tile_rows or Spec.tile_rows, edge_warpgroups, node_warpgroups,
-                             node_rows)
+                             tile_rows or Spec.tile_rows, edge_warpgroups, node_warpgroups, node_rows)
         tile_rows = tile_rows or tile_rows_for(node_rows, w.latent, edge)
         threads = threads_for(k_chunk, w.latent, self.device.is_cuda, edge) if threads is None else threads
         self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm, threads=tuple(dict(threads).items()), **edge)

@@ -313,28 +313,27 @@ RESIDENT_NODE_TILES = 6.0
 
 def edge_products_for(k_chunk: int, latent: int, arch: int | None, small: bool = False,
                       node_tiles_per_sm: float = 0.0, tile_rows: int = Spec.tile_rows, node_rows: int = 0) -> dict:
-    """Spec's edge_rows, edge_gemm, edge_kernels, edge_warpgroups and node_warpgroups for a Network on a GPU of
-    compute capability
-    ``arch`` (None: not a GPU): on sm_90 (H100, H200) the edge-row launches on tiles of 64 rows with wgmma products
-    (tiles.GEMM_WGMMA) on two warpgroups (threads_for) for small graphs (``small``: node tiles of 8, at most one an SM;
-    at F = 64 whole weights, k_chunk_for, which says as much). At F = 64 on larger graphs (K chunks) the edge pass
-    with each tile in a warpgroup's registers (kernels/register_edges.py), a block a tile up to RESIDENT_NODE_TILES
+    """Spec's edge_rows, edge_gemm, edge_kernels, edge_warpgroups and node_warpgroups for a Network on a GPU of compute
+    capability ``arch`` (None: not a GPU): on sm_90 (H100, H200) the edge-row launches on tiles of 64 rows with wgmma
+    products (tiles.GEMM_WGMMA) on two warpgroups (threads_for) for small graphs (``small``: node tiles of 8, at most
+    one an SM; at F = 64 whole weights, k_chunk_for, which says as much). At F = 64 on larger graphs (K chunks) the edge
+    pass with each tile in a warpgroup's registers (kernels/register_edges.py), a block a tile up to RESIDENT_NODE_TILES
     node tiles an SM (``node_tiles_per_sm``), resident blocks of three warpgroups above, the hybrid decoder on the
-    two-warpgroup tiles. On an H200 (L5, 5-pass hybrid steps, bench/results/warp_register_edges_h200.json), against
-    the block-tile edge pass on wgmma (batch 2 to 8) or fp32 (16 on), a block a tile / resident blocks of three:
-    batch 2 186.8 -> 158.8 / 166.4 us, 4 304.5 -> 237.4 / 258.3, 8 558.7 -> 394.9 / 421.6, 16 948.4 -> 756.9 /
-    778.5, 32 1746 -> 1382.6 / 1382.5, 64 3316 -> 2594 / 2540 (the edge pass's launch 339 -> 198 / 172 us); not at
-    batch 1 (43.9 / 95.7 -> 46.2 / 109.5 us at 1 / 5 passes), whose small graph keeps the block tiles: there batch 1
-    62.2 / 130.3 / 249.9 -> 61.1 / 126.5 / 241.0 us at 1 / 5 / 12 passes with the wgmma edge pass, -> 58.2 / 124.1 /
-    239.1 with the decoder too; F = 128, 12 passes, 676.8 -> 639.7 us (warp_wgmma_edge_pass_h200.json,
-    warp_wgmma_decoder_h200.json). Where the graph takes node tiles of 32 (``node_rows``, node_rows_for: L5 from
-    batch 8) also the node passes (the vanilla's last excepted) in registers, resident blocks of two
-    warpgroups (kernels/register_nodes.py), and the mesh-edge rows' encoder on the edge pass's tiles (Network's
-    edge_encoder): 5-pass hybrid on an H200 (bench/results/warp_register_nodes_h200.json), batch 8 388.6 -> 372.2 us,
-    16 734.5 -> 603.8, 32 1336 -> 1157.8, 64 2450 -> 1995 (the node pass's launch 164 -> 101 us, the encoder's 330 ->
-    115 + 72); not on the smaller graphs' tiles of 8 and 16: batch 2 155.7 -> 232.3, 4 227.7 -> 276.0 (a single tile's
-    chain, its 224 KiB of weights staged for it, bounds the launch). Else {} (the launches' tiles and products as the
-    others'), as where wgmma cannot take the shape (K chunks not a multiple of 16, ``tile_rows`` not dividing 64)."""
+    two-warpgroup tiles. On an H200 (L5, 5-pass hybrid steps, bench/results/warp_register_edges_h200.json), against the
+    block-tile edge pass on wgmma (batch 2 to 8) or fp32 (16 on), a block a tile / resident blocks of three: batch 2
+    186.8 -> 158.8 / 166.4 us, 4 304.5 -> 237.4 / 258.3, 8 558.7 -> 394.9 / 421.6, 16 948.4 -> 756.9 / 778.5, 32 1746 ->
+    1382.6 / 1382.5, 64 3316 -> 2594 / 2540 (the edge pass's launch 339 -> 198 / 172 us); not at batch 1 (43.9 / 95.7 ->
+    46.2 / 109.5 us at 1 / 5 passes), whose small graph keeps the block tiles: there batch 1 62.2 / 130.3 / 249.9 ->
+    61.1 / 126.5 / 241.0 us at 1 / 5 / 12 passes with the wgmma edge pass, -> 58.2 / 124.1 / 239.1 with the decoder too;
+    F = 128, 12 passes, 676.8 -> 639.7 us (warp_wgmma_edge_pass_h200.json, warp_wgmma_decoder_h200.json). Where the
+    graph takes node tiles of 32 (``node_rows``, node_rows_for: L5 from batch 8) also the node passes (the vanilla's
+    last excepted) in registers, resident blocks of two warpgroups (kernels/register_nodes.py), and the mesh-edge rows'
+    encoder on the edge pass's tiles (Network's edge_encoder): 5-pass hybrid on an H200
+    (bench/results/warp_register_nodes_h200.json), batch 8 388.6 -> 372.2 us, 16 734.5 -> 603.8, 32 1336 -> 1157.8, 64
+    2450 -> 1995 (the node pass's launch 164 -> 101 us, the encoder's 330 -> 115 + 72); not on the smaller graphs' tiles
+    of 8 and 16: batch 2 155.7 -> 232.3, 4 227.7 -> 276.0 (a single tile's chain, its 224 KiB of weights staged for it,
+    bounds the launch). Else {} (the launches' tiles and products as the others'), as where wgmma cannot take the shape
+    (K chunks not a multiple of 16, ``tile_rows`` not dividing 64)."""
     if arch != 90 or k_chunk % 16 or 64 % tile_rows:
         return {}
     tensor = {"edge_rows": 64, "edge_gemm": "wgmma"}
