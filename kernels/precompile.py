@@ -154,8 +154,7 @@ def main(argv=None) -> None:
                              "(with --edge-rows 64 --edge-gemm wgmma; not --ship)")
     parser.add_argument("--node-warpgroups", type=int, default=None,
                         help="Spec.node_warpgroups: the node passes (the vanilla's last excepted) in warpgroups' "
-                             "registers, this "
-                             "many a block (with --edge-rows 64 --edge-gemm wgmma; not --ship)")
+                             "registers, this many a block (with --edge-rows 64 --edge-gemm wgmma; not --ship)")
     parser.add_argument("--threads", default=None,
                         help="Spec.threads as KERNEL=N,... (default: a Network's pick on a GPU; 'none': every "
                              "kernel on --block-dim; not --ship)")

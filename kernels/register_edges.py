@@ -25,7 +25,7 @@ import functools
 
 import warp as wp
 
-from .register_tiles import LATENT, register_source
+from .register_tiles import LATENT, register_source, walk_blocks
 from .spec import Spec
 from .tiles import grid_step, row_vector
 
@@ -245,6 +245,4 @@ def edge_registers_kernel(spec: Spec):
 def blocks_for(spec: Spec, n_tiles: int, device) -> int:
     """The register edge pass's grid: a block a tile with one warpgroup a block; else resident blocks, one an SM (128
     KiB of weights each), each taking spec.edge_warpgroups tiles at once (off CUDA: enough blocks for every tile)."""
-    w = spec.edge_warpgroups
-    blocks = -(-n_tiles // w)
-    return min(blocks, device.sm_count) if w > 1 and device.is_cuda else blocks
+    return walk_blocks(n_tiles, spec.edge_warpgroups, device, resident=spec.edge_warpgroups > 1)

@@ -25,7 +25,7 @@ import functools
 
 import warp as wp
 
-from .register_tiles import LATENT, register_source
+from .register_tiles import LATENT, register_source, walk_blocks
 from .spec import Spec
 from .tiles import grid_step
 
@@ -285,5 +285,4 @@ def tiles_of(n_nodes: int) -> int:
 def blocks_for(spec: Spec, n_tiles: int, device) -> int:
     """The register node pass's grid: resident blocks (224 KiB of weights: one an SM), spec.node_warpgroups tiles at
     once each; off CUDA enough blocks for every tile."""
-    blocks = -(-n_tiles // spec.node_warpgroups)
-    return min(blocks, device.sm_count) if device.is_cuda else blocks
+    return walk_blocks(n_tiles, spec.node_warpgroups, device, resident=True)

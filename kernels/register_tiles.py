@@ -201,3 +201,11 @@ def register_source(common: str, cuda: str, cpu: str) -> str:
     return (ROW_PTR + SILU + common + "#if defined(__CUDA_ARCH__)\n#if !defined(__CUDA_ARCH_FEAT_SM90_ALL)\n"
             '    static_assert(sizeof(float) == 0, "register tiles need an sm_90a build (Spec.sm90a)");\n#else\n'
             + REGISTER_STEPS + cuda + "#endif\n#else\n" + ROW_MLP + cpu + "#endif\n")
+
+
+def walk_blocks(n_tiles: int, warpgroups: int, device, resident: bool) -> int:
+    """A register pass's grid for ``n_tiles`` tiles at ``warpgroups`` a block: with ``resident`` blocks (their weights
+    staged once, looping over tiles) at most one an SM on CUDA, else a block for each ``warpgroups`` tiles (and off
+    CUDA always)."""
+    blocks = -(-n_tiles // warpgroups)
+    return min(blocks, device.sm_count) if resident and device.is_cuda else blocks

@@ -111,8 +111,8 @@ def main():
                     help="Spec.edge_warpgroups: the edge pass in warpgroups' registers, this many a block "
                          "(kernels/register_edges.py; with an edge shape of 64wgmma)")
     ap.add_argument("--node-warpgroups", type=int, default=None,
-                    help="Spec.node_warpgroups: the node passes before the last in warpgroups' registers "
-                         "(kernels/register_nodes.py; with an edge shape of 64wgmma)")
+                    help="Spec.node_warpgroups: the node passes (the vanilla's last excepted) in warpgroups' "
+                         "registers (kernels/register_nodes.py; with an edge shape of 64wgmma)")
     ap.add_argument("--repeats", type=int, default=300, help="captured steps timed a case")
     ap.add_argument("--without", default="", help="kernels whose launches each step leaves out, comma-separated "
                     "(timing only: the outputs are then wrong), e.g. node_pass: what a launch costs the step")
