@@ -45,6 +45,11 @@ def evaluate(checkpoint_path, data_file, out_dir, device=None, backend: str | No
     sims = load_file(data_file, device)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    # one untimed step of the first chunk, either backend: what rollout_seconds times is rolling out, not loading
+    # code on first use (Warp's kernel definitions and modules, torch's CUDA kernels and cuBLAS), reported apart
+    t0 = time.perf_counter()
+    rollout(network, sims[:chunk], chunk, first=sims[0].steps - 1)
+    warmup = time.perf_counter() - t0
     t0 = time.perf_counter()
     with tqdm(total=len(sims) * sims[0].steps, desc="rollouts", unit="step", leave=False) as bar:
         rolls = rollout(network, sims, chunk, progress=bar.update)
@@ -62,7 +67,8 @@ def evaluate(checkpoint_path, data_file, out_dir, device=None, backend: str | No
     summary = metrics.set_metrics(per, [s.topology.n_nodes for s in sims])
     result = {**summary, "per_rollout": per, "checkpoint": str(checkpoint_path), "data": str(data_file),
               "model": model.describe(), "trained_epochs": payload.get("epoch"), "device": str(device),
-              "backend": backend, "rollout_seconds": seconds, "simulations": len(sims),
+              "backend": backend, "rollout_seconds": seconds,
+              "warmup_seconds": warmup, "simulations": len(sims),
               "q_error_second_difference": {  # pooled over its node-snapshots like the RMSE, and the largest
                   "rms": metrics.pooled_rms([p["q_error_second_difference"]["rms"] for p in per],
                                             [s.topology.n_nodes * (s.steps - 1) for s in sims]),

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import partial
 
@@ -68,66 +69,86 @@ def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None, first
             z0: list[torch.Tensor] | None = None) -> list[Rollout]:
     """Each simulation rolled from snapshot ``first`` (0: the initial state) to its end, from the
     ground truth's state there or from ``z0`` (one (N, 12) state per simulation). ``model``: any network
-    behind the interface of model.py (its call and its step), or with a whole-rollout ``model.rollout``."""
+    behind the interface of model.py (its call and its step), or with a whole-rollout ``model.rollout``.
+
+    On CUDA the host queues each chunk and goes on to build (and, on the Warp backend, capture) the next while the
+    GPU rolls it out; a thread of their own reads the chunks' results back as each one ends (_Reader)."""
     z0 = z0 if z0 is not None else [s.z[first] for s in sims]
-    out, pending = [], None
-    for c in range(0, len(sims), chunk):
-        part = sims[c:c + chunk]
-        device = part[0].z.device
-        top = batch([s.topology for s in part])  # where the simulations' topologies are (eval's: the host)
-        z = torch.cat(z0[c:c + chunk]).to(device)
-        u = torch.cat([s.u[first:] for s in part], 1).to(device)  # (steps + 1, tools of the chunk, 3)
-        if hasattr(model, "rollout"):  # the Warp kernels build their graph where the topology is (kernels/graph.py)
-            states, diagnostics = model.rollout(top, z, u, part[0].dt)
-            if progress:
-                progress(len(part) * (len(u) - 1))
-        else:
-            states, diagnostics = stepwise(model, top.to(device), z, u, part[0].dt,
-                                           progress and partial(progress, len(part)))
-        fetched = _to_host([states, *(diagnostics or ())])
-        # the chunk before is read back now, while this one runs: on CUDA the next chunk's graph is built and
-        # captured, and its results reduced, while the GPU still works on this one
-        if pending:
-            out += _collect(*pending)
-        pending = (part, top, fetched)
-    if pending:
-        out += _collect(*pending)
+    out, reader = [], None
+    try:
+        for c in range(0, len(sims), chunk):
+            part = sims[c:c + chunk]
+            device = part[0].z.device
+            top = batch([s.topology for s in part])  # where the simulations' topologies are (eval's: the host)
+            z = torch.cat(z0[c:c + chunk]).to(device)
+            u = torch.cat([s.u[first:] for s in part], 1).to(device)  # (steps + 1, tools of the chunk, 3)
+            if hasattr(model, "rollout"):  # the Warp kernels build their graph where the topology is (kernels/graph.py)
+                states, diagnostics = model.rollout(top, z, u, part[0].dt)
+                if progress:
+                    progress(len(part) * (len(u) - 1))
+            else:
+                states, diagnostics = stepwise(model, top.to(device), z, u, part[0].dt,
+                                               progress and partial(progress, len(part)))
+            results = [states, *(diagnostics or ())]
+            if states.is_cuda:
+                reader = reader or _Reader(states.device)
+                reader.read(part, top, results)
+            else:
+                out += _split(part, top, [t.numpy() for t in results])
+    finally:
+        if reader:
+            out += reader.close()
     return out
 
 
-def _to_host(tensors: list[torch.Tensor]):
-    """Start copying ``tensors`` to pinned host memory (on CUDA, without waiting): (host tensors, an event that
-    completes with the copies, or None off CUDA)."""
-    if not tensors[0].is_cuda:
-        return tensors, None
-    with torch.cuda.device(tensors[0].device):  # the copies and the event on that device's current stream
-        host = [torch.empty(t.shape, dtype=t.dtype, pin_memory=True) for t in tensors]
-        for h, t in zip(host, tensors):
-            h.copy_(t, non_blocking=True)
+class _Reader:
+    """Chunks' results read back from a GPU on a thread of this reader's own, in order: each chunk's host memory
+    allocated and touched while the GPU still works on it, then filled once the chunk ends, on a stream of its own
+    that waits for nothing queued after it, then split by graph (_split). Without it the host had waited for each
+    read: ~29 ms for a batch-64 chunk's 43 MB of fresh pageable memory on the H200 machine's host (3 ms into touched
+    memory), or the same to allocate pinned memory, against the chunk's 40 ms of GPU work in which it also builds the
+    next chunk (bench/results/warp_rollout_l5_h200.json)."""
+
+    def __init__(self, device: torch.device):
+        self.device, self.stream = device, torch.cuda.Stream(device)  # a non-blocking stream: not the default one's
+        self.pool, self.pending = ThreadPoolExecutor(1, thread_name_prefix="rollout-reader"), []
+
+    def read(self, part, top, results: list[torch.Tensor]) -> None:
         done = torch.cuda.Event()
-        done.record()
-    return host, done
+        done.record(torch.cuda.current_stream(self.device))  # the results' stream (Warp's work in order with it)
+        self.pending.append(self.pool.submit(self._read, part, top, results, done))
 
-
-def _collect(part, top, fetched) -> list[Rollout]:
-    """The Rollouts of a chunk whose results ``_to_host`` fetched: states (S+1, N, 12) and the hybrid's (S, N)
-    diagnostics, split by graph (the pinned buffers go back to torch's cache for the next chunk)."""
-    (states, *diagnostics), done = fetched
-    if done is not None:
+    def _read(self, part, top, results, done) -> list[Rollout]:
+        host = [torch.zeros(t.shape, dtype=t.dtype) for t in results]  # zeroed: every page touched before the copy
         done.synchronize()
-    zs = states.numpy()
+        with torch.cuda.stream(self.stream):
+            for h, t in zip(host, results):
+                h.copy_(t)
+        return _split(part, top, [h.numpy() for h in host])
+
+    def close(self) -> list[Rollout]:
+        """Every chunk's Rollouts, in order (a reading's error raised here)."""
+        try:
+            return [r for f in self.pending for r in f.result()]
+        finally:
+            self.pool.shutdown(cancel_futures=True)
+
+
+def _split(part, top, results: list[np.ndarray]) -> list[Rollout]:
+    """A chunk's Rollouts from its results on the host, states (S+1, N, 12) and the hybrid's (S, N) diagnostics:
+    each rollout's states a view of the chunk's."""
+    states, *diagnostics = results
     offsets = np.concatenate([[0], np.cumsum(top.graph_sizes.numpy())])
-    per_graph = _per_graph(offsets, *(d.numpy() for d in diagnostics)) if diagnostics else []
-    return [Rollout(s.name, zs[:, offsets[g]:offsets[g + 1]].copy(), *(a[g].copy() for a in per_graph))
+    per_graph = _per_graph(offsets, *diagnostics) if diagnostics else []
+    return [Rollout(s.name, states[:, offsets[g]:offsets[g + 1]], *(a[g] for a in per_graph))
             for g, s in enumerate(part)]
 
 
 def _per_graph(offsets: np.ndarray, deg: np.ndarray, ent: np.ndarray) -> list[np.ndarray]:
     """The hybrid's (S, N) diagnostics as (graphs, steps) arrays in Rollout's field order: the mean degeneracy, the
     least and the mean entropy production over each graph's nodes (its contiguous node range ``offsets[g]:offsets[g +
-    1]``). Reduced on the host, while the GPU rolls the next chunk out (on the GPU they were ~3 small launches a
-    graph, 0.10 s of eval's 190 L5 rollouts: bench/results/warp_rollout_profile_h200.json), in float64 and in a fixed
-    order: the same every run (index_add's atomic adds on CUDA had put two runs' means a rounding apart)."""
+    1]``). Reduced on the host (on the GPU they were ~3 small launches a graph, 0.10 s of eval's 190 L5 rollouts:
+    bench/results/warp_rollout_profile_h200.json), in float64 and in a fixed order: the same every run (index_add's atomic adds on CUDA had put two runs' means a rounding apart)."""
     starts, sizes = offsets[:-1], np.diff(offsets)
 
     def means(x):

@@ -5,7 +5,10 @@ warpgnn.evaluation.evaluate in this process (run it fresh, as eval is), the func
         --command "..." [--phases]
 
 ``--phases``: no profiler; instead each call of the rollout's stages timed apart (the Networks, their graphs'
-builds, kernel definitions and module loads, the replays, the copies back and their collection), chunk by chunk.
+builds, kernel definitions and module loads, the replays, the reads back and the wait for them), chunk by chunk, eval's untimed warm-up
+step first. ``--graphs-on-device``: each chunk's graph built by torch on the GPU rather than on the host. ``--gpu``: instead of
+eval, each chunk's whole rollout (WarpModel.rollout, one graph replay) timed by CUDA events, its forward step and each
+kernel's mean (the GPU's share of eval's figure).
 
 Its first run (H200, the 190 L5 test rollouts): of rollout()'s 0.82 s (0.72 s unprofiled; the GPU's share ~0.23 s),
 the three chunks' Networks 0.36 s, the per-graph diagnostics' reductions 0.10 s, reading back 0.13 s; one chunk of
@@ -25,6 +28,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/: provenance.py
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # warp_kernel_profile.py
 import provenance
 
 from warpgnn.evaluation import evaluate
@@ -51,8 +55,58 @@ def stages() -> dict:
 
     return {"Network": (network.Network, "__init__"), "kernel definitions": (network, "build_kernels"),
             "module load": (network.shipped, "load"), "graph build": (network, "build"),
-            "replay": (backend._Topology, "run"), "copies back": (rollout, "_to_host"),
-            "collect": (rollout, "_collect")}
+            "replay": (backend._Topology, "run"), "read back (its thread)": (rollout._Reader, "_read"),
+            "waiting for the reads": (rollout._Reader, "close")}
+
+
+def graphs_on_device():
+    """Each chunk's graph built by torch on the GPU (its topology sent there first) instead of on the host."""
+    import warp as wp
+
+    from warpgnn.kernels import network
+
+    host_build = network.build
+
+    def build(top, tile_rows, actuator_graphs, self_loops, device, *args, **kw):
+        return host_build(top.to(wp.device_to_torch(device)), tile_rows, actuator_graphs, self_loops, device,
+                          *args, **kw)
+
+    network.build = build
+
+
+def gpu_chunks(checkpoint_path, data, chunk: int) -> list[dict]:
+    """Each chunk of eval's rollouts on the GPU: its 20-step rollout (CUDA events, the median of five replays), its
+    forward step captured alone, and each kernel's mean duration [us]."""
+    import torch
+    from warp_kernel_profile import captured_step_ms, kernel_means
+
+    from warpgnn import checkpoint
+    from warpgnn.data import load_file
+    from warpgnn.graphs import batch
+    from warpgnn.kernels import WarpModel
+
+    model, _ = checkpoint.load_model(checkpoint_path, "cuda")
+    sims, warp, out = load_file(data, "cuda"), WarpModel(model), []
+    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+    for c in range(0, len(sims), chunk):
+        part = sims[c:c + chunk]
+        top = batch([s.topology for s in part])
+        z, u = torch.cat([s.z[0] for s in part]).cuda(), torch.cat([s.u for s in part], 1).cuda()
+        times = []
+        for _ in range(6):  # the first captures
+            start.record()
+            warp.rollout(top, z, u, part[0].dt)
+            end.record()
+            end.synchronize()
+            times.append(start.elapsed_time(end))
+        net = warp._get(top).net
+        net.set_inputs(z, u[0], u[1], part[0].dt)
+        kernels = kernel_means(net, 5)
+        out.append({"sims": len(part), "steps": len(u) - 1, "rollout_ms": sorted(times[1:])[2],
+                    "forward_ms": captured_step_ms(net, 40)[1], "act_edges": net.layout.n_act_edges,
+                    "kernels_us": {k: round(v["mean_us"], 1) for k, v in kernels.items()}})
+        print(out[-1], flush=True)
+    return out
 
 
 def main():
@@ -62,10 +116,18 @@ def main():
     ap.add_argument("--chunk", type=int, default=64, help="simulations rolled out side by side (eval's default 64)")
     ap.add_argument("--top", type=int, default=40, help="functions kept, by cumulative time")
     ap.add_argument("--phases", action="store_true", help="time the rollout's stages call by call, no profiler")
+    ap.add_argument("--graphs-on-device", action="store_true", help="each chunk's graph built on the GPU")
+    ap.add_argument("--gpu", action="store_true", help="time each chunk's rollout and kernels on the GPU, not eval")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
+    if a.gpu:
+        record = provenance.record(a) | {"chunk": a.chunk, "chunks": gpu_chunks(a.checkpoint, a.data, a.chunk)}
+        Path(a.json).write_text(json.dumps(record, indent=1) + "\n")
+        return
     profile = None if a.phases else cProfile.Profile()
+    if a.graphs_on_device:
+        graphs_on_device()
     times = time_calls(stages()) if a.phases else None
     with tempfile.TemporaryDirectory() as out:
         if profile:
@@ -74,7 +136,9 @@ def main():
         if profile:
             profile.disable()
     print(f"chunk {a.chunk}: rollout_seconds {result['rollout_seconds']:.3f}")
-    record = provenance.record(a) | {"chunk": a.chunk, "rollout_seconds": result["rollout_seconds"]}
+    record = provenance.record(a) | {"chunk": a.chunk, "graphs_on_device": a.graphs_on_device,
+                                     "rollout_seconds": result["rollout_seconds"],
+                                     "warmup_seconds": result["warmup_seconds"]}
     if times is not None:
         for label, ms in times.items():
             print(f"{label:20s} {ms} ms")
