@@ -10,7 +10,8 @@
   sum of them, zdot and Euler step in the same block: the hybrid's decoder and GENERIC tail in one launch.
 * ``hybrid_fields`` (large graphs; a graph with a node of as many incoming edges as a tile has rows): the same on tiles
   of contiguous edge rows (mesh edges, then self-loops, see graph.Layout), the port terms into a buffer, 12
-  values a row instead of 144, which generic_tail's launch sums per node.
+  values a row instead of 144, which generic_tail's launch sums per node. Where the edge pass runs in warpgroups'
+  registers (Spec.decoder_warpgroups) kernels/register_decoder.py takes its place.
 * ``node_state`` (a function the vanilla's last node pass runs): its decoder on a tile of nodes, zdot
   (standardised and physical), the Euler update and the boundary conditions, each thread a (node, component)
   item of the (rows, 12) output tile: the vanilla's decoder and tail take no launch of their own.
@@ -23,8 +24,10 @@ from typing import Any
 
 import warp as wp
 
-from .generic_tail import Tail, row_operators, settle, step_values
+from .generic_tail import LM_COLS, X_COLS, Tail, row_operators, settle, step_values
+from . import register_decoder
 from .integrate import hold
+from .register_tiles import check_threads
 from .spec import N_GRAD, N_LM, STATE, Spec
 from .tiles import (
     activate_fill,
@@ -149,9 +152,6 @@ def node_decoder(spec: Spec, owner: str):
 
 
 EO_ALIGN = 4  # floats: the row length of the decoder's shared e / o tile, a multiple of this
-# the row lengths of the decoder's shared (l, m) and senders' (dE, dS) tiles, which generic_tail.PORT_TERMS reads a
-# row a thread by 16-byte loads: 4 floats past a multiple of 8, so that 8 lanes' loads fall on 8 different banks' quads
-LM_COLS, X_COLS = N_LM + 4, N_GRAD + 4
 LM_CHUNK = 16  # K rows of the (F, 144) weight's chunks where blocks queue for the SMs (Spec.many_blocks)
 
 
@@ -353,6 +353,17 @@ def launches(net) -> list:
     T = edges.tile_rows
     de_e, de_w2 = w.for_products(edges.gemm, "de_e", "de_w2")
     weights = [net.product_rows, de_e, w.de_b1, de_w2, w.de_b2, net.grads]
+    if net.spec.decoder_warpgroups and not g.groups:  # tiles in warpgroups' registers (register_decoder)
+        W = net.spec.decoder_warpgroups
+        check_threads(net, "hybrid_fields", W)
+        tiles = (lay.edges_pad + lay.self_pad) // 64
+        blocks = register_decoder.blocks_for(net.spec, tiles, dev)
+        de_e, de_w2 = w.for_products("registers", "de_e", "de_w2")
+        return [wp.launch_tiled(
+            register_decoder.decoder_registers_kernel(net.spec), dim=[blocks],
+            block_dim=net.block_dim_of("hybrid_fields"), device=dev, record_cmd=True,
+            inputs=[net.lat, g.row_recv, g.row_send, net.product_rows, de_e, w.de_b1, de_w2, w.de_b2, net.grads,
+                    lay.mesh_row, lay.edges_pad // 64, tiles, net.ports, net.node_terms, blocks * W, W])]
     if g.groups:  # receiver-owned tiles, the tail in the same launch
         return [wp.launch_tiled(
             hybrid_step, dim=[g.groups], block_dim=net.block_dim_of("hybrid_fields"), device=dev, record_cmd=True,

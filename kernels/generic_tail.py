@@ -40,12 +40,13 @@ from .tiles import grid_step
 # dS . M dS) are a second thread's, in other warps, beside the first. The entries stream row by row through each
 # operator, which gives every output its terms in the order of the reference loops': (A x)[a] over b, (B^T x)[b]
 # over c >= b, (B y)[a] over b <= a. The row strides of the (l, m) and x tiles (SL, SX) are best 4 floats off a
-# multiple of 8 (decoders.LM_COLS, X_COLS): 8 lanes' 16-byte loads then fall on 8 different banks' quads.
-PORT_TERMS = r"""
-    constexpr int T = tile_lm::Layout::Shape::dim(0), S = 12, NL = S * (S - 1) / 2, NLM = NL + S * (S + 1) / 2;
-    constexpr int SL = tile_lm::Layout::Stride::dim(0), SX = tile_x::Layout::Stride::dim(0);
-    static_assert(SL % 4 == 0 && SX % 4 == 0 && NLM % 4 == 0, "16-byte rows");
-    const wp::float32* x_ptr = x.data.ptr;  // x: the lambdas below name their own operands x
+# multiple of 8 (LM_COLS, X_COLS): 8 lanes' 16-byte loads then fall on 8 different banks' quads.
+# the row lengths of the decoders' shared (l, m) and senders' (dE, dS) rows, which PORT_ROW reads a row a thread by
+# 16-byte loads: 4 floats past a multiple of 8, so that 8 lanes' loads fall on 8 different banks' quads
+LM_COLS, X_COLS = N_LM + 4, N_GRAD + 4
+
+PORT_ROW = r"""
+    constexpr int S = 12, NL = S * (S - 1) / 2;
     // 16-byte loads and stores on CUDA (every row 16-byte aligned: a lane's 12 or 24 results in 3 or 6 stores)
     auto load4 = [](const wp::float32* __restrict__ from, wp::float32* to) {
 #if defined(__CUDA_ARCH__)
@@ -116,16 +117,13 @@ PORT_TERMS = r"""
                 out[a] += entry(l, NL + a * (a + 1) / 2 + b, NL, c) * y[b];
         }
     };
-    for (int w = WP_TILE_THREAD_IDX; w < 2 * T; w += WP_TILE_BLOCK_DIM) {  // rows' port terms, then self-loop shares
-        const int r = w < T ? w : w - T;
-        const bool shares = w >= T;
-        if (shares && !is_self(r))
-            continue;
-        const wp::float32* l = lm.data.ptr + r * SL;  // the row's (l, m)
-        wp::float32 grad[2 * S];  // its sender's (dE, dS)
+    // a row's port term L x_e + M x_s into out (12 values) from its (l, m) at l and its sender's (dE, dS) at g, or
+    // (``shares``, a self-loop) its degeneracy and entropy production shares (24 values): (L dS)^2 + (M dE)^2, dS M dS
+    auto port_row = [&](const wp::float32* l, const wp::float32* g, bool shares, wp::float32* out) {
+        wp::float32 grad[2 * S];
 #pragma unroll
         for (int k = 0; k < 2 * S; k += 4)
-            load4(x_ptr + r * SX + k, grad + k);
+            load4(g + k, grad + k);
         const wp::float32* xe = grad;
         const wp::float32* xs = grad + S;
         wp::float32 x_l[S], l_x[S], ys[S], m_ds[S];  // L x_l: L dE (L dS for a self-loop's shares); B^T dS, M dS
@@ -139,7 +137,7 @@ PORT_TERMS = r"""
 #pragma unroll
             for (int a = 0; a < S; ++a)
                 l_x[a] += m_ds[a];
-            put_row(port_at(r), l_x, S);
+            put_row(out, l_x, S);
         } else {
             wp::float32 ye[S], m_de[S];
             lower_t(l, xe, ye);
@@ -150,8 +148,22 @@ PORT_TERMS = r"""
                 terms[a] = l_x[a] * l_x[a] + m_de[a] * m_de[a];
                 terms[S + a] = xs[a] * m_ds[a];
             }
-            put_row(shares_at(r), terms, 2 * S);
+            put_row(out, terms, 2 * S);
         }
+    };
+"""
+
+# a block's (T, 144) tile of (l, m) and (T, 24) tile of senders' (dE, dS): a thread a row, then a self-loop's shares
+PORT_TERMS = PORT_ROW + r"""
+    constexpr int T = tile_lm::Layout::Shape::dim(0), NLM = NL + S * (S + 1) / 2;
+    constexpr int SL = tile_lm::Layout::Stride::dim(0), SX = tile_x::Layout::Stride::dim(0);
+    static_assert(SL % 4 == 0 && SX % 4 == 0 && NLM % 4 == 0, "16-byte rows");
+    for (int w = WP_TILE_THREAD_IDX; w < 2 * T; w += WP_TILE_BLOCK_DIM) {  // rows' port terms, then self-loop shares
+        const int r = w < T ? w : w - T;
+        const bool shares = w >= T;
+        if (shares && !is_self(r))
+            continue;
+        port_row(lm.data.ptr + r * SL, x.data.ptr + r * SX, shares, shares ? shares_at(r) : port_at(r));
     }
     WP_TILE_SYNC();
 """
@@ -179,7 +191,7 @@ PORTS_TO_TILE = r"""
 @functools.cache
 def row_operators(spec: Spec, owner: str):
     """(port_terms, port_terms_to_tile) on (T, 144) tiles of delta_e's outputs, x the rows' senders' (dE, dS)
-    (gathered: tiles.gather_rows), either tile's rows possibly padded (decoders.LM_COLS, X_COLS). port_terms(lm, x,
+    (gathered: tiles.gather_rows), either tile's rows possibly padded (LM_COLS, X_COLS). port_terms(lm, x,
     out_row, self_loops, node0, ports, node_terms): ports[out_row + r, a] = (L_r dE_j + M_r dS_j)[a] for each row r,
     j the row's sender (the node itself on a self-loop), L x = A x - A^T x and M x = B (B^T x) from the packed
     triangles; on self-loop tiles (self_loops != 0, node node0 + r) also node_terms[node, a] = (L dS)[a]^2 +

@@ -31,6 +31,7 @@ import warp as wp
 from . import features, register_edges, register_nodes
 from .decoders import node_decoder
 from .generic_tail import Tail, step_values
+from .register_tiles import check_threads
 from .spec import EDGE_FEATURE_WIDTH, FEATURE_WIDTH, N_GRAD, NODE_ROWS, STATE, Spec
 from .tiles import (
     grid_step,
@@ -536,9 +537,7 @@ def launches(net) -> list:
     ew_e, ew_w2 = w.for_products("registers" if wgs else edges.gemm, "ew_e", "ew_w2")  # tensor cores: tf32 parts
     tile_walk = [edge_tiles, blocks * wgs, wgs] if wgs else []
     for kernel, n in (("edge_pass", wgs), ("node_registers", net.spec.node_warpgroups)):
-        if n and dev.is_cuda and net.block_dim_of(kernel) != 128 * n:  # else tiles go unwalked or walked twice
-            raise ValueError(f"{kernel}: {n} warpgroups a block need {128 * n} threads (Spec.threads), not "
-                             f"{net.block_dim_of(kernel)}")
+        check_threads(net, kernel, n)
     # the node passes (the vanilla's last excepted) in warpgroups' registers (register_nodes), on their weights in
     # register_layout
     node_wgs = net.spec.node_warpgroups

@@ -21,7 +21,17 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from . import decoders, features, generic_tail, integrate, message_passing, register_edges, register_nodes, shipped
+from . import (
+    decoders,
+    features,
+    generic_tail,
+    integrate,
+    message_passing,
+    register_decoder,
+    register_edges,
+    register_nodes,
+    shipped,
+)
 from .graph import build
 from .pdl import overlap_launches
 from .spec import (
@@ -55,6 +65,8 @@ def build_kernels(spec: Spec) -> None:
         message_passing.edge_kernel(spec)
     if spec.node_warpgroups:
         register_nodes.node_registers_kernel(spec)
+    if spec.decoder_warpgroups:
+        register_decoder.decoder_registers_kernel(spec)
     for decode in (0, message_passing.DECODE_FIELDS, message_passing.DECODE_STATE):
         message_passing.node_kernel(spec, decode)
     for module in spec.modules:
@@ -97,7 +109,8 @@ class Network:
                  threads: dict | None = None, edge_rows: int | None = None, edge_gemm: str | None = None,
                  edge_kernels: tuple | None = None, receiver_groups: bool | None = None,
                  split_products: bool | None = None, edge_encoder: bool | None = None,
-                 edge_warpgroups: int | None = None, node_warpgroups: int | None = None):
+                 edge_warpgroups: int | None = None, node_warpgroups: int | None = None,
+                 decoder_warpgroups: int | None = None):
         """``model``: a warpgnn TIGNN (its config and weights are read once); ``topology``: a
         warpgnn.graphs.Topology, one simulation or a stacked batch. ``tile_rows``, ``node_rows``, ``k_chunk``,
         ``gemm``, ``edge_rows``, ``edge_gemm``, ``edge_kernels``: the kernels' Spec (node_rows and k_chunk None: by the
@@ -120,7 +133,8 @@ class Network:
         64-row tile in a warpgroup's registers, this many a block (Spec.edge_warpgroups; kernels/register_edges.py);
         None: by the GPU and the graph's size. ``node_warpgroups``: the node passes (the vanilla's last excepted)
         likewise, this many warpgroups a resident block (Spec.node_warpgroups; kernels/register_nodes.py); None: by
-        those."""
+        those. ``decoder_warpgroups``: the hybrid decoder's fields likewise (Spec.decoder_warpgroups;
+        kernels/register_decoder.py; where receiver groups do not take the decoder); None: by those."""
         self.device = wp.get_device(device)
         self.weights = w = weights if weights is not None else pack(model, self.device)
         if not node_rows:  # by the graph's size, a divisor of tile_rows where given
@@ -135,7 +149,8 @@ class Network:
         arch = self.device.arch if self.device.is_cuda else None
         # None: by the GPU and the graph's size
         edge = edge_products(edge_rows, edge_gemm, k_chunk, w.latent, arch, small, edge_kernels, tiles_per_sm,
-                             tile_rows or Spec.tile_rows, edge_warpgroups, node_warpgroups, node_rows)
+                             tile_rows or Spec.tile_rows, edge_warpgroups, node_warpgroups, node_rows,
+                             decoder_warpgroups)
         tile_rows = tile_rows or tile_rows_for(node_rows, w.latent, edge)
         threads = threads_for(k_chunk, w.latent, self.device.is_cuda, edge) if threads is None else threads
         self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm, threads=tuple(dict(threads).items()), **edge)

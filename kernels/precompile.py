@@ -39,7 +39,7 @@ from .spec import (
 
 def _specs(latents, max_shared: int | None, arch: int | None, **shape) -> list[Spec]:
     """The Spec of each width, its kernels built. ``shape``: Spec's tile_rows, node_rows, k_chunk, threads, edge_rows,
-    edge_gemm, edge_kernels, edge_warpgroups, node_warpgroups (its defaults where absent; k_chunk None: the one a
+    edge_gemm, edge_kernels, edge_warpgroups, node_warpgroups, decoder_warpgroups (its defaults where absent; k_chunk None: the one a
     Network with those node tiles picks on a GPU allowing a block ``max_shared`` bytes, spec.k_chunk_for; threads and
     the edge products None: a Network's on a GPU of compute capability ``arch``, spec.threads_for and
     spec.edge_products_for)."""
@@ -47,6 +47,7 @@ def _specs(latents, max_shared: int | None, arch: int | None, **shape) -> list[S
     edge_rows, edge_gemm = shape.pop("edge_rows", None), shape.pop("edge_gemm", None)
     edge_kernels, edge_warpgroups = shape.pop("edge_kernels", None), shape.pop("edge_warpgroups", None)
     node_warpgroups = shape.pop("node_warpgroups", None)
+    decoder_warpgroups = shape.pop("decoder_warpgroups", None)
     node_rows = shape.get("node_rows", Spec.node_rows)
     specs = []
     for F in latents:
@@ -54,7 +55,8 @@ def _specs(latents, max_shared: int | None, arch: int | None, **shape) -> list[S
         small = node_rows == NODE_ROWS[0]  # the small graphs' node tiles
         edge = edge_products(edge_rows, edge_gemm, k, F, arch, small, edge_kernels,
                              tile_rows=shape.get("tile_rows") or Spec.tile_rows, edge_warpgroups=edge_warpgroups,
-                             node_warpgroups=node_warpgroups, node_rows=node_rows)
+                             node_warpgroups=node_warpgroups, node_rows=node_rows,
+                             decoder_warpgroups=decoder_warpgroups)
         tiles = {"tile_rows": shape.get("tile_rows") or tile_rows_for(node_rows, F, edge)}
         specs.append(Spec(F, k_chunk=k, threads=threads_for(k, F, True, edge) if threads is None else threads,
                           **edge, **(shape | tiles)))
@@ -110,7 +112,8 @@ def ship(log=print) -> None:
                                         k_chunk=spec.k_chunk, threads=spec.threads, edge_rows=spec.edge_rows,
                                         edge_gemm=spec.edge_gemm, edge_kernels=spec.edge_kernels,
                                         edge_warpgroups=spec.edge_warpgroups,
-                                        node_warpgroups=spec.node_warpgroups)
+                                        node_warpgroups=spec.node_warpgroups,
+                                        decoder_warpgroups=spec.decoder_warpgroups)
                 for cubin, meta in shipped.files(spec, arch):
                     cubin.write_bytes(lzma.compress((Path(tmp) / cubin.stem).read_bytes(), preset=6))
                     shutil.copy(Path(tmp) / meta.name, meta)
@@ -155,6 +158,9 @@ def main(argv=None) -> None:
     parser.add_argument("--node-warpgroups", type=int, default=None,
                         help="Spec.node_warpgroups: the node passes (the vanilla's last excepted) in warpgroups' "
                              "registers, this many a block (with --edge-rows 64 --edge-gemm wgmma; not --ship)")
+    parser.add_argument("--decoder-warpgroups", type=int, default=None,
+                        help="Spec.decoder_warpgroups: the hybrid decoder's fields in warpgroups' registers, this many "
+                             "a block (with --edge-rows 64 --edge-gemm wgmma; not --ship)")
     parser.add_argument("--threads", default=None,
                         help="Spec.threads as KERNEL=N,... (default: a Network's pick on a GPU; 'none': every "
                              "kernel on --block-dim; not --ship)")
@@ -165,7 +171,8 @@ def main(argv=None) -> None:
              "threads": None if args.threads is None else parse_threads(args.threads),
              "edge_rows": args.edge_rows, "edge_gemm": args.edge_gemm,
              "edge_kernels": tuple(k.strip() for k in args.edge_kernels.split(",")) if args.edge_kernels else None,
-             "edge_warpgroups": args.edge_warpgroups, "node_warpgroups": args.node_warpgroups}
+             "edge_warpgroups": args.edge_warpgroups, "node_warpgroups": args.node_warpgroups,
+             "decoder_warpgroups": args.decoder_warpgroups}
     if args.ship:
         ship()
     elif args.arch is not None:

@@ -1,5 +1,5 @@
 """64-row tiles held in one warpgroup's registers: the C++ steps the register passes share (register_edges, the edge
-pass; register_nodes, the node pass), at F = 64 on sm_90a.
+pass; register_nodes, the node pass; register_decoder, the hybrid decoder's fields), at F = 64 on sm_90a.
 
 A warpgroup (128 threads) owns a tile of 64 rows and every column of it. Thread (warp w, lane l, q = l % 4) holds rows
 r0 = 16 w + l / 4 and r1 = r0 + 8 at columns 8 j + 2 q and + 1 (j < 8): where wgmma m64n64's accumulators hold them.
@@ -209,3 +209,11 @@ def walk_blocks(n_tiles: int, warpgroups: int, device, resident: bool) -> int:
     CUDA always)."""
     blocks = -(-n_tiles // warpgroups)
     return min(blocks, device.sm_count) if resident and device.is_cuda else blocks
+
+
+def check_threads(net, kernel: str, warpgroups: int) -> None:
+    """A register pass ``kernel`` of the Network ``net`` at ``warpgroups`` a block (0: none): on CUDA its launches must
+    take 128 threads for each (Spec.threads), else its tiles go unwalked or walked twice."""
+    if warpgroups and net.device.is_cuda and net.block_dim_of(kernel) != 128 * warpgroups:
+        raise ValueError(f"{kernel}: {warpgroups} warpgroups a block need {128 * warpgroups} threads (Spec.threads), "
+                         f"not {net.block_dim_of(kernel)}")

@@ -76,6 +76,9 @@ class Spec:
     # the node passes (the vanilla's last excepted) with each 64-row tile in one warpgroup's registers (register_nodes;
     # edge_gemm "wgmma", F = 64): this many warpgroups a resident block, one block an SM; 0: off
     node_warpgroups: int = 0
+    # the hybrid decoder's fields (hybrid_fields on large graphs) with each 64-row tile in one warpgroup's registers
+    # (kernels/register_decoder.py; edge_gemm "wgmma", F = 64): this many warpgroups a resident block; 0: off
+    decoder_warpgroups: int = 0
 
     def __post_init__(self):
         for gemm in (self.gemm, self.edge_gemm or self.gemm):
@@ -96,6 +99,10 @@ class Spec:
         if self.node_warpgroups and (self.edge_gemm != "wgmma" or self.latent != 64 or self.node_warpgroups > 2):
             raise ValueError("node_warpgroups: with wgmma edge products (edge_gemm, an sm_90a build) at F = 64, 1 or 2 "
                              "warpgroups")
+        # at most two: with both weights (104 KiB) each warpgroup's rows take 45 KiB of shared memory
+        if self.decoder_warpgroups and (self.edge_gemm != "wgmma" or self.latent != 64 or self.decoder_warpgroups > 2):
+            raise ValueError("decoder_warpgroups: with wgmma edge products (edge_gemm, an sm_90a build) at F = 64, "
+                             "1 or 2 warpgroups")
         kernels = tuple(k for k in EDGE_KERNELS if k in self.edge_kernels)
         if len(kernels) != len(set(self.edge_kernels)) or not kernels:
             raise ValueError(f"edge_kernels {self.edge_kernels!r}: expected some of {', '.join(EDGE_KERNELS)}")
@@ -219,6 +226,8 @@ class Spec:
                 gemm += f"_R{self.edge_warpgroups}"
             if self.node_warpgroups:
                 gemm += f"_V{self.node_warpgroups}"
+            if self.decoder_warpgroups:
+                gemm += f"_D{self.decoder_warpgroups}"
         # kernels moved to a module of another block size (threads) leave this one: its name says which, so that two
         # specs differing only there never share (and mix the kernels of) one Warp module
         moved = "".join(f"_{k}{n}" for k, n in self.threads)
@@ -313,27 +322,32 @@ RESIDENT_NODE_TILES = 6.0
 
 def edge_products_for(k_chunk: int, latent: int, arch: int | None, small: bool = False,
                       node_tiles_per_sm: float = 0.0, tile_rows: int = Spec.tile_rows, node_rows: int = 0) -> dict:
-    """Spec's edge_rows, edge_gemm, edge_kernels, edge_warpgroups and node_warpgroups for a Network on a GPU of compute
-    capability ``arch`` (None: not a GPU): on sm_90 (H100, H200) the edge-row launches on tiles of 64 rows with wgmma
-    products (tiles.GEMM_WGMMA) on two warpgroups (threads_for) for small graphs (``small``: node tiles of 8, at most
-    one an SM; at F = 64 whole weights, k_chunk_for, which says as much). At F = 64 on larger graphs (K chunks) the edge
-    pass with each tile in a warpgroup's registers (kernels/register_edges.py), a block a tile up to RESIDENT_NODE_TILES
-    node tiles an SM (``node_tiles_per_sm``), resident blocks of three warpgroups above, the hybrid decoder on the
-    two-warpgroup tiles. On an H200 (L5, 5-pass hybrid steps, bench/results/warp_register_edges_h200.json), against the
-    block-tile edge pass on wgmma (batch 2 to 8) or fp32 (16 on), a block a tile / resident blocks of three: batch 2
-    186.8 -> 158.8 / 166.4 us, 4 304.5 -> 237.4 / 258.3, 8 558.7 -> 394.9 / 421.6, 16 948.4 -> 756.9 / 778.5, 32 1746 ->
-    1382.6 / 1382.5, 64 3316 -> 2594 / 2540 (the edge pass's launch 339 -> 198 / 172 us); not at batch 1 (43.9 / 95.7 ->
-    46.2 / 109.5 us at 1 / 5 passes), whose small graph keeps the block tiles: there batch 1 62.2 / 130.3 / 249.9 ->
-    61.1 / 126.5 / 241.0 us at 1 / 5 / 12 passes with the wgmma edge pass, -> 58.2 / 124.1 / 239.1 with the decoder too;
-    F = 128, 12 passes, 676.8 -> 639.7 us (warp_wgmma_edge_pass_h200.json, warp_wgmma_decoder_h200.json). Where the
-    graph takes node tiles of 32 (``node_rows``, node_rows_for: L5 from batch 8) also the node passes (the vanilla's
-    last excepted) in registers, resident blocks of two warpgroups (kernels/register_nodes.py), and the mesh-edge rows'
-    encoder on the edge pass's tiles (Network's edge_encoder): 5-pass hybrid on an H200
-    (bench/results/warp_register_nodes_h200.json), batch 8 388.6 -> 372.2 us, 16 734.5 -> 603.8, 32 1336 -> 1157.8, 64
-    2450 -> 1995 (the node pass's launch 164 -> 101 us, the encoder's 330 -> 115 + 72); not on the smaller graphs' tiles
-    of 8 and 16: batch 2 155.7 -> 232.3, 4 227.7 -> 276.0 (a single tile's chain, its 224 KiB of weights staged for it,
-    bounds the launch). Else {} (the launches' tiles and products as the others'), as where wgmma cannot take the shape
-    (K chunks not a multiple of 16, ``tile_rows`` not dividing 64)."""
+    """Spec's edge_rows, edge_gemm, edge_kernels, edge_warpgroups, node_warpgroups and decoder_warpgroups for a Network
+    on a GPU of compute capability ``arch`` (None: not a GPU): on sm_90 (H100, H200) the edge-row launches on tiles of
+    64 rows with wgmma products (tiles.GEMM_WGMMA) on two warpgroups (threads_for) for small graphs (``small``: node
+    tiles of 8, at most one an SM; at F = 64 whole weights, k_chunk_for, which says as much). At F = 64 on larger graphs
+    (K chunks) the edge pass with each tile in a warpgroup's registers (kernels/register_edges.py), a block a tile up to
+    RESIDENT_NODE_TILES node tiles an SM (``node_tiles_per_sm``), resident blocks of three warpgroups above, the hybrid
+    decoder on the two-warpgroup tiles. On an H200 (L5, 5-pass hybrid steps,
+    bench/results/warp_register_edges_h200.json), against the block-tile edge pass on wgmma (batch 2 to 8) or fp32 (16
+    on), a block a tile / resident blocks of three: batch 2 186.8 -> 158.8 / 166.4 us, 4 304.5 -> 237.4 / 258.3, 8 558.7
+    -> 394.9 / 421.6, 16 948.4 -> 756.9 / 778.5, 32 1746 -> 1382.6 / 1382.5, 64 3316 -> 2594 / 2540 (the edge pass's
+    launch 339 -> 198 / 172 us); not at batch 1 (43.9 / 95.7 -> 46.2 / 109.5 us at 1 / 5 passes), whose small graph
+    keeps the block tiles: there batch 1 62.2 / 130.3 / 249.9 -> 61.1 / 126.5 / 241.0 us at 1 / 5 / 12 passes with the
+    wgmma edge pass, -> 58.2 / 124.1 / 239.1 with the decoder too; F = 128, 12 passes, 676.8 -> 639.7 us
+    (warp_wgmma_edge_pass_h200.json, warp_wgmma_decoder_h200.json). Where the graph takes node tiles of 32
+    (``node_rows``, node_rows_for: L5 from batch 8) also the node passes (the vanilla's last excepted) in registers,
+    resident blocks of two warpgroups (kernels/register_nodes.py), and the mesh-edge rows' encoder on the edge pass's
+    tiles (Network's edge_encoder): 5-pass hybrid on an H200 (bench/results/warp_register_nodes_h200.json), batch 8
+    388.6 -> 372.2 us, 16 734.5 -> 603.8, 32 1336 -> 1157.8, 64 2450 -> 1995 (the node pass's launch 164 -> 101 us, the
+    encoder's 330 -> 115 + 72); not on the smaller graphs' tiles of 8 and 16: batch 2 155.7 -> 232.3, 4 227.7 -> 276.0
+    (a single tile's chain, its 224 KiB of weights staged for it, bounds the launch). With the register edge pass also
+    the hybrid decoder's fields in registers, resident blocks of two warpgroups (kernels/register_decoder.py): 5-pass
+    hybrid on an H200 (bench/results/warp_register_decoder_h200.json) batch 2 155.1 / 155.6 -> 147.9 / 148.3 us, 4 227.4
+    / 227.8 -> 214.5 / 215.4, 8 370.4 -> 337.4, 16 605.2 -> 545.3, 32 1157.8 -> 1039.5, 64 2013.7 / 2012.3 -> 1773.8 /
+    1776.4 (the decoder's launch 444 -> 202 us; one warpgroup a block 295 us, the step 1860.6). Else {} (the launches'
+    tiles and products as the others'), as where wgmma cannot take the shape (K chunks not a multiple of 16,
+    ``tile_rows`` not dividing 64)."""
     if arch != 90 or k_chunk % 16 or 64 % tile_rows:
         return {}
     tensor = {"edge_rows": 64, "edge_gemm": "wgmma"}
@@ -344,20 +358,23 @@ def edge_products_for(k_chunk: int, latent: int, arch: int | None, small: bool =
     if k_chunk == latent:
         return tensor
     nodes = {"node_warpgroups": 2} if node_rows == NODE_ROWS[-1] else {}
-    return tensor | {"edge_warpgroups": 3 if node_tiles_per_sm > RESIDENT_NODE_TILES else 1} | nodes
+    edges = {"edge_warpgroups": 3 if node_tiles_per_sm > RESIDENT_NODE_TILES else 1, "decoder_warpgroups": 2}
+    return tensor | edges | nodes
 
 
 def edge_products(edge_rows: int | None, edge_gemm: str | None, k_chunk: int, latent: int, arch: int | None,
                   small: bool, edge_kernels: tuple | None = None, node_tiles_per_sm: float = 0.0,
                   tile_rows: int = Spec.tile_rows, edge_warpgroups: int | None = None,
-                  node_warpgroups: int | None = None, node_rows: int = 0) -> dict:
-    """Spec's edge_rows, edge_gemm, edge_kernels, edge_warpgroups and node_warpgroups: those given, or where none is
-    (None) edge_products_for's pick."""
+                  node_warpgroups: int | None = None, node_rows: int = 0,
+                  decoder_warpgroups: int | None = None) -> dict:
+    """Spec's edge_rows, edge_gemm, edge_kernels, edge_warpgroups, node_warpgroups and decoder_warpgroups: those
+    given, or where none is (None) edge_products_for's pick."""
     if edge_rows is None and edge_gemm is None and edge_kernels is None:
         edge = edge_products_for(k_chunk, latent, arch, small, node_tiles_per_sm, tile_rows, node_rows)
     else:
         edge = {"edge_rows": edge_rows or 0, "edge_gemm": edge_gemm or "", "edge_kernels": edge_kernels or EDGE_KERNELS}
-    given = {"edge_warpgroups": edge_warpgroups, "node_warpgroups": node_warpgroups}
+    given = {"edge_warpgroups": edge_warpgroups, "node_warpgroups": node_warpgroups,
+             "decoder_warpgroups": decoder_warpgroups}
     return edge | {k: v for k, v in given.items() if v is not None}
 
 
@@ -379,6 +396,9 @@ def threads_for(k_chunk: int, latent: int, cuda: bool, edge: dict | None = None)
         edges = [(k, n) for k, n in edges if k != "edge_pass"] + [("edge_pass", 128 * edge["edge_warpgroups"])]
     if tensor and edge.get("node_warpgroups"):  # the register node pass (kernels/register_nodes)
         edges += [("node_registers", 128 * edge["node_warpgroups"])]
+    if tensor and edge.get("decoder_warpgroups"):  # the register decoder (kernels/register_decoder)
+        edges = [(k, n) for k, n in edges if k != "hybrid_fields"]
+        edges += [("hybrid_fields", 128 * edge["decoder_warpgroups"])]
     return tuple(sorted(edges + wide))
 
 

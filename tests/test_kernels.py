@@ -387,8 +387,9 @@ def test_tiles_by_graph_size():
 def test_edge_products_and_threads_by_gpu():
     """The edge-row launches (edge pass, hybrid decoder) on wgmma only on sm_90: on 64-row tiles of two warpgroups for
     small graphs (whole F = 64 weights; F = 128 with node tiles of 8 at most one an SM), and at F = 64 with K chunks
-    the edge pass in warpgroups' registers (a warpgroup a block up to six node tiles an SM, three above), and on node
-    tiles of 32 the node passes too (two warpgroups a block); the blocks of two warpgroups on 256 threads; elsewhere
+    the edge pass and the hybrid decoder's fields in warpgroups' registers (the edge pass a warpgroup a block up to six
+    node tiles an SM, three above; the decoder two), and on node tiles of 32 the node passes too (two warpgroups a
+    block); the blocks of two warpgroups on 256 threads; elsewhere
     as the other launches (spec.edge_products_for, spec.threads_for); off a GPU never."""
     from warpgnn.kernels.spec import edge_products_for, threads_for
 
@@ -396,13 +397,14 @@ def test_edge_products_and_threads_by_gpu():
     assert edge_products_for(64, 64, 90) == edge_products_for(32, 128, 90, small=True) == tensor
     # larger graphs at F = 64 (K chunks): the edge pass in warpgroups' registers, resident blocks of three from 6
     # node tiles an SM
-    assert edge_products_for(32, 64, 90, node_tiles_per_sm=1.27) == edge_products_for(32, 64, 90) == tensor | {
+    registers = tensor | {"decoder_warpgroups": 2}  # and the hybrid decoder's fields, two warpgroups a block
+    assert edge_products_for(32, 64, 90, node_tiles_per_sm=1.27) == edge_products_for(32, 64, 90) == registers | {
         "edge_warpgroups": 1} == edge_products_for(32, 64, 90, node_tiles_per_sm=5.1)
-    assert edge_products_for(32, 64, 90, node_tiles_per_sm=10.2) == tensor | {"edge_warpgroups": 3}
+    assert edge_products_for(32, 64, 90, node_tiles_per_sm=10.2) == registers | {"edge_warpgroups": 3}
     # graphs of node tiles of 32 (L5 from batch 8): the node passes in registers too, two warpgroups a block
-    assert edge_products_for(32, 64, 90, node_tiles_per_sm=10.2, node_rows=32) == tensor | {"edge_warpgroups": 3,
-                                                                                            "node_warpgroups": 2}
-    assert edge_products_for(32, 64, 90, node_tiles_per_sm=1.27, node_rows=16) == tensor | {"edge_warpgroups": 1}
+    assert edge_products_for(32, 64, 90, node_tiles_per_sm=10.2, node_rows=32) == registers | {"edge_warpgroups": 3,
+                                                                                               "node_warpgroups": 2}
+    assert edge_products_for(32, 64, 90, node_tiles_per_sm=1.27, node_rows=16) == registers | {"edge_warpgroups": 1}
     assert edge_products_for(64, 64, 90, node_rows=32) == tensor
     assert edge_products_for(64, 64, 80) == edge_products_for(64, 64, None) == {}
     assert edge_products_for(16, 16, 90, True) == edge_products_for(32, 128, 90) == edge_products_for(32, 128, 80,
@@ -418,6 +420,8 @@ def test_edge_products_and_threads_by_gpu():
     assert threads_for(32, 64, True, tensor | {"edge_warpgroups": 3}) == (("edge_pass", 384), ("hybrid_fields", 256))
     assert threads_for(32, 64, True, tensor | {"edge_warpgroups": 3, "node_warpgroups": 2}) == (
         ("edge_pass", 384), ("hybrid_fields", 256), ("node_registers", 256))
+    assert threads_for(32, 64, True, tensor | {"edge_warpgroups": 1, "decoder_warpgroups": 1}) == (
+        ("edge_pass", 128), ("hybrid_fields", 128))
     assert threads_for(32, 64, True, {}) == threads_for(64, 64, False, tensor) == ()
     # only edge kernels named, the edge tiles and products the others': one Spec, one module
     from warpgnn.kernels.spec import Spec
@@ -635,6 +639,27 @@ def test_register_node_pass(kind, warpgroups, actuator_graphs):
             Spec(64, **({"node_warpgroups": 2} | bad))
 
 
+@pytest.mark.parametrize("warpgroups,actuator_graphs", [(2, True), (1, False)])
+def test_register_decoder(warpgroups, actuator_graphs):
+    """The hybrid decoder's fields with each 64-row tile (mesh edges, then self-loops) in a warpgroup's registers
+    (kernels/register_decoder.py; Spec.decoder_warpgroups): delta_e's two products over W_e and W2 (F, 144) in
+    register_layout, each row's port term and a self-loop's degeneracy and entropy shares (generic_tail.PORT_ROW),
+    summed by the tail's launch: the reference's answer beside the register edge and node passes, with and without
+    actuator graphs."""
+    from warpgnn.kernels.spec import Spec
+
+    net, _ = check(random_model("hybrid", 2, 64, actuator_graphs, seed=29), tool_topology(box((5, 4, 3)), 3, seed=29),
+                   seed=29, k_chunk=32, edge_rows=64, edge_gemm="wgmma", edge_warpgroups=1, node_warpgroups=2,
+                   decoder_warpgroups=warpgroups)
+    assert net.spec.decoder_warpgroups == warpgroups and "_D" in net.spec.module and not net.graph.groups
+    keys = [x.kernel.key for x in net._launches]
+    assert sum(k.startswith("decoder_registers_kernel") for k in keys) == 1
+    assert not any(k.endswith("hybrid_fields") or "hybrid_fields_" in k for k in keys)
+    for bad in ({}, {"edge_rows": 64, "edge_gemm": "wgmma", "decoder_warpgroups": 3}):
+        with pytest.raises(ValueError, match="decoder_warpgroups"):
+            Spec(64, **({"decoder_warpgroups": 2} | bad))
+
+
 @pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
 @pytest.mark.parametrize("latent,shape,actuator_graphs", [
     (32, {"edge_rows": 64, "edge_gemm": "wgmma", "k_chunk": 32, "edge_encoder": True}, True),
@@ -732,18 +757,18 @@ def captured_equals_eager(model, seed, top=None, **kw):
 def test_tensor_core_edge_pass_on_hopper():
     """The wgmma edge-row launches on an H100 / H200 on 128 threads with K chunks (not a Network's pick there: their
     sm_90a module built on first use, Network.__init__), the pick with K chunks (the edge pass in a warpgroup's
-    registers, a block a tile on 128 threads, the decoder on 256; shipped), the largest graphs' (resident blocks of
-    three warpgroups, the node passes and mesh-edge encoder in registers too; shipped) and the hybrid decoder alone
-    on tensor cores; the small graphs' pick (256 threads,
+    registers, a block a tile on 128 threads, the decoder's fields in registers on 256; shipped), the largest graphs'
+    (resident blocks of three warpgroups, the node passes and mesh-edge encoder in registers too; shipped) and the
+    hybrid decoder alone on tensor cores; the small graphs' pick (256 threads,
     whole weights) runs in test_cuda_graph_step_equals_eager."""
     model = random_model("hybrid", 2, 64, seed=17)
     net = captured_equals_eager(model, 17, edge_rows=64, edge_gemm="wgmma", k_chunk=32, threads={})
     assert not net.spec.threads and not net.shipped_module
     net = captured_equals_eager(model, 17, k_chunk=32)
     assert net.spec.edge_warpgroups == 1 and net.spec.threads == (("edge_pass", 128), ("hybrid_fields", 256))
-    assert net.shipped_module
+    assert net.spec.decoder_warpgroups == 2 and net.shipped_module
     net = captured_equals_eager(model, 17, k_chunk=32, node_rows=32, edge_rows=64, edge_gemm="wgmma",
-                                edge_warpgroups=3, node_warpgroups=2)
+                                edge_warpgroups=3, node_warpgroups=2, decoder_warpgroups=2)
     assert net.spec.threads == (("edge_pass", 384), ("hybrid_fields", 256), ("node_registers", 256))
     assert net.shipped_module and net.edge_encoder
     net = captured_equals_eager(model, 17, k_chunk=32, node_rows=32, edge_rows=64, edge_gemm="wgmma",
@@ -762,6 +787,18 @@ def test_register_node_pass_on_hopper(kind):
     net = captured_equals_eager(model, 19, top=tool_topology(box((39, 23, 19)), 3, seed=19), k_chunk=32, node_rows=32,
                                 edge_rows=64, edge_gemm="wgmma", edge_warpgroups=3, node_warpgroups=2)
     assert net.edge_encoder and -(-net.layout.n_nodes // 64) > 2 * net.device.sm_count
+
+
+@pytest.mark.skipif(not SM90, reason="wgmma needs an sm_90 GPU (H100, H200)")
+def test_register_decoder_on_hopper():
+    """The register decoder on an H100 / H200 (Spec.decoder_warpgroups: resident blocks of two warpgroups looping over
+    64-row tiles of mesh edges and self-loops) on a graph of 19,200 nodes, beside the register edge and node passes:
+    the reference's answer, the captured replay equal to the launches one by one."""
+    net = captured_equals_eager(random_model("hybrid", 2, 64, seed=31), 31,
+                                top=tool_topology(box((39, 23, 19)), 3, seed=31), k_chunk=32, node_rows=32,
+                                edge_rows=64, edge_gemm="wgmma", edge_warpgroups=3, node_warpgroups=2,
+                                decoder_warpgroups=2)
+    assert (net.layout.edges_pad + net.layout.self_pad) // 64 > 2 * net.device.sm_count
 
 
 @pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device")

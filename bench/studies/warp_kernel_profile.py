@@ -67,6 +67,7 @@ def aot_folder(root, latent: int, shape: dict) -> Path:
     e += "".join(f"_{k}" for k in shape.get("edge_kernels") or ())
     e += f"_R{shape['edge_warpgroups']}" if shape.get("edge_warpgroups") else ""
     e += f"_V{shape['node_warpgroups']}" if shape.get("node_warpgroups") else ""
+    e += f"_D{shape['decoder_warpgroups']}" if shape.get("decoder_warpgroups") else ""
     return Path(root) / f"F{latent}_T{shape['tile_rows']}_N{shape['node_rows']}_B{shape['block_dim']}{k}{g}{e}"
 
 
@@ -113,6 +114,9 @@ def main():
     ap.add_argument("--node-warpgroups", type=int, default=None,
                     help="Spec.node_warpgroups: the node passes (the vanilla's last excepted) in warpgroups' "
                          "registers (kernels/register_nodes.py; with an edge shape of 64wgmma)")
+    ap.add_argument("--decoder-warpgroups", type=int, default=None,
+                    help="Spec.decoder_warpgroups: the hybrid decoder's fields in warpgroups' registers "
+                         "(kernels/register_decoder.py; with an edge shape of 64wgmma)")
     ap.add_argument("--repeats", type=int, default=300, help="captured steps timed a case")
     ap.add_argument("--without", default="", help="kernels whose launches each step leaves out, comma-separated "
                     "(timing only: the outputs are then wrong), e.g. node_pass: what a launch costs the step")
@@ -134,11 +138,13 @@ def main():
     base = l5_case(a.mesh)
     cases = []
     for shape in shapes:
-        sh = shape_args(shape) | {"edge_warpgroups": a.edge_warpgroups, "node_warpgroups": a.node_warpgroups}
+        sh = shape_args(shape) | {"edge_warpgroups": a.edge_warpgroups, "node_warpgroups": a.node_warpgroups,
+                                  "decoder_warpgroups": a.decoder_warpgroups}
         T, N, B, K, G = sh["tile_rows"], sh["node_rows"], sh["block_dim"], sh["k_chunk"], sh["gemm"]
         tiles = {"tile_rows": T, "node_rows": N, "k_chunk": K, "gemm": G, "edge_rows": sh["edge_rows"],
                  "edge_gemm": sh["edge_gemm"], "edge_kernels": sh["edge_kernels"],
-                 "edge_warpgroups": sh["edge_warpgroups"], "node_warpgroups": sh["node_warpgroups"]}
+                 "edge_warpgroups": sh["edge_warpgroups"], "node_warpgroups": sh["node_warpgroups"],
+                 "decoder_warpgroups": sh["decoder_warpgroups"]}
         threads = None if a.threads is None else dict(precompile.parse_threads(a.threads))
         if a.aot:
             if not T or not N or K is None:
@@ -167,11 +173,13 @@ def main():
                           "edge_rows": net.spec.edge_tile, "edge_gemm": net.spec.edge_gemm or G,
                           "edge_kernels": list(net.spec.edge_kernels), "edge_encoder": net.edge_encoder,
                           "edge_warpgroups": net.spec.edge_warpgroups, "node_warpgroups": net.spec.node_warpgroups,
+                          "decoder_warpgroups": net.spec.decoder_warpgroups,
                           "threads": dict(net.spec.threads),
                           "step_ms": median, "step_p10_ms": p10, "step_p90_ms": p90, "launches": net.n_launches,
                           "kernels_alone_us": alone, "kernels": kernels})
             print(f"T{T_used} N{N_used} B{B} K{K_used} {G} E{net.spec.edge_tile}{net.spec.edge_gemm or G}"
                   f"@{'+'.join(net.spec.edge_kernels)} R{net.spec.edge_warpgroups} V{net.spec.node_warpgroups} "
+                  f"D{net.spec.decoder_warpgroups} "
                   f"{dict(net.spec.threads)}", kind, passes, batch,
                   f"step {median * 1e3:.1f} us (its kernels alone {alone:.1f})",
                   {k: round(v["mean_us"], 1) for k, v in kernels.items()}, flush=True)
