@@ -24,8 +24,8 @@ from typing import Any
 
 import warp as wp
 
-from .generic_tail import LM_COLS, X_COLS, Tail, row_operators, settle, step_values
 from . import register_decoder
+from .generic_tail import LM_COLS, X_COLS, Tail, row_operators, settle, step_values
 from .integrate import hold
 from .register_tiles import check_threads
 from .spec import N_GRAD, N_LM, STATE, Spec
@@ -349,10 +349,6 @@ def launches(net) -> list:
     lay, w, g, dev = net.layout, net.weights, net.graph, net.device
     if w.kind != "hybrid":
         return []
-    edges = net.spec.edges("hybrid_fields")  # its tiles and products (within the layout's edge_tile padding)
-    T = edges.tile_rows
-    de_e, de_w2 = w.for_products(edges.gemm, "de_e", "de_w2")
-    weights = [net.product_rows, de_e, w.de_b1, de_w2, w.de_b2, net.grads]
     if net.spec.decoder_warpgroups and not g.groups:  # tiles in warpgroups' registers (register_decoder)
         W = net.spec.decoder_warpgroups
         check_threads(net, "hybrid_fields", W)
@@ -364,6 +360,10 @@ def launches(net) -> list:
             block_dim=net.block_dim_of("hybrid_fields"), device=dev, record_cmd=True,
             inputs=[net.lat, g.row_recv, g.row_send, net.product_rows, de_e, w.de_b1, de_w2, w.de_b2, net.grads,
                     lay.mesh_row, lay.edges_pad // 64, tiles, net.ports, net.node_terms, blocks * W, W])]
+    edges = net.spec.edges("hybrid_fields")  # its tiles and products (within the layout's edge_tile padding)
+    T = edges.tile_rows
+    de_e, de_w2 = w.for_products(edges.gemm, "de_e", "de_w2")
+    weights = [net.product_rows, de_e, w.de_b1, de_w2, w.de_b2, net.grads]
     if g.groups:  # receiver-owned tiles, the tail in the same launch
         return [wp.launch_tiled(
             hybrid_step, dim=[g.groups], block_dim=net.block_dim_of("hybrid_fields"), device=dev, record_cmd=True,

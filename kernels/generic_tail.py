@@ -7,11 +7,11 @@ decoders.hybrid_step's blocks on receiver groups, small graphs; else the second 
   L_ij dE_j + M_ij dS_j and every self-loop's L_ii dE_i + M_ii dS_i, 12 values a row, straight from the
   (rows, 144) output tile of delta_e while it is still in shared memory: L x = A x - A^T x and
   M x = B (B^T x) from the packed triangles l (66) and m (78) (row-major lower triangles, as
-  torch.tril_indices), no 12 x 12 matrix formed, l and m never stored; B^T x once a row, then a thread per
-  (row, component), so the work is spread over all edges (a thread per (node, component) walking its edges ran
-  the L5 step's tail in 121 us on an H100; bench/results/warp_kernel_profile_h100.json). Self-loop rows also write each
-  component's share of the degeneracy residual |L_ii dS_i|^2 + |M_ii dE_i|^2 and of the entropy production
-  dS_i . M_ii dS_i.
+  torch.tril_indices), no 12 x 12 matrix formed, l and m never stored; a thread a row (PORT_ROW), so the work is
+  spread over all edges (a thread per (node, component) walking its edges ran the L5 step's tail in 121 us on an
+  H100; bench/results/warp_kernel_profile_h100.json). Self-loop rows also write each component's share of the
+  degeneracy residual |L_ii dS_i|^2 + |M_ii dE_i|^2 and of the entropy production dS_i . M_ii dS_i. PORT_ROW, one
+  row's operators, also serves the register decoder (kernels/register_decoder.py).
 * ``generic_tail`` (a thread per (node, component)): the self term minus the node's incoming
   port terms, summed in CSR order (destination-sorted, as the reference's scatter: no atomics), the
   degeneracy and entropy shares summed in component order, zdot standardised and physical, and z(t + dt)
@@ -28,6 +28,10 @@ from .integrate import euler, hold, step_inputs
 from .spec import N_GRAD, N_LM, STATE, Spec
 from .tiles import grid_step
 
+# the row lengths of the decoders' shared (l, m) and senders' (dE, dS) rows, which PORT_ROW reads a row a thread by
+# 16-byte loads: 4 floats past a multiple of 8, so that 8 lanes' loads fall on 8 different banks' quads
+LM_COLS, X_COLS = N_LM + 4, N_GRAD + 4
+
 # The rows' senders' (dE, dS) are gathered into a shared (T, 24) tile (read once a row, not once a component) at the
 # launch's start (tiles.gather_rows: asynchronous copies in flight with the launch's row copies and gathers, complete
 # once the next tiles.stage wait has passed, which must come before x is read). (Gathered between the products before,
@@ -39,12 +43,7 @@ from .tiles import grid_step
 # ~400, each item's chain one after another at two warps a scheduler). A self-loop's extra shares (L dS, M dE and
 # dS . M dS) are a second thread's, in other warps, beside the first. The entries stream row by row through each
 # operator, which gives every output its terms in the order of the reference loops': (A x)[a] over b, (B^T x)[b]
-# over c >= b, (B y)[a] over b <= a. The row strides of the (l, m) and x tiles (SL, SX) are best 4 floats off a
-# multiple of 8 (LM_COLS, X_COLS): 8 lanes' 16-byte loads then fall on 8 different banks' quads.
-# the row lengths of the decoders' shared (l, m) and senders' (dE, dS) rows, which PORT_ROW reads a row a thread by
-# 16-byte loads: 4 floats past a multiple of 8, so that 8 lanes' loads fall on 8 different banks' quads
-LM_COLS, X_COLS = N_LM + 4, N_GRAD + 4
-
+# over c >= b, (B y)[a] over b <= a. The rows' strides: LM_COLS, X_COLS.
 PORT_ROW = r"""
     constexpr int S = 12, NL = S * (S - 1) / 2;
     // 16-byte loads and stores on CUDA (every row 16-byte aligned: a lane's 12 or 24 results in 3 or 6 stores)

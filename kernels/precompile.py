@@ -39,10 +39,10 @@ from .spec import (
 
 def _specs(latents, max_shared: int | None, arch: int | None, **shape) -> list[Spec]:
     """The Spec of each width, its kernels built. ``shape``: Spec's tile_rows, node_rows, k_chunk, threads, edge_rows,
-    edge_gemm, edge_kernels, edge_warpgroups, node_warpgroups, decoder_warpgroups (its defaults where absent; k_chunk None: the one a
-    Network with those node tiles picks on a GPU allowing a block ``max_shared`` bytes, spec.k_chunk_for; threads and
-    the edge products None: a Network's on a GPU of compute capability ``arch``, spec.threads_for and
-    spec.edge_products_for)."""
+    edge_gemm, edge_kernels, edge_warpgroups, node_warpgroups, decoder_warpgroups (its defaults where absent; k_chunk
+    None: the one a Network with those node tiles picks on a GPU allowing a block ``max_shared`` bytes,
+    spec.k_chunk_for; threads and the edge products None: a Network's on a GPU of compute capability ``arch``,
+    spec.threads_for and spec.edge_products_for)."""
     k_chunk, threads = shape.pop("k_chunk", None), shape.pop("threads", None)
     edge_rows, edge_gemm = shape.pop("edge_rows", None), shape.pop("edge_gemm", None)
     edge_kernels, edge_warpgroups = shape.pop("edge_kernels", None), shape.pop("edge_warpgroups", None)

@@ -8,7 +8,7 @@ they are the second product's A as they are. The second product is (64, 144): 72
 (then a second for a self-loop's degeneracy and entropy shares) takes its port term L dE_j + M dS_j
 (generic_tail.PORT_ROW) with its sender's (dE, dS), copied in while the products ran. Blocks of W warpgroups stay
 resident, one an SM, staging both weights once (W_e and W2 in register_layout: 104 KiB) beside each warpgroup's (l, m)
-and (dE, dS) rows (45 KiB). Off CUDA one thread a block computes the same rows in plain fp32 over the packed parts.
+and (dE, dS) rows (44 KiB). Off CUDA one thread a block computes the same rows in plain fp32 over the packed parts.
 """
 
 # No `from __future__ import annotations`: the kernel's vector annotation is evaluated when defined.
@@ -34,6 +34,10 @@ FIELDS_IN_REGISTERS = register_source(PORT_ROW + r"""
     constexpr int F = 64, NLM = 144, SL = @SL@, SX = @SX@;
     constexpr int W1BYTES = 4 * 2 * F * F, W2BYTES = 4 * 2 * F * NLM;
     static_assert(NLM == NL + S * (S + 1) / 2 && SL % 4 == 0 && SX % 4 == 0, "(l, m) rows of 16-byte chunks");
+    static_assert(@N_GRAD@ == 2 * S && SX >= 2 * S, "a sender's (dE, dS): six 16-byte chunks");
+    using LW = typename tile_wbuf::Layout;  // both weights, then each warpgroup's rows
+    static_assert(LW::Shape::dim(1) == F && LW::Shape::dim(0) * F >= (W1BYTES + W2BYTES) / 4
+                  + WP_TILE_BLOCK_DIM / 128 * 64 * (SL + SX), "the shared buffer holds every warpgroup's rows");
     auto prow = [&](int r) { return reinterpret_cast<const wp::float32*>(row_ptr(products, r)); };
     constexpr wp::float32 eps = 0.f;  // no LayerNorm here (the shared steps' norm and row_mlp name one)
     // tile t: latent rows mesh_row + 64 t on (mesh edges, then from tile mesh_tiles self-loops), ports rows 64 t on,
@@ -60,19 +64,11 @@ FIELDS_IN_REGISTERS = register_source(PORT_ROW + r"""
     auto load_rows = [&](int t) {  // e's rows and the first product's start, (b1 + P_r) + P_s
         const int row0 = mesh_row + 64 * t;
         load_pair(row_ptr(lat, row0 + r0), row_ptr(lat, row0 + r1), e0, e1);
-        const wp::float32* pb = row_ptr(de_b1, 0) + 2 * q;
-#pragma unroll
-        for (int j = 0; j < J; ++j) {
-            const float2 b = *reinterpret_cast<const float2*>(pb + 8 * j);
-            const float2 x0 = *reinterpret_cast<const float2*>(prow(ra) + 2 * q + 8 * j);
-            const float2 x1 = *reinterpret_cast<const float2*>(prow(rb) + 2 * q + 8 * j);
-            const float2 y0 = *reinterpret_cast<const float2*>(prow(sa) + F + 2 * q + 8 * j);
-            const float2 y1 = *reinterpret_cast<const float2*>(prow(sb) + F + 2 * q + 8 * j);
-            d[4 * j] = (b.x + x0.x) + y0.x; d[4 * j + 1] = (b.y + x0.y) + y0.y;
-            d[4 * j + 2] = (b.x + x1.x) + y1.x; d[4 * j + 3] = (b.y + x1.y) + y1.y;
-        }
+        start_gathered(row_ptr(de_b1, 0), prow(ra), prow(rb), prow(sa) + F, prow(sb) + F);
     };
-    auto copy_senders = [&]() {  // rows r0, r1's senders' 24 (dE, dS) floats: a quad's 12 chunks, three a lane
+    // rows r0, r1's senders' 24 (dE, dS) floats: a quad's 12 chunks, three a lane; cached in L1 too (.ca): a node
+    // sends ~10 mesh edges' messages, most in nearby tiles
+    auto copy_senders = [&]() {
 #pragma unroll
         for (int i = 0; i < 3; ++i) {
             const int c = 3 * q + i, r = c < 6 ? r0 : r1, k = 4 * (c % 6);
@@ -96,41 +92,14 @@ FIELDS_IN_REGISTERS = register_source(PORT_ROW + r"""
         issue(w0, F);
         settle();
         from_accumulators(true);
-        const wp::float32* pb2 = row_ptr(de_b2, 0) + 2 * q;
-#pragma unroll
-        for (int j = 0; j < J2; ++j) {
-            const float2 b = *reinterpret_cast<const float2*>(pb2 + 8 * j);
-            o[4 * j] = b.x; o[4 * j + 1] = b.y; o[4 * j + 2] = b.x; o[4 * j + 3] = b.y;
-        }
-        {  // (l, m) = h W2 + b2, W2 (2 F, 144) in register_layout as issue's weights
-            const unsigned w = w0 + W1BYTES;
-            const unsigned long long desc0 = ((w & 0x3FFFF) >> 4) | (8ull << 16) | (16ull << 32);
-            asm volatile("wgmma.fence.sync.aligned;\n" ::: "memory");
-#pragma unroll
-            for (int j = 0; j < J; ++j) {
-                const unsigned long long dh = desc0 + (((j / 2) * 128 * NLM + (j % 2) * 32 * NLM) >> 4);
-                const unsigned long long dl = dh + ((64 * NLM) >> 4);
-                mma2(al[j], dh);
-                mma2(ah[j], dl);
-                mma2(ah[j], dh);
-            }
-            asm volatile("wgmma.commit_group.sync.aligned;\n" ::: "memory");
-            asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory");
-#pragma unroll
-            for (int i = 0; i < NLM / 2; ++i)  // the accumulators and fragments live to here (as settle's)
-                asm volatile("" : "+f"(o[i]) :: "memory");
-#pragma unroll
-            for (int j = 0; j < J; ++j)
-#pragma unroll
-                for (int i = 0; i < 4; ++i)
-                    asm volatile("" : "+r"(ah[j][i]), "+r"(al[j][i]) :: "memory");
-        }
+        fill_into(o, row_ptr(de_b2, 0), J2);
+        issue_with(mma2, w0 + W1BYTES, NLM, J);  // (l, m) = h W2 + b2, W2 (2 F, 144) in register_layout
+        settle_into(o, NLM / 2);
 #pragma unroll
         for (int j = 0; j < J2; ++j) {
             *reinterpret_cast<float2*>(lm + r0 * SL + 8 * j + 2 * q) = make_float2(o[4 * j], o[4 * j + 1]);
             *reinterpret_cast<float2*>(lm + r1 * SL + 8 * j + 2 * q) = make_float2(o[4 * j + 2], o[4 * j + 3]);
         }
-        const int tile = t;
         if (t + stride < n_tiles) {  // the warpgroup's next tile's loads, in flight while the port terms run
             load_ids(t + stride);
             load_rows(t + stride);
@@ -138,10 +107,10 @@ FIELDS_IN_REGISTERS = register_source(PORT_ROW + r"""
         asm volatile("cp.async.wait_all;\n" ::: "memory");
         wg_sync();  // the warpgroup's (l, m) and (dE, dS) rows in shared memory
         const int i = threadIdx.x % 128, r = i % 64;
-        const bool self_loops = tile >= mesh_tiles, shares = i >= 64;
+        const bool self_loops = t >= mesh_tiles, shares = i >= 64;
         if (!shares || self_loops)
             port_row(lm + r * SL, xs + r * SX, shares,
-                     shares ? row_ptr(node_terms, 64 * (tile - mesh_tiles) + r) : row_ptr(ports, 64 * tile + r));
+                     shares ? row_ptr(node_terms, 64 * (t - mesh_tiles) + r) : row_ptr(ports, 64 * t + r));
         wg_sync();  // read before the next tile's rows overwrite them
     }
 """, r"""    // one thread a block: the block's tiles (first + w, then every tiles_step-th) row by row
@@ -172,7 +141,7 @@ FIELDS_IN_REGISTERS = register_source(PORT_ROW + r"""
             }
         }
     }
-""").replace("@SL@", str(LM_COLS)).replace("@SX@", str(X_COLS))
+""").replace("@SL@", str(LM_COLS)).replace("@SX@", str(X_COLS)).replace("@N_GRAD@", str(N_GRAD))
 
 
 @functools.cache
@@ -185,7 +154,6 @@ def decoder_registers_kernel(spec: Spec):
         raise ValueError(f"the register decoder is built for F = {LATENT}, not {spec.latent}")
     rows, vec = shared_rows(spec.decoder_warpgroups), row_vector(LATENT)
     source = FIELDS_IN_REGISTERS.replace("@MMA2@", wgmma_asm(N_LM, "o", "x", "desc"))
-    assert N_GRAD == 24 and X_COLS >= N_GRAD
 
     @wp.func_native(source)
     def rows_in_registers(wbuf: wp.tile(dtype=float, shape=(rows, LATENT)), lat: wp.array2d(dtype=float),
@@ -213,6 +181,6 @@ def decoder_registers_kernel(spec: Spec):
 
 
 def blocks_for(spec: Spec, n_tiles: int, device) -> int:
-    """The register decoder's grid: resident blocks (194 KiB of shared memory with two warpgroups: one an SM),
+    """The register decoder's grid: resident blocks (192 KiB of shared memory with two warpgroups: one an SM),
     spec.decoder_warpgroups tiles at once each; off CUDA enough blocks for every tile."""
     return walk_blocks(n_tiles, spec.decoder_warpgroups, device, resident=True)

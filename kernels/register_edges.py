@@ -67,21 +67,8 @@ EDGE_ROWS_IN_REGISTERS = register_source(r"""
         int row0, s, wi, recv_col, send_row;
         tile_of(t, row0, s, wi, recv_col, send_row);
         load_pair(row_ptr(lat, row0 + r0), row_ptr(lat, row0 + r1), e0, e1);
-        const wp::float32* pr0 = prow(ra) + recv_col + 2 * q;
-        const wp::float32* pr1 = prow(rb) + recv_col + 2 * q;
-        const wp::float32* ps0 = prow(send_row + sa) + F + 2 * q;
-        const wp::float32* ps1 = prow(send_row + sb) + F + 2 * q;
-        const wp::float32* pb = row_ptr(b1, wi) + 2 * q;
-#pragma unroll
-        for (int j = 0; j < J; ++j) {
-            const float2 b = *reinterpret_cast<const float2*>(pb + 8 * j);
-            const float2 x0 = *reinterpret_cast<const float2*>(pr0 + 8 * j);
-            const float2 x1 = *reinterpret_cast<const float2*>(pr1 + 8 * j);
-            const float2 y0 = *reinterpret_cast<const float2*>(ps0 + 8 * j);
-            const float2 y1 = *reinterpret_cast<const float2*>(ps1 + 8 * j);
-            d[4 * j] = (b.x + x0.x) + y0.x; d[4 * j + 1] = (b.y + x0.y) + y0.y;
-            d[4 * j + 2] = (b.x + x1.x) + y1.x; d[4 * j + 3] = (b.y + x1.y) + y1.y;
-        }
+        start_gathered(row_ptr(b1, wi), prow(ra) + recv_col, prow(rb) + recv_col, prow(send_row + sa) + F,
+                       prow(send_row + sb) + F);
     };
 
     if (t < n_tiles)

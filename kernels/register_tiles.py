@@ -18,11 +18,15 @@ REGISTER_STEPS and ``cuda``, elsewhere ROW_MLP and ``cpu``. REGISTER_STEPS:
 * ``d[32]``, the accumulators (d[4 j + 2 h + c]: row h ? r1 : r0, column 8 j + 2 q + c), and ``ah``, ``al``, A's tf32
   parts;
 * ``load_pair(p0, p1, v0, v1)``: two rows' values (row pointers) into float2 v0[j], v1[j]; ``store_pair(p0, p1)``: d's
-  rows there (a null pointer: not stored); ``fill(pb)``: d = a bias row (null: zeros), each row;
+  rows there (a null pointer: not stored); ``fill(pb)``: d = a bias row (null: zeros), each row (``fill_into``: another
+  product's accumulators);
+* ``start_gathered(pb, pr0, pr1, ps0, ps1)``: d = (b + P_r) + P_s, a first product's start from gathered node
+  products;
 * ``fragments(v0, v1)``: A from two rows' values; ``from_accumulators(act)``: A from d, silu'd where ``act``;
 * ``issue(w, n[, steps])``: d += A W, W at shared address ``w`` (its first column), a register_layout weight n columns
   wide (its first ``steps`` k steps of 8), as one async group; ``settle()``: wait for it (between the two, code that
-  touches neither d nor A may run);
+  touches neither d nor A may run); ``issue_with(product, ...)`` and ``settle_into(out, n)`` the same into another
+  product's accumulators (a wider one's, register_decoder);
 * ``norm(pg, pt)``: d = LayerNorm(d) gain + shift, the rows' statistics by quad shuffles; ``residual(v0, v1)``: d += v;
 * ``copy_async(dst, src, bytes)``: the block's 16-byte cp.async copies of a weight into shared memory;
   ``weights_staged()``: wait for them, fence them for wgmma's async proxy, and sync the block.
@@ -62,11 +66,28 @@ REGISTER_STEPS = TF32_SPLIT + r"""
                 *reinterpret_cast<float2*>(p1 + 8 * j + 2 * q) = make_float2(d[4 * j + 2], d[4 * j + 3]);
         }
     };
-    auto fill = [&](const wp::float32* pb) {
+    auto fill_into = [&](wp::float32* out, const wp::float32* pb, int blocks) {  // blocks: 8-column blocks of out
+#pragma unroll
+        for (int j = 0; j < blocks; ++j) {
+            const float2 b = pb ? *reinterpret_cast<const float2*>(pb + 8 * j + 2 * q) : make_float2(0.f, 0.f);
+            out[4 * j] = b.x; out[4 * j + 1] = b.y; out[4 * j + 2] = b.x; out[4 * j + 3] = b.y;
+        }
+    };
+    auto fill = [&](const wp::float32* pb) { fill_into(d, pb, J); };
+    // d = (b + P_r) + P_s at rows r0, r1 (gather_pair's sums): a first product's start from its bias row ``pb`` and
+    // the rows' receivers' (pr0, pr1) and senders' (ps0, ps1) node products, each a pointer to its first column
+    auto start_gathered = [&](const wp::float32* pb, const wp::float32* pr0, const wp::float32* pr1,
+                              const wp::float32* ps0, const wp::float32* ps1) {
 #pragma unroll
         for (int j = 0; j < J; ++j) {
-            const float2 b = pb ? *reinterpret_cast<const float2*>(pb + 8 * j + 2 * q) : make_float2(0.f, 0.f);
-            d[4 * j] = b.x; d[4 * j + 1] = b.y; d[4 * j + 2] = b.x; d[4 * j + 3] = b.y;
+            const int c = 8 * j + 2 * q;
+            const float2 b = *reinterpret_cast<const float2*>(pb + c);
+            const float2 x0 = *reinterpret_cast<const float2*>(pr0 + c);
+            const float2 x1 = *reinterpret_cast<const float2*>(pr1 + c);
+            const float2 y0 = *reinterpret_cast<const float2*>(ps0 + c);
+            const float2 y1 = *reinterpret_cast<const float2*>(ps1 + c);
+            d[4 * j] = (b.x + x0.x) + y0.x; d[4 * j + 1] = (b.y + x0.y) + y0.y;
+            d[4 * j + 2] = (b.x + x1.x) + y1.x; d[4 * j + 3] = (b.y + x1.y) + y1.y;
         }
     };
     auto fragments = [&](const float2 (&v0)[J], const float2 (&v1)[J]) {  // k 8 j + 2 q, + 1: a[0..1], a[2..3]
@@ -85,7 +106,8 @@ REGISTER_STEPS = TF32_SPLIT + r"""
         }
     };
     auto mma = [&](const unsigned (&x)[4], unsigned long long desc) { """ + wgmma_asm(64, "d", "x", "desc") + r"""; };
-    auto issue = [&](unsigned w, int n, int steps = 8) {
+    // product(a, desc): one wgmma of a k step into the product's accumulators (mma: d's, m64n64)
+    auto issue_with = [&](auto&& product, unsigned w, int n, int steps) {
         // no swizzle; LBO 128 bytes (a step's two k halves), SBO 256 bytes (8-column groups)
         const unsigned long long desc0 = ((w & 0x3FFFF) >> 4) | (8ull << 16) | (16ull << 32);
         asm volatile("wgmma.fence.sync.aligned;\n" ::: "memory");
@@ -93,23 +115,26 @@ REGISTER_STEPS = TF32_SPLIT + r"""
         for (int j = 0; j < steps; ++j) {  // step j's hi part: 16-k block j / 2 (128 n bytes), its step j % 2 (32 n)
             const unsigned long long dh = desc0 + (((j / 2) * 128 * n + (j % 2) * 32 * n) >> 4);
             const unsigned long long dl = dh + ((64 * n) >> 4);
-            mma(al[j], dh);
-            mma(ah[j], dl);
-            mma(ah[j], dh);
+            product(al[j], dh);
+            product(ah[j], dl);
+            product(ah[j], dh);
         }
         asm volatile("wgmma.commit_group.sync.aligned;\n" ::: "memory");
     };
-    auto settle = [&]() {
+    auto issue = [&](unsigned w, int n, int steps = 8) { issue_with(mma, w, n, steps); };
+    // wait for the products in flight; ``out``'s n accumulators and the fragments live to here (the wgmmas run async)
+    auto settle_into = [&](wp::float32* out, int n) {
         asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory");
 #pragma unroll
-        for (int i = 0; i < 32; ++i)  // the accumulators and fragments live to here (the wgmmas run async)
-            asm volatile("" : "+f"(d[i]) :: "memory");
+        for (int i = 0; i < n; ++i)
+            asm volatile("" : "+f"(out[i]) :: "memory");
 #pragma unroll
         for (int j = 0; j < J; ++j)
 #pragma unroll
             for (int i = 0; i < 4; ++i)
                 asm volatile("" : "+r"(ah[j][i]), "+r"(al[j][i]) :: "memory");
     };
+    auto settle = [&]() { settle_into(d, 32); };
     auto norm = [&](const wp::float32* pg, const wp::float32* pt) {
         wp::float32 s0 = 0.f, s1 = 0.f;
 #pragma unroll

@@ -99,9 +99,10 @@ class Spec:
         if self.node_warpgroups and (self.edge_gemm != "wgmma" or self.latent != 64 or self.node_warpgroups > 2):
             raise ValueError("node_warpgroups: with wgmma edge products (edge_gemm, an sm_90a build) at F = 64, 1 or 2 "
                              "warpgroups")
-        # at most two: with both weights (104 KiB) each warpgroup's rows take 45 KiB of shared memory
-        if self.decoder_warpgroups and (self.edge_gemm != "wgmma" or self.latent != 64 or self.decoder_warpgroups > 2):
-            raise ValueError("decoder_warpgroups: with wgmma edge products (edge_gemm, an sm_90a build) at F = 64, "
+        # at most two: with both weights (104 KiB) each warpgroup's rows take 44 KiB of shared memory
+        if self.decoder_warpgroups and (self.edge_gemm != "wgmma" or self.latent != 64 or self.decoder_warpgroups > 2
+                                        or "hybrid_fields" not in self.edge_kernels):
+            raise ValueError("decoder_warpgroups: the hybrid decoder on wgmma (edge_gemm, edge_kernels) at F = 64, "
                              "1 or 2 warpgroups")
         kernels = tuple(k for k in EDGE_KERNELS if k in self.edge_kernels)
         if len(kernels) != len(set(self.edge_kernels)) or not kernels:
