@@ -87,7 +87,7 @@ def main():
             entry["parameters"] = m["model"]["parameters"]
             entry["sets"][s] = {k: m[k] for k in ("rmse", "rrmse")} | {
                 k: m[k] for k in ("entropy_production_min", "negative_entropy_rollouts", "rollout_seconds",
-                                  "q_error_second_difference") if k in m}
+                                  "warmup_seconds", "q_error_second_difference") if k in m}
             per[(run, s)] = m["per_rollout"]
         record["runs"][run] = entry
     evaluated = list(record["runs"])

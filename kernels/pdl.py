@@ -42,6 +42,48 @@ class _KernelNodeParams(ctypes.Structure):  # CUDA_KERNEL_NODE_PARAMS_v2, its fi
     _fields_ = [("func", ctypes.c_void_p), ("rest", ctypes.c_ubyte * 120)]
 
 
+def _edges(cu, g):
+    """The graph's edges as (sources, destinations, edge data) ctypes arrays, or None where the driver cannot say."""
+    n = ctypes.c_size_t(0)
+    if cu.cuGraphGetEdges_v2(g, None, None, None, ctypes.byref(n)) != 0:
+        return None
+    src, dst, data = (ctypes.c_void_p * n.value)(), (ctypes.c_void_p * n.value)(), (_EdgeData * n.value)()
+    if cu.cuGraphGetEdges_v2(g, src, dst, data, ctypes.byref(n)) != 0:
+        return None
+    return src[:n.value], dst[:n.value], data[:n.value]
+
+
+def _programmatic():
+    new = _EdgeData()
+    new.from_port, new.type = PORT_PROGRAMMATIC, PROGRAMMATIC
+    return new
+
+
+def _one_by_one(cu, g, pairs) -> int:
+    """Each (source, destination) of ``pairs`` made programmatic where the driver takes it, from the edges the graph
+    holds now (a refused bulk call may have changed some): returns how many are programmatic."""
+    held = _edges(cu, g)
+    if held is None:
+        raise RuntimeError("could not read a captured graph's edges back")
+    now = {(a, b): e for a, b, e in zip(*held)}
+    changed = 0
+    for a, b in pairs:
+        one_a, one_b = (ctypes.c_void_p * 1)(a), (ctypes.c_void_p * 1)(b)
+        old = now.get((a, b))
+        if old is not None and old.type == PROGRAMMATIC:
+            changed += 1
+            continue
+        if old is not None and cu.cuGraphRemoveDependencies_v2(g, one_a, one_b, (_EdgeData * 1)(old),
+                                                                ctypes.c_size_t(1)) != 0:
+            continue  # left as it is
+        if cu.cuGraphAddDependencies_v2(g, one_a, one_b, (_EdgeData * 1)(_programmatic()), ctypes.c_size_t(1)) == 0:
+            changed += 1
+        elif cu.cuGraphAddDependencies_v2(g, one_a, one_b, (_EdgeData * 1)(old or _EdgeData()),
+                                          ctypes.c_size_t(1)) != 0:  # as it was (a plain edge where it was gone)
+            raise RuntimeError("could not restore a captured graph's edge")
+    return changed
+
+
 def overlap_launches(graph, device, plain_into=frozenset()) -> int:
     """Make every kernel -> kernel edge of the captured wp.Graph ``graph`` programmatic (before its first launch:
     Warp instantiates it then), except the edges into kernels whose CUfunction is in ``plain_into`` (Warp's
@@ -50,14 +92,10 @@ def overlap_launches(graph, device, plain_into=frozenset()) -> int:
     cu = _driver() if device.is_cuda and device.arch >= 90 else None
     if cu is None or not graph.graph:
         return 0
-    g, n = graph.graph, ctypes.c_size_t(0)
-    if cu.cuGraphGetEdges_v2(g, None, None, None, ctypes.byref(n)) != 0:
+    g, edges = graph.graph, _edges(cu, graph.graph)
+    if edges is None:
         return 0
-    src, dst, data = (ctypes.c_void_p * n.value)(), (ctypes.c_void_p * n.value)(), (_EdgeData * n.value)()
-    if cu.cuGraphGetEdges_v2(g, src, dst, data, ctypes.byref(n)) != 0:
-        return 0
-
-    kinds = {}  # node -> CUgraphNodeType, each node asked once (a rollout's graph: ~440 nodes, ~420 edges)
+    kinds = {}  # node -> CUgraphNodeType, each node asked once (a 20-step rollout's graph: ~440 nodes, ~420 edges)
 
     def is_kernel(node) -> bool:
         if node not in kinds:
@@ -71,31 +109,17 @@ def overlap_launches(graph, device, plain_into=frozenset()) -> int:
         ok = cu.cuGraphKernelNodeGetParams_v2(ctypes.c_void_p(node), ctypes.byref(params)) == 0
         return params.func if ok else None
 
-    picked = [i for i in range(n.value) if is_kernel(src[i]) and is_kernel(dst[i])
-              and not (plain_into and function(dst[i]) in plain_into)]
+    picked = [(a, b, e) for a, b, e in zip(*edges) if is_kernel(a) and is_kernel(b)
+              and not (plain_into and function(b) in plain_into)]
     if not picked:
         return 0
-    # every picked edge removed and added back programmatic in two calls (one a call each took a 20-step rollout's
-    # capture ~1,400 driver calls); where the driver refuses them together, one by one as before
+    # every picked edge removed and added back programmatic in two calls (three calls an edge had taken a 20-step
+    # rollout's capture ~1,400 driver calls); where the driver refuses them together, one by one
     k = len(picked)
-    a, b = (ctypes.c_void_p * k)(*(src[i] for i in picked)), (ctypes.c_void_p * k)(*(dst[i] for i in picked))
-    old, new = (_EdgeData * k)(*(data[i] for i in picked)), (_EdgeData * k)()
-    for e in new:
-        e.from_port, e.type = PORT_PROGRAMMATIC, PROGRAMMATIC
-    if cu.cuGraphRemoveDependencies_v2(g, a, b, old, ctypes.c_size_t(k)) != 0:
-        return 0
-    if cu.cuGraphAddDependencies_v2(g, a, b, new, ctypes.c_size_t(k)) == 0:
+    a = (ctypes.c_void_p * k)(*(x for x, _, _ in picked))
+    b = (ctypes.c_void_p * k)(*(y for _, y, _ in picked))
+    old, new = (_EdgeData * k)(*(e for _, _, e in picked)), (_EdgeData * k)(*(_programmatic() for _ in picked))
+    if (cu.cuGraphRemoveDependencies_v2(g, a, b, old, ctypes.c_size_t(k)) == 0
+            and cu.cuGraphAddDependencies_v2(g, a, b, new, ctypes.c_size_t(k)) == 0):
         return k
-    if cu.cuGraphAddDependencies_v2(g, a, b, old, ctypes.c_size_t(k)) != 0:  # keep the edges as they were
-        raise RuntimeError("could not restore a captured graph's edges")
-    changed = 0
-    for i in range(k):  # one by one: those the driver takes programmatic become so
-        one_a, one_b = (ctypes.c_void_p * 1)(a[i]), (ctypes.c_void_p * 1)(b[i])
-        if cu.cuGraphRemoveDependencies_v2(g, one_a, one_b, (_EdgeData * 1)(old[i]), ctypes.c_size_t(1)) != 0:
-            continue
-        if cu.cuGraphAddDependencies_v2(g, one_a, one_b, (_EdgeData * 1)(new[i]), ctypes.c_size_t(1)) != 0:
-            if cu.cuGraphAddDependencies_v2(g, one_a, one_b, (_EdgeData * 1)(old[i]), ctypes.c_size_t(1)) != 0:
-                raise RuntimeError("could not restore a captured graph's edge")
-            continue
-        changed += 1
-    return changed
+    return _one_by_one(cu, g, [(x, y) for x, y, _ in picked])

@@ -95,10 +95,11 @@ def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None, first
                 reader.read(part, top, results)
             else:
                 out += _split(part, top, [t.numpy() for t in results])
-    finally:
-        if reader:
-            out += reader.close()
-    return out
+    except BaseException:
+        if reader:  # the error raised is this one, not a read's of the chunks queued before it
+            reader.abandon()
+        raise
+    return out + (reader.close() if reader else [])
 
 
 class _Reader:
@@ -107,7 +108,7 @@ class _Reader:
     that waits for nothing queued after it, then split by graph (_split). Without it the host had waited for each
     read: ~29 ms for a batch-64 chunk's 43 MB of fresh pageable memory on the H200 machine's host (3 ms into touched
     memory), or the same to allocate pinned memory, against the chunk's 40 ms of GPU work in which it also builds the
-    next chunk (bench/results/warp_rollout_l5_h200.json)."""
+    next chunk (bench/results/warp_rollout_reader_h200.json, bench/studies/host_reads.py)."""
 
     def __init__(self, device: torch.device):
         self.device, self.stream = device, torch.cuda.Stream(device)  # a non-blocking stream: not the default one's
@@ -131,7 +132,11 @@ class _Reader:
         try:
             return [r for f in self.pending for r in f.result()]
         finally:
-            self.pool.shutdown(cancel_futures=True)
+            self.abandon()
+
+    def abandon(self) -> None:
+        """No more readings: those not begun dropped, the one under way waited for."""
+        self.pool.shutdown(cancel_futures=True)
 
 
 def _split(part, top, results: list[np.ndarray]) -> list[Rollout]:
@@ -148,7 +153,8 @@ def _per_graph(offsets: np.ndarray, deg: np.ndarray, ent: np.ndarray) -> list[np
     """The hybrid's (S, N) diagnostics as (graphs, steps) arrays in Rollout's field order: the mean degeneracy, the
     least and the mean entropy production over each graph's nodes (its contiguous node range ``offsets[g]:offsets[g +
     1]``). Reduced on the host (on the GPU they were ~3 small launches a graph, 0.10 s of eval's 190 L5 rollouts:
-    bench/results/warp_rollout_profile_h200.json), in float64 and in a fixed order: the same every run (index_add's atomic adds on CUDA had put two runs' means a rounding apart)."""
+    bench/results/warp_rollout_profile_h200.json), in float64 and in a fixed order: the same every run (index_add's
+    atomic adds on CUDA had put two runs' means a rounding apart)."""
     starts, sizes = offsets[:-1], np.diff(offsets)
 
     def means(x):

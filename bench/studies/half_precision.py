@@ -33,7 +33,7 @@ def score(checkpoint, data, on: str, gemm: str, out: Path) -> dict:
     with mock.patch.object(backend, "Network", functools.partial(Network, gemm=gemm)):
         m = evaluate(checkpoint, data, out, device=on, backend="warp", plots=False, log=lambda *_: None)
     return {"simulations": m["simulations"], "rmse": m["rmse"], "rrmse": m["rrmse"],
-            "rollout_seconds": m["rollout_seconds"]}
+            "rollout_seconds": m["rollout_seconds"], "warmup_seconds": m["warmup_seconds"]}
 
 
 def main():

@@ -5,10 +5,10 @@ warpgnn.evaluation.evaluate in this process (run it fresh, as eval is), the func
         --command "..." [--phases]
 
 ``--phases``: no profiler; instead each call of the rollout's stages timed apart (the Networks, their graphs'
-builds, kernel definitions and module loads, the replays, the reads back and the wait for them), chunk by chunk, eval's untimed warm-up
-step first. ``--graphs-on-device``: each chunk's graph built by torch on the GPU rather than on the host. ``--gpu``: instead of
-eval, each chunk's whole rollout (WarpModel.rollout, one graph replay) timed by CUDA events, its forward step and each
-kernel's mean (the GPU's share of eval's figure).
+builds, kernel definitions and module loads, the replays, the reads back and the wait for them), chunk by chunk,
+eval's untimed warm-up step first. ``--graphs-on-device``: each chunk's graph built by torch on the GPU rather than on
+the host. ``--gpu``: instead of eval, each chunk's whole rollout (WarpModel.rollout, one graph replay) timed by CUDA
+events, its forward step and each kernel's mean (the GPU's share of eval's figure).
 
 Its first run (H200, the 190 L5 test rollouts): of rollout()'s 0.82 s (0.72 s unprofiled; the GPU's share ~0.23 s),
 the three chunks' Networks 0.36 s, the per-graph diagnostics' reductions 0.10 s, reading back 0.13 s; one chunk of
