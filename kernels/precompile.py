@@ -36,6 +36,25 @@ from .spec import (
     tile_rows_for,
 )
 
+# the register passes' Spec fields: what each one puts in warpgroups' registers, and its module
+WARPGROUPS = {"edge_warpgroups": ("the edge pass", "register_edges"),
+              "node_warpgroups": ("the node passes (the vanilla's last excepted)", "register_nodes"),
+              "decoder_warpgroups": ("the hybrid decoder's fields", "register_decoder")}
+
+
+def add_warpgroup_arguments(parser, requirement: str) -> None:
+    """--edge-warpgroups, --node-warpgroups, --decoder-warpgroups (WARPGROUPS; None: a Network's pick), each
+    help ending in ``requirement``."""
+    for field, (what, module) in WARPGROUPS.items():
+        parser.add_argument(f"--{field.replace('_', '-')}", type=int, default=None,
+                            help=f"Spec.{field}: {what} in warpgroups' registers, this many a block "
+                                 f"(kernels/{module}.py; {requirement})")
+
+
+def warpgroups_of(args) -> dict:
+    """The WARPGROUPS fields parsed by add_warpgroup_arguments."""
+    return {field: getattr(args, field) for field in WARPGROUPS}
+
 
 def _specs(latents, max_shared: int | None, arch: int | None, **shape) -> list[Spec]:
     """The Spec of each width, its kernels built. ``shape``: Spec's tile_rows, node_rows, k_chunk, threads, edge_rows,
@@ -45,18 +64,15 @@ def _specs(latents, max_shared: int | None, arch: int | None, **shape) -> list[S
     spec.threads_for and spec.edge_products_for)."""
     k_chunk, threads = shape.pop("k_chunk", None), shape.pop("threads", None)
     edge_rows, edge_gemm = shape.pop("edge_rows", None), shape.pop("edge_gemm", None)
-    edge_kernels, edge_warpgroups = shape.pop("edge_kernels", None), shape.pop("edge_warpgroups", None)
-    node_warpgroups = shape.pop("node_warpgroups", None)
-    decoder_warpgroups = shape.pop("decoder_warpgroups", None)
+    edge_kernels = shape.pop("edge_kernels", None)
+    warpgroups = {k: shape.pop(k, None) for k in WARPGROUPS}
     node_rows = shape.get("node_rows", Spec.node_rows)
     specs = []
     for F in latents:
         k = k_chunk_for(node_rows, F, max_shared) if k_chunk is None else k_chunk
         small = node_rows == NODE_ROWS[0]  # the small graphs' node tiles
         edge = edge_products(edge_rows, edge_gemm, k, F, arch, small, edge_kernels,
-                             tile_rows=shape.get("tile_rows") or Spec.tile_rows, edge_warpgroups=edge_warpgroups,
-                             node_warpgroups=node_warpgroups, node_rows=node_rows,
-                             decoder_warpgroups=decoder_warpgroups)
+                             tile_rows=shape.get("tile_rows") or Spec.tile_rows, node_rows=node_rows, **warpgroups)
         tiles = {"tile_rows": shape.get("tile_rows") or tile_rows_for(node_rows, F, edge)}
         specs.append(Spec(F, k_chunk=k, threads=threads_for(k, F, True, edge) if threads is None else threads,
                           **edge, **(shape | tiles)))
@@ -111,9 +127,7 @@ def ship(log=print) -> None:
                 seconds = compile_ahead([spec.latent], arch, tmp, tile_rows=spec.tile_rows, node_rows=spec.node_rows,
                                         k_chunk=spec.k_chunk, threads=spec.threads, edge_rows=spec.edge_rows,
                                         edge_gemm=spec.edge_gemm, edge_kernels=spec.edge_kernels,
-                                        edge_warpgroups=spec.edge_warpgroups,
-                                        node_warpgroups=spec.node_warpgroups,
-                                        decoder_warpgroups=spec.decoder_warpgroups)
+                                        **{k: getattr(spec, k) for k in WARPGROUPS})
                 for cubin, meta in shipped.files(spec, arch):
                     cubin.write_bytes(lzma.compress((Path(tmp) / cubin.stem).read_bytes(), preset=6))
                     shutil.copy(Path(tmp) / meta.name, meta)
@@ -152,15 +166,7 @@ def main(argv=None) -> None:
                         help="Spec.edge_kernels, comma-separated (default: a Network's pick at up to two node tiles "
                              "an SM; hybrid_fields with --edge-rows 64 --edge-gemm wgmma: the larger graphs'; "
                              "not --ship)")
-    parser.add_argument("--edge-warpgroups", type=int, default=None,
-                        help="Spec.edge_warpgroups: the edge pass in warpgroups' registers, this many a block "
-                             "(with --edge-rows 64 --edge-gemm wgmma; not --ship)")
-    parser.add_argument("--node-warpgroups", type=int, default=None,
-                        help="Spec.node_warpgroups: the node passes (the vanilla's last excepted) in warpgroups' "
-                             "registers, this many a block (with --edge-rows 64 --edge-gemm wgmma; not --ship)")
-    parser.add_argument("--decoder-warpgroups", type=int, default=None,
-                        help="Spec.decoder_warpgroups: the hybrid decoder's fields in warpgroups' registers, this many "
-                             "a block (with --edge-rows 64 --edge-gemm wgmma; not --ship)")
+    add_warpgroup_arguments(parser, "with --edge-rows 64 --edge-gemm wgmma; not --ship")
     parser.add_argument("--threads", default=None,
                         help="Spec.threads as KERNEL=N,... (default: a Network's pick on a GPU; 'none': every "
                              "kernel on --block-dim; not --ship)")
@@ -171,8 +177,7 @@ def main(argv=None) -> None:
              "threads": None if args.threads is None else parse_threads(args.threads),
              "edge_rows": args.edge_rows, "edge_gemm": args.edge_gemm,
              "edge_kernels": tuple(k.strip() for k in args.edge_kernels.split(",")) if args.edge_kernels else None,
-             "edge_warpgroups": args.edge_warpgroups, "node_warpgroups": args.node_warpgroups,
-             "decoder_warpgroups": args.decoder_warpgroups}
+             **warpgroups_of(args)}
     if args.ship:
         ship()
     elif args.arch is not None:

@@ -108,15 +108,7 @@ def main():
                     "Network's pick, spec.threads_for)")
     ap.add_argument("--edge-encoder", choices=("pick", "on", "off"), default="pick",
                     help="the mesh-edge rows' encoder a launch of its own (Network's edge_encoder; pick: its default)")
-    ap.add_argument("--edge-warpgroups", type=int, default=None,
-                    help="Spec.edge_warpgroups: the edge pass in warpgroups' registers, this many a block "
-                         "(kernels/register_edges.py; with an edge shape of 64wgmma)")
-    ap.add_argument("--node-warpgroups", type=int, default=None,
-                    help="Spec.node_warpgroups: the node passes (the vanilla's last excepted) in warpgroups' "
-                         "registers (kernels/register_nodes.py; with an edge shape of 64wgmma)")
-    ap.add_argument("--decoder-warpgroups", type=int, default=None,
-                    help="Spec.decoder_warpgroups: the hybrid decoder's fields in warpgroups' registers "
-                         "(kernels/register_decoder.py; with an edge shape of 64wgmma)")
+    precompile.add_warpgroup_arguments(ap, "with an edge shape of 64wgmma")
     ap.add_argument("--repeats", type=int, default=300, help="captured steps timed a case")
     ap.add_argument("--without", default="", help="kernels whose launches each step leaves out, comma-separated "
                     "(timing only: the outputs are then wrong), e.g. node_pass: what a launch costs the step")
@@ -138,13 +130,11 @@ def main():
     base = l5_case(a.mesh)
     cases = []
     for shape in shapes:
-        sh = shape_args(shape) | {"edge_warpgroups": a.edge_warpgroups, "node_warpgroups": a.node_warpgroups,
-                                  "decoder_warpgroups": a.decoder_warpgroups}
+        sh = shape_args(shape) | precompile.warpgroups_of(a)
         T, N, B, K, G = sh["tile_rows"], sh["node_rows"], sh["block_dim"], sh["k_chunk"], sh["gemm"]
         tiles = {"tile_rows": T, "node_rows": N, "k_chunk": K, "gemm": G, "edge_rows": sh["edge_rows"],
                  "edge_gemm": sh["edge_gemm"], "edge_kernels": sh["edge_kernels"],
-                 "edge_warpgroups": sh["edge_warpgroups"], "node_warpgroups": sh["node_warpgroups"],
-                 "decoder_warpgroups": sh["decoder_warpgroups"]}
+                 **{k: sh[k] for k in precompile.WARPGROUPS}}
         threads = None if a.threads is None else dict(precompile.parse_threads(a.threads))
         if a.aot:
             if not T or not N or K is None:
@@ -172,8 +162,7 @@ def main():
                           "tile_rows": T_used, "node_rows": N_used, "block_dim": B, "k_chunk": K_used, "gemm": G,
                           "edge_rows": net.spec.edge_tile, "edge_gemm": net.spec.edge_gemm or G,
                           "edge_kernels": list(net.spec.edge_kernels), "edge_encoder": net.edge_encoder,
-                          "edge_warpgroups": net.spec.edge_warpgroups, "node_warpgroups": net.spec.node_warpgroups,
-                          "decoder_warpgroups": net.spec.decoder_warpgroups,
+                          **{k: getattr(net.spec, k) for k in precompile.WARPGROUPS},
                           "threads": dict(net.spec.threads),
                           "step_ms": median, "step_p10_ms": p10, "step_p90_ms": p90, "launches": net.n_launches,
                           "kernels_alone_us": alone, "kernels": kernels})
