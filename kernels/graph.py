@@ -89,11 +89,18 @@ class Layout:
         return rows // self.tile_rows
 
 
-def _csr(receivers: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Stable order by receiver and the (n + 1) segment offsets (each node's first position in that order, by a
-    search: torch.bincount on CUDA reads its input's extremes back to the host, which waits for the GPU)."""
-    ordered, order = torch.sort(receivers, stable=True)
-    return order, torch.searchsorted(ordered, torch.arange(n + 1, device=receivers.device))
+def _csr(keys: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The stable order of int32 ``keys`` in [0, n), the keys in that order and the (n + 1) segment offsets (each
+    key's first position in that order): on the host by counts (torch.bincount), on a GPU by a search (bincount there
+    reads its input's extremes back to the host, which waits for the GPU). int32 keys: L5 at batch 64 (432,640 mesh
+    edges), a 2-core host: the sort 3.2 -> 1.8 ms, the offsets by counts 0.3 ms against 2.9 by a search."""
+    ordered, order = torch.sort(keys, stable=True)
+    if keys.is_cuda:
+        return order, ordered, torch.searchsorted(ordered, torch.arange(n + 1, dtype=keys.dtype, device=keys.device),
+                                                  out_int32=True)
+    off = torch.zeros(n + 1, dtype=torch.int32)
+    torch.cumsum(torch.bincount(keys, minlength=n), 0, out=off[1:])
+    return order, ordered, off
 
 
 def _last_wins(index: torch.Tensor, values: torch.Tensor, n: int, empty) -> torch.Tensor:
@@ -165,7 +172,7 @@ def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = 
     dev = top.senders.device
     target = torch.device(wp.device_to_torch(device))
 
-    def t_(x, dtype=torch.int64):
+    def t_(x, dtype=torch.int32):  # indices as the kernels read them (int32), where the topology is
         return x.detach().to(dev, dtype)
 
     n, k = top.n_nodes, top.n_tools
@@ -175,29 +182,29 @@ def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = 
         act_tool, act_node = act_tool[:0], act_node[:0]
     lay = Layout(n, len(senders), k if actuator_graphs else 0, len(act_tool), tile_rows, self_loops, edge_rows)
 
-    order, mesh_off = _csr(receivers, n)
-    mesh_recv, mesh_send = receivers[order], senders[order]
-    a_order, act_off = _csr(act_node, n)
-    act_node, act_tool = act_node[a_order], act_tool[a_order]
+    order, mesh_recv, mesh_off = _csr(receivers, n)
+    mesh_send = senders[order]
+    a_order, act_node, act_off = _csr(act_node, n)
+    act_tool = act_tool[a_order]
     loaded = t_(top.loaded)
     # tools loaded at each node: the single-graph ablation adds their features to the node's
-    t_order, tool_off = _csr(loaded, n)
+    t_order, _, tool_off = _csr(loaded, n)
 
     # per latent row: the rows of the node-product buffer its edge MLP gathers (receiver, sender);
     # tool products sit after the node rows (message_passing stores them there, one block per pass)
-    row_recv = torch.zeros(lay.rows, dtype=torch.int64, device=dev)
-    row_send = torch.zeros(lay.rows, dtype=torch.int64, device=dev)
+    row_recv = torch.zeros(lay.rows, dtype=torch.int32, device=dev)
+    row_send = torch.zeros(lay.rows, dtype=torch.int32, device=dev)
     row_recv[lay.mesh_row:lay.mesh_row + lay.n_edges] = mesh_recv
     row_send[lay.mesh_row:lay.mesh_row + lay.n_edges] = mesh_send
     if self_loops:
-        row_recv[lay.self_row:lay.self_row + n] = torch.arange(n, device=dev)
-        row_send[lay.self_row:lay.self_row + n] = torch.arange(n, device=dev)
+        row_recv[lay.self_row:lay.self_row + n] = torch.arange(n, dtype=torch.int32, device=dev)
+        row_send[lay.self_row:lay.self_row + n] = row_recv[lay.self_row:lay.self_row + n]
     row_recv[lay.act_row:lay.act_row + lay.n_act_edges] = act_node
     row_send[lay.act_row:lay.act_row + lay.n_act_edges] = lay.nodes_pad + act_tool
 
     # boundary conditions per node: the tool driving it (-1: none) and its weight; where a node is listed
     # twice the last entry wins, as in apply_boundary_conditions' index_put
-    presc = t_(top.prescribed)
+    presc = t_(top.prescribed, torch.int64)
     presc_tool = _last_wins(presc, t_(top.prescribed_tool), n, -1)
     presc_weight = _last_wins(presc, t_(top.prescribed_weight, torch.float32), n, 0.0)
 

@@ -30,6 +30,7 @@ from . import (
     register_decoder,
     register_edges,
     register_nodes,
+    rollout_graph,
     shipped,
 )
 from .graph import build
@@ -54,7 +55,7 @@ from .weights import pack
 def build_kernels(spec: Spec) -> None:
     """Create every kernel of ``spec`` before any launch: they share one Warp module a block size (Spec.modules),
     each compiled once."""
-    for module in (features, decoders, generic_tail, integrate):
+    for module in (features, decoders, generic_tail, integrate, rollout_graph):
         module.kernels(spec)
     message_passing.encoder_kernel(spec)
     if spec.edge_warpgroups:  # its module (block size) holds the register edge pass and mesh-edge encoder alone

@@ -114,6 +114,32 @@ def test_rollout_equals_torch(sims, kind):
                     assert_close(a, b)
 
 
+@pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
+def test_rollout_loop_equals_unrolled_steps(sims, kind, monkeypatch):
+    """A rollout's graph looping over its captured step on the device (kernels/rollout_graph.py) and the same steps
+    captured one after another (its form where the driver has no conditional nodes): the same states and
+    diagnostics bit for bit, vanilla and hybrid, with tools and after a replay with other inputs."""
+    from warpgnn.graphs import batch
+    from warpgnn.kernels import rollout_graph
+
+    model = random_model(kind, 1, 16, seed=10)
+    top = batch([s.topology for s in sims[:3]])
+    z, u = torch.cat([s.z[0] for s in sims[:3]]), torch.cat([s.u for s in sims[:3]], 1)
+    runs = []
+    for loop in (True, False):
+        monkeypatch.setattr(rollout_graph, "device_loop", lambda device, loop=loop: loop)
+        warp = WarpModel(model)
+        warp.rollout(top, z, u, DT)  # captured here, replayed below
+        runs.append(warp.rollout(top, z + 0.01 * (z - z.mean(0)), 0.5 * u, DT))
+    (states, diagnostics), (states_unrolled, diagnostics_unrolled) = runs
+    assert torch.equal(states, states_unrolled) and len(states) == len(u)
+    assert (diagnostics is None) == (diagnostics_unrolled is None) == (kind == "vanilla")
+    for a, b in zip(diagnostics or (), diagnostics_unrolled or ()):
+        assert torch.equal(a, b)
+    ref, _ = stepwise(model, top, z + 0.01 * (z - z.mean(0)), 0.5 * u, DT)
+    assert_close(states.numpy(), ref.detach().numpy())
+
+
 def test_replays_take_new_inputs(sims):
     """The forward and a whole rollout, recorded once per topology (a graph on CUDA, and on the CPU: Warp
     replays captures there too), replayed with other states and tools' displacements: torch's numbers each time."""

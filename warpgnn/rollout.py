@@ -120,7 +120,8 @@ class _Reader:
         self.pending.append(self.pool.submit(self._read, part, top, results, done))
 
     def _read(self, part, top, results, done) -> list[Rollout]:
-        host = [torch.zeros(t.shape, dtype=t.dtype) for t in results]  # zeroed: every page touched before the copy
+        # numpy's memory (huge pages where large: 15 against 29 ms for 43 MB there), zeroed: every page touched first
+        host = [torch.from_numpy(np.empty(t.shape, np.float32)).zero_() for t in results]
         done.synchronize()
         with torch.cuda.stream(self.stream):
             for h, t in zip(host, results):
@@ -157,7 +158,7 @@ def _per_graph(offsets: np.ndarray, deg: np.ndarray, ent: np.ndarray) -> list[np
     atomic adds on CUDA had put two runs' means a rounding apart)."""
     starts, sizes = offsets[:-1], np.diff(offsets)
 
-    def means(x):
-        return (np.add.reduceat(x.astype(np.float64), starts, axis=1) / sizes).T.astype(x.dtype)
+    def means(x):  # summed in float64 as read: no float64 copy of x (7 MB of fresh host pages a batch-64 chunk)
+        return (np.add.reduceat(x, starts, axis=1, dtype=np.float64) / sizes).T.astype(x.dtype)
 
     return [means(deg), np.minimum.reduceat(ent, starts, axis=1).T, means(ent)]

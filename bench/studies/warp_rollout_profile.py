@@ -7,8 +7,11 @@ warpgnn.evaluation.evaluate in this process (run it fresh, as eval is), the func
 ``--phases``: no profiler; instead each call of the rollout's stages timed apart (the Networks, their graphs'
 builds, kernel definitions and module loads, the replays, the reads back and the wait for them), chunk by chunk,
 eval's untimed warm-up step first. ``--graphs-on-device``: each chunk's graph built by torch on the GPU rather than on
-the host. ``--gpu``: instead of eval, each chunk's whole rollout (WarpModel.rollout, one graph replay) timed by CUDA
-events, its forward step and each kernel's mean (the GPU's share of eval's figure).
+the host. ``--timeline``: no profiler; the timed rollout's stages as intervals from its start (host clock), and each
+chunk's replay on the GPU (CUDA events, from an event recorded at the rollout's start), so that the GPU's idle gaps
+show (bench/results/warp_rollout_loop_h200.json). ``--gpu``: instead of eval, each chunk's whole rollout
+(WarpModel.rollout, one graph replay) timed by CUDA events, its forward step and each kernel's mean (the GPU's share
+of eval's figure).
 
 Its first run (H200, the 190 L5 test rollouts): of rollout()'s 0.82 s (0.72 s unprofiled; the GPU's share ~0.23 s),
 the three chunks' Networks 0.36 s, the per-graph diagnostics' reductions 0.10 s, reading back 0.13 s; one chunk of
@@ -57,6 +60,75 @@ def stages() -> dict:
             "module load": (network.shipped, "load"), "graph build": (network, "build"),
             "replay": (backend._Topology, "run"), "read back (its thread)": (rollout._Reader, "_read"),
             "waiting for the reads": (rollout._Reader, "close")}
+
+
+def timeline() -> dict:
+    """Wrap the rollout's stages to log (label, start, end) in ms from the latest rollout() call's start, on the host
+    clock, and each graph replay's (start, end) on the GPU from an event recorded at that start: {"host": [...],
+    "gpu": [...]}, the last rollout's (eval's timed one) once it returns."""
+    import threading
+
+    import torch
+    import warp as wp
+
+    from warpgnn import rollout
+    from warpgnn.kernels import backend
+
+    log = {"host": [], "gpu": []}
+    state = {"t0": 0.0, "event": None, "replays": []}
+
+    def wrap(owner, name, label):
+        f = getattr(owner, name)
+
+        @functools.wraps(f)
+        def timed(*args, **kw):
+            t = time.perf_counter()
+            try:
+                return f(*args, **kw)
+            finally:
+                thread = "" if threading.current_thread() is threading.main_thread() else " (reader)"
+                log["host"].append((label + thread, round((t - state["t0"]) * 1e3, 2),
+                                    round((time.perf_counter() - state["t0"]) * 1e3, 2)))
+        setattr(owner, name, timed)
+
+    run_rollout = rollout.rollout
+
+    @functools.wraps(run_rollout)
+    def timed_rollout(*args, **kw):
+        log["host"].clear()
+        state["replays"] = []
+        state["t0"] = time.perf_counter()
+        state["event"] = torch.cuda.Event(enable_timing=True)
+        state["event"].record()
+        out = run_rollout(*args, **kw)
+        log["host"].append(("rollout", 0.0, round((time.perf_counter() - state["t0"]) * 1e3, 2)))
+        log["gpu"] = [(round(state["event"].elapsed_time(a), 2), round(state["event"].elapsed_time(b), 2))
+                      for a, b in state["replays"]]
+        return out
+
+    rollout.rollout = timed_rollout
+    launch = wp.capture_launch
+
+    def timed_launch(graph, *args, **kw):
+        a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        a.record()
+        launch(graph, *args, **kw)
+        b.record()
+        state["replays"].append((a, b))
+
+    backend.wp.capture_launch = timed_launch  # warp's own: the backend's replays are the only ones in eval
+    from warpgnn.kernels import network
+    wrap(rollout, "batch", "batch")
+    wrap(network.Network, "overlap", "pdl edges")
+    wrap(backend, "Network", "Network")
+    wrap(network, "build", "graph build")
+    wrap(backend.RolloutGraph, "capture", "rollout capture")
+    wrap(backend, "RolloutGraph", "rollout buffers")
+    wrap(backend._Topology, "run", "capture + replay")
+    wrap(rollout._Reader, "_read", "read")
+    wrap(rollout, "_split", "split")
+    wrap(rollout._Reader, "close", "close")
+    return log
 
 
 def graphs_on_device():
@@ -116,6 +188,7 @@ def main():
     ap.add_argument("--chunk", type=int, default=64, help="simulations rolled out side by side (eval's default 64)")
     ap.add_argument("--top", type=int, default=40, help="functions kept, by cumulative time")
     ap.add_argument("--phases", action="store_true", help="time the rollout's stages call by call, no profiler")
+    ap.add_argument("--timeline", action="store_true", help="the timed rollout's stages and GPU replays in time")
     ap.add_argument("--graphs-on-device", action="store_true", help="each chunk's graph built on the GPU")
     ap.add_argument("--gpu", action="store_true", help="time each chunk's rollout and kernels on the GPU, not eval")
     ap.add_argument("--json", required=True)
@@ -125,10 +198,11 @@ def main():
         record = provenance.record(a) | {"chunk": a.chunk, "chunks": gpu_chunks(a.checkpoint, a.data, a.chunk)}
         Path(a.json).write_text(json.dumps(record, indent=1) + "\n")
         return
-    profile = None if a.phases else cProfile.Profile()
+    profile = None if a.phases or a.timeline else cProfile.Profile()
     if a.graphs_on_device:
         graphs_on_device()
     times = time_calls(stages()) if a.phases else None
+    log = timeline() if a.timeline else None
     with tempfile.TemporaryDirectory() as out:
         if profile:
             profile.enable()
@@ -139,11 +213,16 @@ def main():
     record = provenance.record(a) | {"chunk": a.chunk, "graphs_on_device": a.graphs_on_device,
                                      "rollout_seconds": result["rollout_seconds"],
                                      "warmup_seconds": result["warmup_seconds"]}
+    if log is not None:
+        for label, t0, t1 in sorted(log["host"], key=lambda x: x[1]):
+            print(f"{label:28s} {t0:8.2f} {t1:8.2f}")
+        print("gpu replays", log["gpu"])
+        record["timeline_ms"] = log
     if times is not None:
         for label, ms in times.items():
             print(f"{label:20s} {ms} ms")
         record["stages_ms"] = dict(times)
-    else:
+    elif profile:
         record["top"] = top_functions(profile, a.top)
     Path(a.json).write_text(json.dumps(record, indent=1) + "\n")
 
