@@ -822,6 +822,27 @@ def test_pushforward_step_starts_from_the_networks_own_rollout(two_sims, padded)
     assert float(loss) == pytest.approx(model.loss(p, pushed.zdot, pushed.node_mask)[0].item(), rel=1e-6)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_per_graph_diagnostics_are_each_graphs_reductions(dtype):
+    """rollout._per_graph (float64 prefix sums, a scatter of minima) against numpy's reductions of each graph's node
+    range, graphs of uneven sizes: the means in float64 then rounded, the least exact."""
+    from warpgnn.rollout import _per_graph
+
+    sizes = torch.tensor([5, 1, 12, 7])
+    gen = torch.Generator().manual_seed(3)
+    deg = torch.rand(6, int(sizes.sum()), generator=gen, dtype=dtype) * 1e-3
+    ent = torch.randn(6, int(sizes.sum()), generator=gen, dtype=dtype)
+    mean_deg, least, mean_ent = (t.numpy() for t in _per_graph(sizes, deg, ent))
+    off = np.concatenate([[0], np.cumsum(sizes.numpy())])
+    for g in range(len(sizes)):
+        part = slice(off[g], off[g + 1])
+        np.testing.assert_allclose(mean_deg[g], deg[:, part].double().mean(1).numpy(), rtol=1e-6)
+        np.testing.assert_allclose(mean_ent[g], ent[:, part].double().mean(1).numpy(), rtol=1e-6, atol=1e-7)
+        assert np.array_equal(least[g], ent[:, part].min(1).values.numpy())
+    assert mean_deg.dtype == least.dtype == mean_ent.dtype == deg.numpy().dtype
+    assert _per_graph(sizes) == []  # the vanilla's: no diagnostics
+
+
 def test_rollout_from_a_later_snapshot_continues_the_full_rollout(two_sims):
     """rollout(first=k, z0=...) (the perturbation probes' entry): from the full rollout's own state at
     k it reproduces that rollout's tail and diagnostics; without z0 it starts from the truth at k."""

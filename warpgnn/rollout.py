@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from .data import Simulation
-from .graphs import batch
+from .graphs import batch, to_device
 
 
 @dataclass
@@ -89,7 +89,7 @@ def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None, first
             else:
                 states, diagnostics = stepwise(model, top.to(device), z, u, part[0].dt,
                                                progress and partial(progress, len(part)))
-            results = [states, *(diagnostics or ())]
+            results = [states, *_per_graph(top.graph_sizes, *(diagnostics or ()))]
             if states.is_cuda:
                 reader = reader or _Reader(states.device)
                 reader.read(part, top, results)
@@ -121,7 +121,8 @@ class _Reader:
 
     def _read(self, part, top, results, done) -> list[Rollout]:
         # numpy's memory (huge pages where large: 15 against 29 ms for 43 MB there), zeroed: every page touched first
-        host = [torch.from_numpy(np.empty(t.shape, np.float32)).zero_() for t in results]
+        host = [torch.from_numpy(np.empty(t.shape, torch.empty(0, dtype=t.dtype).numpy().dtype)).zero_()
+                for t in results]
         done.synchronize()
         with torch.cuda.stream(self.stream):
             for h, t in zip(host, results):
@@ -141,24 +142,33 @@ class _Reader:
 
 
 def _split(part, top, results: list[np.ndarray]) -> list[Rollout]:
-    """A chunk's Rollouts from its results on the host, states (S+1, N, 12) and the hybrid's (S, N) diagnostics:
-    each rollout's states a view of the chunk's."""
-    states, *diagnostics = results
+    """A chunk's Rollouts from its results on the host, states (S+1, N, 12) and the hybrid's per-graph diagnostics
+    (_per_graph's): each rollout's states a view of the chunk's."""
+    states, *per_graph = results
     offsets = np.concatenate([[0], np.cumsum(top.graph_sizes.numpy())])
-    per_graph = _per_graph(offsets, *diagnostics) if diagnostics else []
     return [Rollout(s.name, states[:, offsets[g]:offsets[g + 1]], *(a[g] for a in per_graph))
             for g, s in enumerate(part)]
 
 
-def _per_graph(offsets: np.ndarray, deg: np.ndarray, ent: np.ndarray) -> list[np.ndarray]:
-    """The hybrid's (S, N) diagnostics as (graphs, steps) arrays in Rollout's field order: the mean degeneracy, the
-    least and the mean entropy production over each graph's nodes (its contiguous node range ``offsets[g]:offsets[g +
-    1]``). Reduced on the host (on the GPU they were ~3 small launches a graph, 0.10 s of eval's 190 L5 rollouts:
-    bench/results/warp_rollout_profile_h200.json), in float64 and in a fixed order: the same every run (index_add's
-    atomic adds on CUDA had put two runs' means a rounding apart)."""
-    starts, sizes = offsets[:-1], np.diff(offsets)
+def _per_graph(sizes: torch.Tensor, deg: torch.Tensor | None = None, ent: torch.Tensor | None = None) -> list:
+    """The hybrid's (S, N) diagnostics (none: the vanilla's) as (graphs, steps) tensors in Rollout's field order,
+    where they are (a chunk's on its GPU, queued after its rollout: then 7 MB less to read back and no reduction on
+    the host after the last chunk, which took 2.65 ms there on the H200 machine's host): the mean degeneracy, the
+    least and the mean entropy production over each graph's nodes (``sizes`` contiguous nodes each). The sums are
+    differences of float64 prefix sums (a scan, as the least's scatter of minima, in the same order every run: the
+    same numbers each time, where index_add's atomic adds on CUDA had put two runs' means a rounding apart), with
+    nothing read back to the host (bench/results/warp_rollout_loop_h200.json)."""
+    if deg is None:
+        return []
+    device, steps = deg.device, deg.shape[0]
+    ends = torch.cumsum(sizes, 0)
+    count, ends, starts = (to_device(x, device) for x in (sizes, ends, ends - sizes))
+    graph = to_device(torch.repeat_interleave(torch.arange(len(sizes)), sizes), device).expand(steps, -1)
 
-    def means(x):  # summed in float64 as read: no float64 copy of x (7 MB of fresh host pages a batch-64 chunk)
-        return (np.add.reduceat(x, starts, axis=1, dtype=np.float64) / sizes).T.astype(x.dtype)
+    def means(x):
+        prefix = torch.nn.functional.pad(x.double().cumsum(1), (1, 0))
+        return ((prefix[:, ends] - prefix[:, starts]) / count).to(x.dtype).T
 
-    return [means(deg), np.minimum.reduceat(ent, starts, axis=1).T, means(ent)]
+    least = torch.full((steps, len(sizes)), torch.inf, dtype=ent.dtype, device=device)
+    least.scatter_reduce_(1, graph, ent, "amin")
+    return [means(deg), least.T, means(ent)]
