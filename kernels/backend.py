@@ -55,12 +55,9 @@ class _Topology:
             self.graphs[name] = capture()
         wp.capture_launch(self.graphs[name])
 
-    def captured(self, record) -> wp.Graph:
-        """``record()`` (launches and device copies only) as a graph, its launches overlapping (Network.overlap)."""
-        with wp.ScopedCapture(device=self.net.device) as capture:
-            record()
-        self.net.overlap(capture.graph)
-        return capture.graph
+    def forward(self) -> None:
+        """The Network's forward, captured once (Network.captured) and replayed."""
+        self.run("forward", lambda: self.net.captured(self.net.forward))
 
 
 class WarpModel:
@@ -94,7 +91,7 @@ class WarpModel:
         net = entry.net
         with _ordered(self.device):
             net.set_inputs(z, u_now, u_next)
-            entry.run("forward", lambda: entry.captured(net.forward))
+            entry.forward()
             out = {k: v.clone() for k, v in net.outputs().items()}
         return Prediction(out["zdot"], out["zdot_std"], out.get("degeneracy"), out.get("entropy"))
 
@@ -105,7 +102,7 @@ class WarpModel:
         with _ordered(self.device):
             net.set_inputs(z, u_now, u_next, dt)
             if zdot is None:
-                entry.run("forward", lambda: entry.captured(net.forward))
+                entry.forward()
                 return wp.to_torch(net.z_next).clone()
             out = torch.empty(net.z.shape, dtype=torch.float32, device=z.device)
             net.integrate(zdot, wp.from_torch(out))

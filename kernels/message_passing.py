@@ -206,7 +206,7 @@ def edge_encoder_kernel(spec: Spec):
         w2_buf = wp.tile_empty(shape=(w2_rows, F), dtype=float, storage="shared")
         begin_second_layer(w2_buf, w2, MESH)
         x = wp.tile_empty(shape=(T, EW), dtype=float, storage="shared")
-        tile_features(x, raw, row0, lane)  # reads the step's inputs only: no launch before writes them
+        tile_features(x, raw, row0, lane)  # the step's inputs only, written before the encoder's wait let it start
         h = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         y = wp.tile_empty(shape=(T, F), dtype=float, storage="shared")
         if wp.static(fused):

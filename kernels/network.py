@@ -295,6 +295,15 @@ class Network:
                               if launch.kernel.key.rsplit("__", 1)[-1] in plain_into)
         return overlap_launches(graph, self.device, functions)
 
+    def captured(self, record, overlap: bool = True, plain_into: tuple[str, ...] = ()) -> wp.Graph:
+        """``record()`` (launches and device copies only) captured as a CUDA graph, its launches overlapping where
+        ``overlap`` (Network.overlap, ``plain_into`` as there)."""
+        with wp.ScopedCapture(device=self.device) as cap:
+            record()
+        if overlap:
+            self.overlap(cap.graph, plain_into)
+        return cap.graph
+
     def capture(self, overlap: bool = True, plain_into: tuple[str, ...] = ()) -> None:
         """On CUDA: record forward() and step() once each as a CUDA graph, replayed from then on
         (a launch costs ~25 us from Python and ~1.3 us inside a graph on the H100: calibration notes).
@@ -304,13 +313,9 @@ class Network:
         if not self.device.is_cuda:
             return
         self._graphs = []
-        graphs = []
-        for advance in (False, True):
-            with wp.ScopedCapture(device=self.device) as cap:
-                self._launch_all()
-                if advance:
-                    wp.copy(self.z, self.z_next)
-            if overlap:
-                self.overlap(cap.graph, plain_into)
-            graphs.append(cap.graph)
-        self._graphs = graphs
+
+        def advanced():
+            self._launch_all()
+            wp.copy(self.z, self.z_next)
+
+        self._graphs = [self.captured(record, overlap, plain_into) for record in (self._launch_all, advanced)]

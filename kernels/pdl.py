@@ -95,7 +95,7 @@ def overlap_launches(graph, device, plain_into=frozenset()) -> int:
     g, edges = graph.graph, _edges(cu, graph.graph)
     if edges is None:
         return 0
-    kinds = {}  # node -> CUgraphNodeType, each node asked once (a 20-step rollout's graph: ~440 nodes, ~420 edges)
+    kinds = {}  # node -> CUgraphNodeType, each node asked once (a 20-step rollout captured unrolled: ~440 nodes)
 
     def is_kernel(node) -> bool:
         if node not in kinds:
@@ -114,7 +114,7 @@ def overlap_launches(graph, device, plain_into=frozenset()) -> int:
     if not picked:
         return 0
     # every picked edge removed and added back programmatic in two calls (three calls an edge had taken a 20-step
-    # rollout's capture ~1,400 driver calls); where the driver refuses them together, one by one
+    # rollout captured unrolled ~1,400 driver calls); where the driver refuses them together, one by one
     k = len(picked)
     a = (ctypes.c_void_p * k)(*(x for x, _, _ in picked))
     b = (ctypes.c_void_p * k)(*(y for _, y, _ in picked))

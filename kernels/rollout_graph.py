@@ -76,24 +76,30 @@ def device_loop(device) -> bool:
 class RolloutGraph:
     """A rollout's inputs and outputs on the device: the tools' displacements u (S+1, K, 3), the states (S+1, N, 12)
     (states[0] the start), the hybrid's degeneracy and entropy production of every step and node (S, N), and the
-    loop's step t and condition; torch views of the first four in ``torch``."""
+    loop's step t and condition; torch views of u, the states and the hybrid's two in ``torch``."""
 
     def __init__(self, net, steps: int):
-        n, k, device = net.layout.n_nodes, net.n_tools, net.device
+        n, tools, device = net.layout.n_nodes, net.n_tools, net.device
+        if 3 * tools > STATE * n:  # advance copies a tool's components on its first (node, component) items
+            raise ValueError(f"{tools} tools for {n} nodes: at most 4 a node")
         self.steps = steps
-        self.u = wp.zeros((steps + 1, k, 3), dtype=float, device=device)
+        self.u = wp.zeros((steps + 1, tools, 3), dtype=float, device=device)
         self.states = wp.zeros((steps + 1, n, STATE), dtype=float, device=device)
         hybrid = net.degeneracy is not None
         self.degeneracy = wp.zeros((steps, n), dtype=float, device=device) if hybrid else None
         self.entropy = wp.zeros((steps, n), dtype=float, device=device) if hybrid else None
-        self.torch = {k: wp.to_torch(v) for k, v in vars(self).items() if isinstance(v, wp.array)}
+        self.torch = {name: wp.to_torch(getattr(self, name)) for name in ("u", "states", "degeneracy", "entropy")
+                      if getattr(self, name) is not None}
         self.clock = wp.zeros(1, dtype=wp.int32, device=device)
         self.go = wp.zeros(1, dtype=wp.int32, device=device)
-        none = wp.zeros((0, n), dtype=float, device=device)  # the vanilla's: no diagnostics
         self._advance, self._tick = kernels(net.spec)
-        per_node = (net.degeneracy, net.entropy, self.degeneracy, self.entropy) if hybrid else (net.dt, net.dt, none,
-                                                                                             none)
-        self._advance_inputs = [self.clock, net.z_next, net.z, self.states, *per_node, self.u, net.u_now, net.u_next]
+        if hybrid:
+            diagnostics = (net.degeneracy, net.entropy, self.degeneracy, self.entropy)
+        else:  # none: advance's rows of them are zero (the step's own are placeholders, never read)
+            none = wp.zeros((0, n), dtype=float, device=device)
+            diagnostics = (net.dt, net.dt, none, none)
+        self._advance_inputs = [self.clock, net.z_next, net.z, self.states, *diagnostics, self.u, net.u_now,
+                                net.u_next]
 
     def step(self, net) -> None:
         """One step of the loop: forward (Euler and boundary conditions included), then advance and tick."""
@@ -112,11 +118,9 @@ class RolloutGraph:
         body = functools.partial(self.step, net)
         loop = device_loop(net.device)
         if net.device.is_cuda and loop:
-            with wp.ScopedCapture(device=net.device) as cap:
-                body()
-            net.overlap(cap.graph)
-            body = self._body = cap.graph  # held: its modules stay loaded while the rollout's graph lives
-        with wp.ScopedCapture(device=net.device) as cap:
+            body = self._body = net.captured(body)  # held: its modules stay loaded while the rollout's graph lives
+
+        def rollout():
             wp.copy(net.z, self.states[0])
             if net.n_tools:
                 wp.copy(net.u_now, self.u[0])
@@ -128,6 +132,5 @@ class RolloutGraph:
             else:
                 for _ in range(self.steps):
                     body()
-        if not loop:
-            net.overlap(cap.graph)
-        return cap.graph
+
+        return net.captured(rollout)  # unrolled, its launches overlap; looped, the loop's body already does

@@ -824,14 +824,16 @@ def test_pushforward_step_starts_from_the_networks_own_rollout(two_sims, padded)
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_per_graph_diagnostics_are_each_graphs_reductions(dtype):
-    """rollout._per_graph (float64 prefix sums, a scatter of minima) against numpy's reductions of each graph's node
-    range, graphs of uneven sizes: the means in float64 then rounded, the least exact."""
+    """rollout._per_graph (each graph's nodes in a padded row of their own, reduced along it) against numpy's
+    reductions of each graph's node range, graphs of uneven sizes and values of very different scales: the means in
+    float64 then rounded, the least exact; one step too."""
     from warpgnn.rollout import _per_graph
 
     sizes = torch.tensor([5, 1, 12, 7])
     gen = torch.Generator().manual_seed(3)
     deg = torch.rand(6, int(sizes.sum()), generator=gen, dtype=dtype) * 1e-3
     ent = torch.randn(6, int(sizes.sum()), generator=gen, dtype=dtype)
+    ent[:, :5] *= 1e6  # the first graph's large values leave the others' sums as they are
     mean_deg, least, mean_ent = (t.numpy() for t in _per_graph(sizes, deg, ent))
     off = np.concatenate([[0], np.cumsum(sizes.numpy())])
     for g in range(len(sizes)):
@@ -840,6 +842,8 @@ def test_per_graph_diagnostics_are_each_graphs_reductions(dtype):
         np.testing.assert_allclose(mean_ent[g], ent[:, part].double().mean(1).numpy(), rtol=1e-6, atol=1e-7)
         assert np.array_equal(least[g], ent[:, part].min(1).values.numpy())
     assert mean_deg.dtype == least.dtype == mean_ent.dtype == deg.numpy().dtype
+    one_step = [t.numpy() for t in _per_graph(sizes, deg[:1], ent[:1])]
+    assert all(np.array_equal(a, b[:, :1]) for a, b in zip(one_step, (mean_deg, least, mean_ent)))
     assert _per_graph(sizes) == []  # the vanilla's: no diagnostics
 
 

@@ -121,8 +121,7 @@ class _Reader:
 
     def _read(self, part, top, results, done) -> list[Rollout]:
         # numpy's memory (huge pages where large: 15 against 29 ms for 43 MB there), zeroed: every page touched first
-        host = [torch.from_numpy(np.empty(t.shape, torch.empty(0, dtype=t.dtype).numpy().dtype)).zero_()
-                for t in results]
+        host = [torch.from_numpy(np.empty(t.shape, _numpy_dtype(t.dtype))).zero_() for t in results]
         done.synchronize()
         with torch.cuda.stream(self.stream):
             for h, t in zip(host, results):
@@ -141,6 +140,10 @@ class _Reader:
         self.pool.shutdown(cancel_futures=True)
 
 
+def _numpy_dtype(dtype: torch.dtype) -> np.dtype:
+    return torch.empty(0, dtype=dtype).numpy().dtype
+
+
 def _split(part, top, results: list[np.ndarray]) -> list[Rollout]:
     """A chunk's Rollouts from its results on the host, states (S+1, N, 12) and the hybrid's per-graph diagnostics
     (_per_graph's): each rollout's states a view of the chunk's."""
@@ -153,22 +156,26 @@ def _split(part, top, results: list[np.ndarray]) -> list[Rollout]:
 def _per_graph(sizes: torch.Tensor, deg: torch.Tensor | None = None, ent: torch.Tensor | None = None) -> list:
     """The hybrid's (S, N) diagnostics (none: the vanilla's) as (graphs, steps) tensors in Rollout's field order,
     where they are (a chunk's on its GPU, queued after its rollout: then 7 MB less to read back and no reduction on
-    the host after the last chunk, which took 2.65 ms there on the H200 machine's host): the mean degeneracy, the
-    least and the mean entropy production over each graph's nodes (``sizes`` contiguous nodes each). The sums are
-    differences of float64 prefix sums (a scan, as the least's scatter of minima, in the same order every run: the
-    same numbers each time, where index_add's atomic adds on CUDA had put two runs' means a rounding apart), with
-    nothing read back to the host (bench/results/warp_rollout_loop_h200.json)."""
+    the host after the last chunk, which took 2.65 ms there on the H200 machine's host,
+    bench/results/warp_rollout_loop_h200.json): the mean degeneracy, the least and the mean entropy production over
+    each graph's nodes (``sizes`` contiguous nodes each). Each graph's nodes are laid out in a row of their own
+    (padded: zeros for the sums, +inf for the least) and reduced along it, the means in float64: no atomic adds (as
+    index_add's on CUDA, which had put two runs' means a rounding apart), so every run gives the same numbers, and
+    nothing read back to the host."""
     if deg is None:
         return []
-    device, steps = deg.device, deg.shape[0]
-    ends = torch.cumsum(sizes, 0)
-    count, ends, starts = (to_device(x, device) for x in (sizes, ends, ends - sizes))
-    graph = to_device(torch.repeat_interleave(torch.arange(len(sizes)), sizes), device).expand(steps, -1)
+    device, steps, n = deg.device, deg.shape[0], deg.shape[1]
+    graph = torch.repeat_interleave(torch.arange(len(sizes)), sizes)
+    slot = torch.arange(n) - (torch.cumsum(sizes, 0) - sizes)[graph]  # a node's place in its graph's row
+    graph, slot, count = (to_device(x, device) for x in (graph, slot, sizes))
+    width = int(sizes.max())
+
+    def rows(x, fill, dtype):  # (S, graphs, width)
+        out = torch.full((steps, len(sizes), width), fill, dtype=dtype, device=device)
+        out[:, graph, slot] = x.to(dtype)
+        return out
 
     def means(x):
-        prefix = torch.nn.functional.pad(x.double().cumsum(1), (1, 0))
-        return ((prefix[:, ends] - prefix[:, starts]) / count).to(x.dtype).T
+        return (rows(x, 0.0, torch.float64).sum(2) / count).to(x.dtype).T.contiguous()
 
-    least = torch.full((steps, len(sizes)), torch.inf, dtype=ent.dtype, device=device)
-    least.scatter_reduce_(1, graph, ent, "amin")
-    return [means(deg), least.T, means(ent)]
+    return [means(deg), rows(ent, torch.inf, ent.dtype).amin(2).T.contiguous(), means(ent)]
