@@ -37,16 +37,23 @@ import provenance
 from warpgnn.evaluation import evaluate
 
 
-def time_calls(stages: dict) -> dict:
-    """Wrap each (owner, attribute) of ``stages`` ({label: (owner, name)}) to append its calls' milliseconds to
-    the returned {label: [ms, ...]}."""
+def time_calls(stages: dict, record=None) -> dict:
+    """Wrap each (owner, attribute) of ``stages`` ({label: (owner, name)}) so that each call, as it returns, is
+    passed to ``record(label, start, end)`` (perf_counter seconds); by default its milliseconds are appended to the
+    returned {label: [ms, ...]}."""
     times = collections.defaultdict(list)
+
+    def durations(label, start, end):
+        times[label].append(round((end - start) * 1e3, 2))
+
+    record = record or durations
     for label, (owner, name) in stages.items():
         def timed(*args, _f=getattr(owner, name), _label=label, **kw):
             t = time.perf_counter()
-            out = _f(*args, **kw)
-            times[_label].append(round((time.perf_counter() - t) * 1e3, 2))
-            return out
+            try:
+                return _f(*args, **kw)
+            finally:
+                record(_label, t, time.perf_counter())
         setattr(owner, name, functools.wraps(getattr(owner, name))(timed))
     return times
 
@@ -77,19 +84,9 @@ def timeline() -> dict:
     log = {"host": [], "gpu": []}
     state = {"t0": 0.0, "event": None, "replays": []}
 
-    def wrap(owner, name, label):
-        f = getattr(owner, name)
-
-        @functools.wraps(f)
-        def timed(*args, **kw):
-            t = time.perf_counter()
-            try:
-                return f(*args, **kw)
-            finally:
-                thread = "" if threading.current_thread() is threading.main_thread() else " (reader)"
-                log["host"].append((label + thread, round((t - state["t0"]) * 1e3, 2),
-                                    round((time.perf_counter() - state["t0"]) * 1e3, 2)))
-        setattr(owner, name, timed)
+    def interval(label, start, end):
+        thread = "" if threading.current_thread() is threading.main_thread() else " (reader)"
+        log["host"].append((label + thread, round((start - state["t0"]) * 1e3, 2), round((end - state["t0"]) * 1e3, 2)))
 
     run_rollout = rollout.rollout
 
@@ -118,16 +115,11 @@ def timeline() -> dict:
 
     backend.wp.capture_launch = timed_launch  # warp's own: the backend's replays are the only ones in eval
     from warpgnn.kernels import network
-    wrap(rollout, "batch", "batch")
-    wrap(network.Network, "overlap", "pdl edges")
-    wrap(backend, "Network", "Network")
-    wrap(network, "build", "graph build")
-    wrap(backend.RolloutGraph, "capture", "rollout capture")
-    wrap(backend, "RolloutGraph", "rollout buffers")
-    wrap(backend._Topology, "run", "capture + replay")
-    wrap(rollout._Reader, "_read", "read")
-    wrap(rollout, "_split", "split")
-    wrap(rollout._Reader, "close", "close")
+    time_calls({"batch": (rollout, "batch"), "pdl edges": (network.Network, "overlap"),
+                "Network": (backend, "Network"), "graph build": (network, "build"),
+                "rollout capture": (backend.RolloutGraph, "capture"), "rollout buffers": (backend, "RolloutGraph"),
+                "capture + replay": (backend._Topology, "run"), "read": (rollout._Reader, "_read"),
+                "split": (rollout, "_split"), "close": (rollout._Reader, "close")}, interval)
     return log
 
 
