@@ -63,8 +63,8 @@ class _Topology:
 class WarpModel:
     def __init__(self, model, keep: int = 4):
         """``model``: a TIGNN (its weights are packed for each topology's Network, on its device);
-        ``keep``: how many topologies' Networks stay built. A configuration the kernels do not cover
-        is refused in one line."""
+        ``keep``: how many topologies' Networks stay built (and as many dropped ones until the GPU is idle: _release).
+        A configuration the kernels do not cover is refused in one line."""
         try:
             check_config(model.config)
         except ValueError as exc:
@@ -75,16 +75,36 @@ class WarpModel:
         self.weights = pack(model, self.device)  # once: every topology's Network reads the same copy
         self.keep = keep
         self._cache = OrderedDict()  # id(topology) -> _Topology
+        self._retired = []  # dropped from the cache, released once the GPU is idle (_release)
 
     def _get(self, top) -> _Topology:
         entry = self._cache.get(id(top))
         if entry is None:
+            self._release()
             entry = self._cache[id(top)] = _Topology(Network(self.reference, top, device=self.device,
                                                                 weights=self.weights), top)
             while len(self._cache) > self.keep:
-                self._cache.popitem(last=False)
+                self._retired.append(self._cache.popitem(last=False)[1])
         self._cache.move_to_end(id(top))
         return entry
+
+    def _release(self) -> None:
+        """Free the retired topologies' Networks where the GPU has no work in flight, else all but the last ``keep``
+        (called before a Network is built). Releasing one (its graphs, its arrays) waits for the device's work in
+        flight: eval, building the next chunk's Network while the GPU rolls out the last, waited for that chunk's
+        whole rollout (35 ms at batch 64 on the H200) each time a fifth chunk dropped the first
+        (bench/results/warp_rollout_chunks_h200.json)."""
+        if self._idle():
+            self._retired.clear()
+        else:
+            del self._retired[:-self.keep or len(self._retired)]
+
+    def _idle(self) -> bool:
+        """Nothing in flight on the streams the Networks run on (torch's current one, Warp's); the CPU always."""
+        if not self.device.is_cuda:
+            return True
+        stream = torch.cuda.current_stream(wp.device_to_torch(self.device))
+        return stream.query() and wp.get_stream(self.device).is_complete
 
     def __call__(self, top, z, u_now, u_next) -> Prediction:
         entry = self._get(top)

@@ -95,6 +95,25 @@ def test_one_network_per_topology(monkeypatch):
     assert [next(i for i, t in enumerate(tops) if t is b) for b in built] == [0, 1, 2, 1]  # 1: least recent
 
 
+def test_dropped_networks_wait_for_an_idle_device(monkeypatch):
+    """A Network dropped from the cache is released once the device is idle (releasing one waits for the GPU's work
+    in flight); while it is busy, the last ``keep`` dropped wait when the next Network is built and older ones go."""
+    model = random_model("hybrid", 1, 16)
+    warp = WarpModel(model, keep=1)
+    tops = [tool_topology(box((3, 3, 2)), 1, seed=k) for k in range(5)]
+    busy = {"now": True}
+    monkeypatch.setattr(warp, "_idle", lambda: not busy["now"])
+    for top in tops[:4]:
+        z, u_now, u_next = random_inputs(top)
+        warp.step(top, z, u_now, u_next, DT)
+    # before tops[3]'s Network was built the last one dropped (tops[1]) stayed, tops[0] went; then tops[2] was dropped
+    assert [e.topology for e in warp._retired] == [tops[1], tops[2]]
+    busy["now"] = False
+    z, u_now, u_next = random_inputs(tops[4])
+    warp.step(tops[4], z, u_now, u_next, DT)
+    assert [e.topology for e in warp._retired] == [tops[3]] and list(warp._cache) == [id(tops[4])]
+
+
 @pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
 def test_rollout_equals_torch(sims, kind):
     """warpgnn.rollout.rollout through the backend's whole-chunk rollouts: states and the hybrid's

@@ -45,10 +45,11 @@ def evaluate(checkpoint_path, data_file, out_dir, device=None, backend: str | No
     sims = load_file(data_file, device)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    # one untimed step of the first chunk, either backend: what rollout_seconds times is rolling out, not loading
-    # code on first use (Warp's kernel definitions and modules, torch's CUDA kernels and cuBLAS), reported apart
+    # one untimed step of every simulation in the same chunks, either backend: what rollout_seconds times is rolling
+    # out, not loading code on first use (Warp's kernel definitions and modules of each chunk's size, torch's CUDA
+    # kernels and cuBLAS), reported apart
     t0 = time.perf_counter()
-    rollout(network, sims[:chunk], chunk, first=sims[0].steps - 1)
+    rollout(network, sims, chunk, first=sims[0].steps - 1)
     warmup = time.perf_counter() - t0
     t0 = time.perf_counter()
     with tqdm(total=len(sims) * sims[0].steps, desc="rollouts", unit="step", leave=False) as bar:

@@ -76,11 +76,11 @@ def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None, first
     z0 = z0 if z0 is not None else [s.z[first] for s in sims]
     out, reader = [], None
     try:
-        for c in range(0, len(sims), chunk):
-            part = sims[c:c + chunk]
+        for c, end in chunk_spans(len(sims), chunk):
+            part = sims[c:end]
             device = part[0].z.device
             top = batch([s.topology for s in part])  # where the simulations' topologies are (eval's: the host)
-            z = torch.cat(z0[c:c + chunk]).to(device)
+            z = torch.cat(z0[c:end]).to(device)
             u = torch.cat([s.u[first:] for s in part], 1).to(device)  # (steps + 1, tools of the chunk, 3)
             if hasattr(model, "rollout"):  # the Warp kernels build their graph where the topology is (kernels/graph.py)
                 states, diagnostics = model.rollout(top, z, u, part[0].dt)
@@ -100,6 +100,14 @@ def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None, first
             reader.abandon()
         raise
     return out + (reader.close() if reader else [])
+
+
+def chunk_spans(n: int, chunk: int) -> list[tuple[int, int]]:
+    """(start, end) of each chunk of ``n`` simulations, ``chunk`` a chunk and the rest last. (Chunks growing from a
+    quarter of ``chunk``, to start the GPU sooner, were slower on the Warp backend: the host's work for a chunk took
+    longer than the GPU's for the smaller one before it; bench/studies/eval_variants.py,
+    bench/results/warp_rollout_chunks_h200.json.)"""
+    return [(c, min(n, c + chunk)) for c in range(0, n, chunk)]
 
 
 class _Reader:

@@ -11,7 +11,10 @@ the host. ``--timeline``: no profiler; the timed rollout's stages as intervals f
 chunk's replay on the GPU (CUDA events, from an event recorded at the rollout's start), so that the GPU's idle gaps
 show (bench/results/warp_rollout_loop_h200.json). ``--gpu``: instead of eval, each chunk's whole rollout
 (WarpModel.rollout, one graph replay) timed by CUDA events, its forward step and each kernel's mean (the GPU's share
-of eval's figure).
+of eval's figure). ``--plain``: eval alone, unprofiled (its rollout_seconds, for variants run in fresh processes
+side by side). ``--spans 16,32,64,64,14``: the chunks' sizes (warpgnn.rollout.chunk_spans; eval's warm-up rolls the
+same chunks), in place of --chunk's equal ones: chunks growing from small, so the GPU starts sooner, were slower
+(bench/results/warp_rollout_chunks_h200.json).
 
 Its first run (H200, the 190 L5 test rollouts): of rollout()'s 0.82 s (0.72 s unprofiled; the GPU's share ~0.23 s),
 the three chunks' Networks 0.36 s, the per-graph diagnostics' reductions 0.10 s, reading back 0.13 s; one chunk of
@@ -23,6 +26,7 @@ import collections
 import cProfile
 import functools
 import io
+import itertools
 import json
 import pstats
 import sys
@@ -123,6 +127,19 @@ def timeline() -> dict:
     return log
 
 
+def chunk_sizes(sizes: list[int]):
+    """rollout()'s chunks of the given sizes (their sum: every simulation) instead of equal ones."""
+    from warpgnn import rollout
+
+    def spans(n: int, _chunk: int) -> list[tuple[int, int]]:
+        if sum(sizes) != n:
+            raise SystemExit(f"--spans add up to {sum(sizes)}, not the {n} simulations")
+        ends = list(itertools.accumulate(sizes))
+        return list(zip([0] + ends[:-1], ends))
+
+    rollout.chunk_spans = spans
+
+
 def graphs_on_device():
     """Each chunk's graph built by torch on the GPU (its topology sent there first) instead of on the host."""
     import warp as wp
@@ -183,6 +200,8 @@ def main():
     ap.add_argument("--timeline", action="store_true", help="the timed rollout's stages and GPU replays in time")
     ap.add_argument("--graphs-on-device", action="store_true", help="each chunk's graph built on the GPU")
     ap.add_argument("--gpu", action="store_true", help="time each chunk's rollout and kernels on the GPU, not eval")
+    ap.add_argument("--plain", action="store_true", help="eval alone, no profiler")
+    ap.add_argument("--spans", type=lambda s: [int(x) for x in s.split(",")], help="the chunks' sizes, e.g. 16,32,64")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
@@ -190,7 +209,9 @@ def main():
         record = provenance.record(a) | {"chunk": a.chunk, "chunks": gpu_chunks(a.checkpoint, a.data, a.chunk)}
         Path(a.json).write_text(json.dumps(record, indent=1) + "\n")
         return
-    profile = None if a.phases or a.timeline else cProfile.Profile()
+    profile = None if a.phases or a.timeline or a.plain else cProfile.Profile()
+    if a.spans:
+        chunk_sizes(a.spans)
     if a.graphs_on_device:
         graphs_on_device()
     times = time_calls(stages()) if a.phases else None
@@ -202,7 +223,7 @@ def main():
         if profile:
             profile.disable()
     print(f"chunk {a.chunk}: rollout_seconds {result['rollout_seconds']:.3f}")
-    record = provenance.record(a) | {"chunk": a.chunk, "graphs_on_device": a.graphs_on_device,
+    record = provenance.record(a) | {"chunk": a.chunk, "spans": a.spans, "graphs_on_device": a.graphs_on_device,
                                      "rollout_seconds": result["rollout_seconds"],
                                      "warmup_seconds": result["warmup_seconds"]}
     if log is not None:
