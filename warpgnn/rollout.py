@@ -105,7 +105,7 @@ def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None, first
 def chunk_spans(n: int, chunk: int) -> list[tuple[int, int]]:
     """(start, end) of each chunk of ``n`` simulations, ``chunk`` a chunk and the rest last. (Chunks growing from a
     quarter of ``chunk``, to start the GPU sooner, were slower on the Warp backend: the host's work for a chunk took
-    longer than the GPU's for the smaller one before it; bench/studies/eval_variants.py,
+    longer than the GPU's for the smaller one before it; bench/studies/warp_rollout_profile.py --spans,
     bench/results/warp_rollout_chunks_h200.json.)"""
     return [(c, min(n, c + chunk)) for c in range(0, n, chunk)]
 
