@@ -103,6 +103,41 @@ def _csr(keys: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.
     return order, ordered, off
 
 
+def _mesh_csr(top) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The mesh edges' receivers and senders in CSR order and the (n + 1) offsets (_csr), int32, where the topology
+    is. A host topology that stacks copies of one graph (eval's chunks: simulations of one anatomy) takes that graph's
+    order, repeated: a stable sort of the stack is each graph's own sort one after another (a graph's keys above the
+    ones before). 64 L5 simulations on a 2-core host: a graph build 5.5-5.8 -> 2.9-3.1 ms (the check 0.8 of it), the
+    same arrays."""
+    copies = _copies(top)
+    if copies is None:
+        senders, receivers = (x.to(torch.int32) for x in (top.senders, top.receivers))
+        order, mesh_recv, mesh_off = _csr(receivers, top.n_nodes)
+        return mesh_recv, senders[order], mesh_off
+    senders, receivers, count = copies
+    order, recv, off = _csr(receivers.to(torch.int32), len(top.rest) // count)
+    node_shift = torch.arange(count, dtype=torch.int32)[:, None] * (len(top.rest) // count)
+    edge_shift = torch.arange(count, dtype=torch.int32)[:, None] * len(receivers)
+    mesh_off = torch.cat([(off[:-1] + edge_shift).ravel(), torch.tensor([count * len(receivers)], dtype=torch.int32)])
+    return (recv + node_shift).ravel(), (senders.to(torch.int32)[order] + node_shift).ravel(), mesh_off
+
+
+def _copies(top):
+    """(senders, receivers, count): a host topology's first graph's mesh edges and how many graphs it stacks, where
+    every graph is a copy of the first (its nodes offset by the graph's size); else None. Never on a GPU: the check
+    reads back, which would wait for the work in flight."""
+    sizes, senders, receivers = top.graph_sizes, top.senders, top.receivers
+    count = len(sizes)
+    if receivers.is_cuda or count < 2 or len(receivers) % count or not bool((sizes == sizes[0]).all()):
+        return None
+    edges = len(receivers) // count
+    shift = torch.arange(count, dtype=receivers.dtype)[:, None] * int(sizes[0])
+    for x in (receivers, senders):
+        if not torch.equal(x.view(count, edges) - shift, x[:edges].expand(count, edges)):
+            return None
+    return senders[:edges], receivers[:edges], count
+
+
 def _last_wins(index: torch.Tensor, values: torch.Tensor, n: int, empty) -> torch.Tensor:
     """out[index[i]] = values[i], the last i winning where an index repeats (as index_put on a CPU), ``empty``
     elsewhere: the largest i of each index by scatter_reduce (index_put's choice among repeats is undefined on
@@ -176,14 +211,12 @@ def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = 
         return x.detach().to(dev, dtype)
 
     n, k = top.n_nodes, top.n_tools
-    senders, receivers = t_(top.senders), t_(top.receivers)
     act_tool, act_node = t_(top.act_senders), t_(top.act_receivers)
     if not actuator_graphs:
         act_tool, act_node = act_tool[:0], act_node[:0]
-    lay = Layout(n, len(senders), k if actuator_graphs else 0, len(act_tool), tile_rows, self_loops, edge_rows)
+    lay = Layout(n, len(top.senders), k if actuator_graphs else 0, len(act_tool), tile_rows, self_loops, edge_rows)
 
-    order, mesh_recv, mesh_off = _csr(receivers, n)
-    mesh_send = senders[order]
+    mesh_recv, mesh_send, mesh_off = _mesh_csr(top)
     a_order, act_node, act_off = _csr(act_node, n)
     act_tool = act_tool[a_order]
     loaded = t_(top.loaded)

@@ -357,6 +357,26 @@ def test_graph_built_as_numpy_would(where, device):
     np.testing.assert_array_equal(g.presc_weight.numpy(), want_weight)
 
 
+def test_stacked_copies_of_one_mesh_take_its_order():
+    """A host batch of one mesh's simulations (other tools each) is built from its first graph's CSR order, repeated
+    (graph._copies); a batch of two meshes by the whole stack's sort: either way the CSR order and offsets of a stable
+    argsort and counts of the stacked receivers."""
+    from warpgnn.graphs import batch
+    from warpgnn.kernels.graph import _copies, build
+
+    one_mesh = batch([tool_topology(box((4, 3, 2)), k, seed=k) for k in (1, 2, 3)])
+    two_meshes = batch([tool_topology(box((4, 3, 2)), 1, seed=1), tool_topology(box((3, 3, 3)), 2, seed=2)])
+    assert _copies(one_mesh) is not None and _copies(two_meshes) is None
+    for top in (one_mesh, two_meshes):
+        g = build(top, 16, device="cpu")
+        recv = top.receivers.numpy()
+        order = np.argsort(recv, kind="stable")
+        np.testing.assert_array_equal(g.mesh_recv.numpy(), recv[order])
+        np.testing.assert_array_equal(g.mesh_send.numpy(), top.senders.numpy()[order])
+        np.testing.assert_array_equal(g.mesh_off.numpy(),
+                                      np.concatenate([[0], np.cumsum(np.bincount(recv, minlength=top.n_nodes))]))
+
+
 def test_tiles_by_graph_size():
     """Node tiles of the most rows that still make a tile an SM: 8 at batch 1 and 2 of L5 (670 nodes) on an H200's
     132 SMs, 16 at batch 4, 32 from batch 8 on (batch 64), at most 16 at F = 128 or where a block may take less than
