@@ -364,7 +364,11 @@ def test_stacked_copies_of_one_mesh_take_its_order():
     from warpgnn.graphs import batch
     from warpgnn.kernels.graph import _copies, build
 
-    one_mesh = batch([tool_topology(box((4, 3, 2)), k, seed=k) for k in (1, 2, 3)])
+    parts = [tool_topology(box((4, 3, 2)), k, seed=k) for k in (1, 2, 3)]
+    one_mesh = batch(parts)  # graphs.batch offsets parts of one length by a broadcast add: as each part's own
+    for name in ("senders", "receivers"):
+        shifted = [getattr(t, name) + i * t.n_nodes for i, t in enumerate(parts)]
+        assert torch.equal(getattr(one_mesh, name), torch.cat(shifted))
     two_meshes = batch([tool_topology(box((4, 3, 2)), 1, seed=1), tool_topology(box((3, 3, 3)), 2, seed=2)])
     assert _copies(one_mesh) is not None and _copies(two_meshes) is None
     for top in (one_mesh, two_meshes):
