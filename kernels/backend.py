@@ -69,6 +69,8 @@ class WarpModel:
             check_config(model.config)
         except ValueError as exc:
             raise InputError(f"{exc}; use --backend torch") from None
+        if keep < 1:
+            raise ValueError(f"keep: at least one topology's Network (the one in use), not {keep}")
         wp.init()
         self.reference, self.config = model, model.config
         self.device = wp.device_from_torch(next(model.parameters()).device)
@@ -97,7 +99,7 @@ class WarpModel:
         if self._idle():
             self._retired.clear()
         else:
-            del self._retired[:-self.keep or len(self._retired)]
+            del self._retired[:max(0, len(self._retired) - self.keep)]
 
     def _idle(self) -> bool:
         """Nothing in flight on the streams the Networks run on (torch's current one, Warp's); the CPU always."""

@@ -114,28 +114,28 @@ def _mesh_csr(top) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         senders, receivers = (x.to(torch.int32) for x in (top.senders, top.receivers))
         order, mesh_recv, mesh_off = _csr(receivers, top.n_nodes)
         return mesh_recv, senders[order], mesh_off
-    senders, receivers, count = copies
-    order, recv, off = _csr(receivers.to(torch.int32), len(top.rest) // count)
-    node_shift = torch.arange(count, dtype=torch.int32)[:, None] * (len(top.rest) // count)
+    senders, receivers, count, size = copies
+    order, recv, off = _csr(receivers.to(torch.int32), size)
+    node_shift = torch.arange(count, dtype=torch.int32)[:, None] * size
     edge_shift = torch.arange(count, dtype=torch.int32)[:, None] * len(receivers)
     mesh_off = torch.cat([(off[:-1] + edge_shift).ravel(), torch.tensor([count * len(receivers)], dtype=torch.int32)])
     return (recv + node_shift).ravel(), (senders.to(torch.int32)[order] + node_shift).ravel(), mesh_off
 
 
 def _copies(top):
-    """(senders, receivers, count): a host topology's first graph's mesh edges and how many graphs it stacks, where
-    every graph is a copy of the first (its nodes offset by the graph's size); else None. Never on a GPU: the check
-    reads back, which would wait for the work in flight."""
+    """(senders, receivers, count, size): a host topology's first graph's mesh edges, how many graphs it stacks and
+    their nodes each, where every graph is a copy of the first (its nodes offset by ``size`` a graph); else None.
+    Only on the CPU: the check reads back, which on a GPU would wait for the work in flight."""
     sizes, senders, receivers = top.graph_sizes, top.senders, top.receivers
     count = len(sizes)
-    if receivers.is_cuda or count < 2 or len(receivers) % count or not bool((sizes == sizes[0]).all()):
+    if receivers.device.type != "cpu" or count < 2 or len(receivers) % count or not bool((sizes == sizes[0]).all()):
         return None
-    edges = len(receivers) // count
-    shift = torch.arange(count, dtype=receivers.dtype)[:, None] * int(sizes[0])
+    edges, size = len(receivers) // count, int(sizes[0])
+    shift = torch.arange(count, dtype=receivers.dtype)[:, None] * size
     for x in (receivers, senders):
         if not torch.equal(x.view(count, edges) - shift, x[:edges].expand(count, edges)):
             return None
-    return senders[:edges], receivers[:edges], count
+    return senders[:edges], receivers[:edges], count, size
 
 
 def _last_wins(index: torch.Tensor, values: torch.Tensor, n: int, empty) -> torch.Tensor:

@@ -360,7 +360,10 @@ def test_graph_built_as_numpy_would(where, device):
 def test_stacked_copies_of_one_mesh_take_its_order():
     """A host batch of one mesh's simulations (other tools each) is built from its first graph's CSR order, repeated
     (graph._copies); a batch of two meshes by the whole stack's sort: either way the CSR order and offsets of a stable
-    argsort and counts of the stacked receivers."""
+    argsort and counts of the stacked receivers; also where a graph's edges are the first's in another order (not
+    copies) and where no graph has edges."""
+    import dataclasses
+
     from warpgnn.graphs import batch
     from warpgnn.kernels.graph import _copies, build
 
@@ -370,13 +373,20 @@ def test_stacked_copies_of_one_mesh_take_its_order():
         shifted = [getattr(t, name) + i * t.n_nodes for i, t in enumerate(parts)]
         assert torch.equal(getattr(one_mesh, name), torch.cat(shifted))
     two_meshes = batch([tool_topology(box((4, 3, 2)), 1, seed=1), tool_topology(box((3, 3, 3)), 2, seed=2)])
-    assert _copies(one_mesh) is not None and _copies(two_meshes) is None
-    for top in (one_mesh, two_meshes):
+    # one mesh's sizes and edge count, the second graph's edges in another order: not copies
+    reordered = batch([parts[0], dataclasses.replace(parts[1], senders=parts[1].senders.flip(0),
+                                                     receivers=parts[1].receivers.flip(0))])
+    rewired = batch([parts[0], dataclasses.replace(parts[1], senders=parts[1].senders.roll(1))])  # receivers alike
+    no_edges = batch([dataclasses.replace(t, senders=t.senders[:0], receivers=t.receivers[:0]) for t in parts])
+    assert _copies(one_mesh) is not None and _copies(no_edges) is not None
+    assert _copies(two_meshes) is None and _copies(reordered) is None and _copies(rewired) is None
+    for top in (one_mesh, two_meshes, reordered, rewired, no_edges):
         g = build(top, 16, device="cpu")
         recv = top.receivers.numpy()
         order = np.argsort(recv, kind="stable")
-        np.testing.assert_array_equal(g.mesh_recv.numpy(), recv[order])
-        np.testing.assert_array_equal(g.mesh_send.numpy(), top.senders.numpy()[order])
+        edges = len(recv)  # build's arrays hold one placeholder where empty
+        np.testing.assert_array_equal(g.mesh_recv.numpy()[:edges], recv[order])
+        np.testing.assert_array_equal(g.mesh_send.numpy()[:edges], top.senders.numpy()[order])
         np.testing.assert_array_equal(g.mesh_off.numpy(),
                                       np.concatenate([[0], np.cumsum(np.bincount(recv, minlength=top.n_nodes))]))
 

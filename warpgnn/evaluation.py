@@ -45,11 +45,13 @@ def evaluate(checkpoint_path, data_file, out_dir, device=None, backend: str | No
     sims = load_file(data_file, device)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    # one untimed step of every simulation in the same chunks, either backend: what rollout_seconds times is rolling
-    # out, not loading code on first use (Warp's kernel definitions and modules of each chunk's size, torch's CUDA
-    # kernels and cuBLAS), reported apart
+    # one untimed step of a chunk of each size the rollouts take (the first and a shorter last), either backend: what
+    # rollout_seconds times is rolling out, not loading code on first use (Warp's kernel definitions and modules,
+    # which differ with the chunk's size, torch's CUDA kernels and cuBLAS), reported apart. Not of every chunk: the
+    # warm-up's Networks would fill the Warp backend's cache, whose releases then wait for the GPU (WarpModel._release)
+    rest = len(sims) % chunk if len(sims) > chunk else 0
     t0 = time.perf_counter()
-    rollout(network, sims, chunk, first=sims[0].steps - 1)
+    rollout(network, sims[:chunk] + sims[len(sims) - rest:len(sims)], chunk, first=sims[0].steps - 1)
     warmup = time.perf_counter() - t0
     t0 = time.perf_counter()
     with tqdm(total=len(sims) * sims[0].steps, desc="rollouts", unit="step", leave=False) as bar:

@@ -12,8 +12,8 @@ chunk's replay on the GPU (CUDA events, from an event recorded at the rollout's 
 show (bench/results/warp_rollout_loop_h200.json). ``--gpu``: instead of eval, each chunk's whole rollout
 (WarpModel.rollout, one graph replay) timed by CUDA events, its forward step and each kernel's mean (the GPU's share
 of eval's figure). ``--plain``: eval alone, unprofiled (its rollout_seconds, for variants run in fresh processes
-side by side). ``--spans 16,32,64,64,14``: the chunks' sizes (warpgnn.rollout.chunk_spans; eval's warm-up rolls the
-same chunks), in place of --chunk's equal ones: chunks growing from small, so the GPU starts sooner, were slower
+side by side). ``--spans 16,32,64,64,14``: the chunks' sizes (warpgnn.rollout.chunk_spans; eval's warm-up then rolls
+the first and the last), in place of --chunk's equal ones: chunks growing from small, so the GPU starts sooner, were slower
 (bench/results/warp_rollout_chunks_h200.json).
 
 Its first run (H200, the 190 L5 test rollouts): of rollout()'s 0.82 s (0.72 s unprofiled; the GPU's share ~0.23 s),
@@ -128,13 +128,19 @@ def timeline() -> dict:
 
 
 def chunk_sizes(sizes: list[int]):
-    """rollout()'s chunks of the given sizes (their sum: every simulation) instead of equal ones."""
+    """rollout()'s chunks of the given sizes (their sum: every simulation) instead of equal ones; eval's warm-up (fewer
+    simulations) rolls a chunk of each size as far as they go, then the rest, so that the timed run meets no chunk
+    size (kernel Spec) for the first time."""
     from warpgnn import rollout
 
     def spans(n: int, _chunk: int) -> list[tuple[int, int]]:
-        if sum(sizes) != n:
-            raise SystemExit(f"--spans add up to {sum(sizes)}, not the {n} simulations")
-        ends = list(itertools.accumulate(sizes))
+        if n < sum(sizes):  # the warm-up
+            ends = [e for e in itertools.accumulate(dict.fromkeys(sizes)) if e <= n]
+            ends += [n] if not ends or ends[-1] < n else []
+        elif n == sum(sizes):
+            ends = list(itertools.accumulate(sizes))
+        else:
+            raise SystemExit(f"--spans add up to {sum(sizes)}, fewer than the {n} simulations")
         return list(zip([0] + ends[:-1], ends))
 
     rollout.chunk_spans = spans
@@ -205,6 +211,8 @@ def main():
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
+    if a.gpu and (a.spans or a.graphs_on_device):
+        ap.error("--gpu times eval's equal chunks with their graphs built on the host: no --spans, --graphs-on-device")
     if a.gpu:
         record = provenance.record(a) | {"chunk": a.chunk, "chunks": gpu_chunks(a.checkpoint, a.data, a.chunk)}
         Path(a.json).write_text(json.dumps(record, indent=1) + "\n")
