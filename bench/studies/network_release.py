@@ -1,12 +1,14 @@
 """Whether dropping a topology's Network (kernels.backend.WarpModel's cache) waits for the GPU's work in flight:
 eval's three chunks of its L5 simulations (64, 64, 62); A rolled out and finished, B's rollout queued, C's Network
 built and its rollout queued (A's and B's Networks dropped from a cache of one, kept until the GPU is idle:
-WarpModel._release), then, C's rollout replayed, those two idle Networks released while it runs.
+WarpModel._release), then, C's rollout replayed, those two idle Networks released while it runs, part by part (their
+captured graphs, their rollouts' buffers, the rest) to find the part that waits.
 
     python bench/studies/network_release.py CHECKPOINT.pt L5.h5 --json OUT.json --device "..." --command "..."
 
-On the H200 (bench/results/warp_rollout_chunks_h200.json): releasing idle Networks took ~35 ms, the rollout in
-flight's whole time: hence WarpModel._release.
+On the H200 (bench/results/warp_rollout_chunks_h200.json, call U4, a probe of the same steps that released whole
+Networks): releasing an idle one took ~35 ms, the rollout in flight's whole time: hence WarpModel._release. The
+part-by-part release has not run on a GPU yet.
 """
 
 import argparse
@@ -60,13 +62,17 @@ def main():
         torch.cuda.synchronize()
         t3 = time.perf_counter()
         wm.rollout(*c_)  # replayed: C's rollout in flight
-        t4 = time.perf_counter()
-        wm._retired.clear()  # A's and B's Networks, idle since the synchronize, released while C rolls out
-        t5 = time.perf_counter()
+        # A's and B's Networks, idle since the synchronize, released while C rolls out, part by part: which waits?
+        stages, t = {}, time.perf_counter()
+        for part in ("graphs", "rollouts", "network"):  # captured graphs, the rollouts' buffers, then the rest
+            if part == "network":
+                wm._retired.clear()
+            for e in wm._retired:
+                getattr(e, part).clear()
+            stages[part + "_ms"], t = ms(t, time.perf_counter()), time.perf_counter()
         torch.cuda.synchronize()
-        t6 = time.perf_counter()
         runs.append({"queue_b_ms": ms(t0, t1), "build_and_queue_c_ms": ms(t1, t2), "gpu_left_after_c_ms": ms(t2, t3),
-                     "release_idle_networks_while_c_runs_ms": ms(t4, t5), "gpu_left_after_the_release_ms": ms(t5, t6)})
+                     "release_while_c_runs": stages, "gpu_left_after_the_release_ms": ms(t, time.perf_counter())})
         print(runs[-1], flush=True)
     Path(a.json).write_text(json.dumps(provenance.record(a) | {"runs": runs}, indent=1) + "\n")
 
