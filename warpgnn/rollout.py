@@ -79,15 +79,13 @@ def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None, first
         for c, end in chunk_spans(len(sims), chunk):
             part = sims[c:end]
             device = part[0].z.device
-            top = batch([s.topology for s in part])  # where the simulations' topologies are (eval's: the host)
-            z = torch.cat(z0[c:end]).to(device)
-            u = torch.cat([s.u[first:] for s in part], 1).to(device)  # (steps + 1, tools of the chunk, 3)
+            top, z, u, dt = chunk_inputs(part, first, z0[c:end])
             if hasattr(model, "rollout"):  # the Warp kernels build their graph where the topology is (kernels/graph.py)
-                states, diagnostics = model.rollout(top, z, u, part[0].dt)
+                states, diagnostics = model.rollout(top, z, u, dt)
                 if progress:
                     progress(len(part) * (len(u) - 1))
             else:
-                states, diagnostics = stepwise(model, top.to(device), z, u, part[0].dt,
+                states, diagnostics = stepwise(model, top.to(device), z, u, dt,
                                                progress and partial(progress, len(part)))
             results = [states, *_per_graph(top.graph_sizes, *(diagnostics or ()))]
             if states.is_cuda:
@@ -100,6 +98,16 @@ def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None, first
             reader.abandon()
         raise
     return out + (reader.close() if reader else [])
+
+
+def chunk_inputs(part: list[Simulation], first: int = 0, z0: list[torch.Tensor] | None = None):
+    """A chunk's rollout inputs, model.rollout's: the simulations' topologies stacked where they are (eval's: the
+    host), the start states (N, 12) from snapshot ``first`` (or ``z0``, one a simulation) and the tools' displacements
+    (steps + 1, tools of the chunk, 3) on the simulations' device, and their step dt."""
+    device = part[0].z.device
+    z0 = z0 if z0 is not None else [s.z[first] for s in part]
+    return (batch([s.topology for s in part]), torch.cat(z0).to(device),
+            torch.cat([s.u[first:] for s in part], 1).to(device), part[0].dt)
 
 
 def chunk_spans(n: int, chunk: int) -> list[tuple[int, int]]:

@@ -32,18 +32,18 @@ def main():
 
     from warpgnn import checkpoint
     from warpgnn.data import load_file
-    from warpgnn.graphs import batch
     from warpgnn.kernels import WarpModel
+    from warpgnn.rollout import chunk_inputs, chunk_spans
 
     model, _ = checkpoint.load_model(a.checkpoint, "cuda")
     sims = load_file(a.data, "cuda")
     if len(sims) < 129:
         raise SystemExit(f"{a.data}: {len(sims)} simulations; three chunks (64, 64 and the rest) need 129")
 
+    spans = chunk_spans(len(sims), 64)  # eval's chunks: the third takes the rest (62 of eval's 190)
+
     def chunk(c):
-        part = sims[64 * c:64 * c + 64]  # eval's chunks: the third takes the rest (62 of eval's 190)
-        return (batch([s.topology for s in part]), torch.cat([s.z[0] for s in part]),
-                torch.cat([s.u for s in part], 1), part[0].dt)
+        return chunk_inputs(sims[spans[c][0]:spans[c][1]])
 
     def ms(t0, t1):
         return round(1e3 * (t1 - t0), 2)

@@ -169,25 +169,24 @@ def gpu_chunks(checkpoint_path, data, chunk: int) -> list[dict]:
 
     from warpgnn import checkpoint
     from warpgnn.data import load_file
-    from warpgnn.graphs import batch
     from warpgnn.kernels import WarpModel
+    from warpgnn.rollout import chunk_inputs, chunk_spans
 
     model, _ = checkpoint.load_model(checkpoint_path, "cuda")
     sims, warp, out = load_file(data, "cuda"), WarpModel(model), []
     start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-    for c in range(0, len(sims), chunk):
-        part = sims[c:c + chunk]
-        top = batch([s.topology for s in part])
-        z, u = torch.cat([s.z[0] for s in part]).cuda(), torch.cat([s.u for s in part], 1).cuda()
+    for c, last in chunk_spans(len(sims), chunk):
+        part = sims[c:last]
+        top, z, u, dt = chunk_inputs(part)
         times = []
         for _ in range(6):  # the first captures
             start.record()
-            warp.rollout(top, z, u, part[0].dt)
+            warp.rollout(top, z, u, dt)
             end.record()
             end.synchronize()
             times.append(start.elapsed_time(end))
         net = warp._get(top).net
-        net.set_inputs(z, u[0], u[1], part[0].dt)
+        net.set_inputs(z, u[0], u[1], dt)
         kernels = kernel_means(net, 5)
         out.append({"sims": len(part), "steps": len(u) - 1, "rollout_ms": sorted(times[1:])[2],
                     "forward_ms": captured_step_ms(net, 40)[1], "act_edges": net.layout.n_act_edges,
