@@ -10,7 +10,7 @@ hold half of the columns, so the LayerNorm's statistics cross warpgroups through
 * the first product's accumulators start at (b1 + P_r) + P_s (gathered into the same places) and, after SiLU, are
   the second product's A fragments as they are (weights.register_layout);
 * the second product's accumulators start at b2; a row's LayerNorm is two quad shuffles; the rows are written from
-  registers, in place.
+  registers, in place; the warpgroup's next tile's rows are asked of L2 (one bulk prefetch) as a tile begins.
 
 The products are 3xTF32 wgmma (fp32's accuracy). A block of W warpgroups (Spec.edge_warpgroups) runs W tiles at once
 with no barrier between them but the one after its weights are staged: with W = 1 a block a tile (its edge set's
@@ -79,6 +79,10 @@ EDGE_ROWS_IN_REGISTERS = register_source(r"""
     weights_staged();
     for (; t < n_tiles; t += stride) {
         int row0, s, wi, recv_col, send_row;
+        if (t + stride < n_tiles) {  // the warpgroup's next tile's e rows (16 KiB in a row) asked of L2
+            tile_of(t + stride, row0, s, wi, recv_col, send_row);
+            prefetch_l2(row_ptr(lat, row0), 64 * F * 4);
+        }
         tile_of(t, row0, s, wi, recv_col, send_row);
         const unsigned w = w0 + 2 * WBYTES * (SETS == 2 ? s : 0);  // the set's W_e, then its W2 (WBYTES on)
         // first layer: h = silu((b1 + P_r + P_s) + e W_e), e's columns as A; the second's A: h as it is

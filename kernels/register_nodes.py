@@ -3,7 +3,8 @@
 The block-tile node pass (message_passing.node_kernel) writes the CSR sums into a (T, 3F) shared tile and runs its
 three products (f_v's two layers, then the next stage's node products) as fp32 FMAs over shared tiles, copying its
 weights (112 KiB) into every block. Here a warpgroup owns a 64-node tile (register_tiles' layout) and resident blocks,
-one an SM, stage the pass's weights once (224 KiB in tf32 parts) and loop over tiles:
+one an SM, stage the pass's weights once (224 KiB in tf32 parts) and loop over tiles, from the last node's (the edge
+pass before wrote the last nodes' messages last: L2 still holds them):
 
 * the CSR segments load a tile ahead; the mesh messages' sum is read four messages a row at once straight into the
   A layout (those loads in flight are what keeps the memory busy at eight warps an SM: nothing else is held), then
@@ -49,8 +50,11 @@ NODE_ROWS_IN_REGISTERS = register_source(r"""
     float2 x0[J], x1[J], s0[J], s1[J];  // x's rows r0, r1; a CSR sum of theirs
     int na = 0, nb = 0;  // the rows' nodes
     wp::int32 seg[2][4];  // their CSR segments: [mesh, actuator][begin a, end a, begin b, end b]
+    // tile t's first node, the tiles taken from the last: the edge pass before wrote the last nodes' messages last, so
+    // L2 still holds them, and this pass's last products, of the first nodes, are the next edge pass's first gathers
+    auto tile_node = [&](int t) { return 64 * (n_tiles - 1 - t); };
     auto load_segments = [&](int t) {  // a tile's nodes and CSR segments, a tile ahead: a latency less in its chain
-        na = 64 * t + r0; nb = 64 * t + r1;
+        na = tile_node(t) + r0; nb = tile_node(t) + r1;
 #pragma unroll
         for (int g = 0; g < 2; ++g) {
             const wp::array_t<wp::int32>& off = g ? act_off : mesh_off;

@@ -28,6 +28,7 @@ REGISTER_STEPS and ``cuda``, elsewhere ROW_MLP and ``cpu``. REGISTER_STEPS:
   touches neither d nor A may run); ``issue_with(product, ...)`` and ``settle_into(out, n)`` the same into another
   product's accumulators (a wider one's, register_decoder);
 * ``norm(pg, pt)``: d = LayerNorm(d) gain + shift, the rows' statistics by quad shuffles; ``residual(v0, v1)``: d += v;
+* ``prefetch_l2(p, bytes)``: consecutive bytes asked of L2 (one bulk prefetch by the warpgroup's first thread);
 * ``copy_async(dst, src, bytes)``: the block's 16-byte cp.async copies of a weight into shared memory;
   ``weights_staged()``: wait for them, fence them for wgmma's async proxy, and sync the block.
 
@@ -174,6 +175,12 @@ REGISTER_STEPS = TF32_SPLIT + r"""
         asm volatile("cp.async.wait_all;\n" ::: "memory");
         asm volatile("fence.proxy.async.shared::cta;\n" ::: "memory");
         __syncthreads();
+    };
+    // [p, p + bytes) asked of L2 by the warpgroup's first thread (p 16-byte aligned, bytes a multiple of 16): a
+    // tile's rows a tile ahead, so that its loads find them there rather than in DRAM
+    auto prefetch_l2 = [&](const void* p, unsigned bytes) {
+        if (threadIdx.x % 128 == 0 && bytes)
+            asm volatile("cp.async.bulk.prefetch.L2.global [%0], %1;\n" :: "l"(p), "r"(bytes) : "memory");
     };
     auto copy_async = [&](unsigned dst, const void* src, int bytes) {
         const char* s = reinterpret_cast<const char*>(src);

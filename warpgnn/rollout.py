@@ -73,13 +73,12 @@ def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None, first
 
     On CUDA the host queues each chunk and goes on to build (and, on the Warp backend, capture) the next while the
     GPU rolls it out; a thread of their own reads the chunks' results back as each one ends (_Reader)."""
-    z0 = z0 if z0 is not None else [s.z[first] for s in sims]
     out, reader = [], None
     try:
         for c, end in chunk_spans(len(sims), chunk):
             part = sims[c:end]
             device = part[0].z.device
-            top, z, u, dt = chunk_inputs(part, first, z0[c:end])
+            top, z, u, dt = chunk_inputs(part, first, None if z0 is None else z0[c:end])
             if hasattr(model, "rollout"):  # the Warp kernels build their graph where the topology is (kernels/graph.py)
                 states, diagnostics = model.rollout(top, z, u, dt)
                 if progress:
