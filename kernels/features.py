@@ -12,7 +12,8 @@ columns, one 16-byte store): Spec.features_in_encoder.
 
 A latent row (graph.Layout's blocks) has its features in FEATURE_WIDTH columns, every one written
 (zero past its class's width, and on padding rows), so the encoder's zero weight rows never meet
-stale memory.
+stale memory; but where the mesh-edge rows' encoder in registers reads their 8 features alone
+(register_edges.MESH_EDGES_ENCODED), the features launch writes those 2 groups of them only.
 """
 
 # No `from __future__ import annotations`: the tile types in wp.func signatures are evaluated when defined.
@@ -186,20 +187,36 @@ def kernels(spec: Spec):
     standardisation for each of 24 columns, a thread a row stored 24 scalars 96 bytes apart: 154 / 143 -> 66 us at
     batch 64, bench/results/warp_large_graphs_h200.json)."""
     @wp.kernel(enable_backward=False, module=spec.module)
-    def features(f: Inputs, feat: wp.array2d(dtype=COLUMNS)):
+    def features(f: Inputs, feat: wp.array2d(dtype=COLUMNS), mesh_rows: int, mesh_groups: int):
         tid = wp.tid()
         grid_step(0)
         grid_step(1)
+        # items: GROUPS a row, but the mesh_rows rows of the mesh-edge block mesh_groups each
+        before = f.mesh_row * GROUPS
+        mesh_items = mesh_rows * mesh_groups
         row = tid // GROUPS
         g = tid - row * GROUPS
+        if tid >= before + mesh_items:
+            i = tid - before - mesh_items
+            row = f.mesh_row + mesh_rows + i // GROUPS
+            g = i - (i // GROUPS) * GROUPS
+        elif tid >= before:
+            i = tid - before
+            row = f.mesh_row + i // mesh_groups
+            g = i - (i // mesh_groups) * mesh_groups
         feat[row, g] = feature_group(f, row, g)
 
     return features
 
 
 def launches(net) -> list:
-    """The features launch, recorded (none where the encoder computes them: Spec.features_in_encoder)."""
+    """The features launch, recorded (none where the encoder computes them: Spec.features_in_encoder). Where the
+    mesh-edge rows' encoder in registers takes them (it reads their 8 features alone), their first 2 groups only:
+    half the launch's items at batch 64 of L5."""
     if net.spec.features_in_encoder:
         return []
-    return [wp.launch(kernels(net.spec), dim=net.layout.rows * GROUPS, block_dim=net.block_dim, device=net.device,
-                      record_cmd=True, inputs=[inputs(net), net.feat_groups])]
+    lay = net.layout
+    mesh_groups = 2 if net.edge_encoder and net.spec.edge_warpgroups else GROUPS
+    items = (lay.rows - lay.edges_pad) * GROUPS + lay.edges_pad * mesh_groups
+    return [wp.launch(kernels(net.spec), dim=items, block_dim=net.block_dim, device=net.device, record_cmd=True,
+                      inputs=[inputs(net), net.feat_groups, lay.edges_pad, mesh_groups])]

@@ -655,16 +655,24 @@ def test_register_node_pass(kind, warpgroups, actuator_graphs):
     Spec.node_warpgroups), f_v's first layer over x and both CSR sums, the next stage's products, the weights in
     register_layout, and the hybrid's last pass with delta_v: the reference's answer, 3 passes on a graph of 120 nodes
     (a tile's rows past the nodes neither summed nor written), with and without actuator graphs, beside the register
-    edge pass and mesh-edge encoder (register_edges: K chunks, so a features launch)."""
+    edge pass and mesh-edge encoder (register_edges: K chunks, so a features launch, which writes the mesh-edge rows'
+    8 features alone: their other columns, poisoned with NaN, are read by nothing)."""
+    from warpgnn.kernels.features import GROUPS
     from warpgnn.kernels.spec import Spec
 
-    net, _ = check(random_model(kind, 3, 64, actuator_graphs, seed=23), tool_topology(box((5, 4, 3)), 3, seed=23),
-                   seed=23, k_chunk=32, edge_rows=64, edge_gemm="wgmma", edge_warpgroups=1,
+    model, top = random_model(kind, 3, 64, actuator_graphs, seed=23), tool_topology(box((5, 4, 3)), 3, seed=23)
+    net, _ = check(model, top, seed=23, k_chunk=32, edge_rows=64, edge_gemm="wgmma", edge_warpgroups=1,
                    node_warpgroups=warpgroups)
     assert net.spec.node_warpgroups == warpgroups and "_V" in net.spec.module and net.layout.n_nodes % 64
     keys = [x.kernel.key for x in net._launches]
     # K chunks: a features launch, the mesh-edge rows encoded on the register edge pass's tiles
     assert net.edge_encoder and "encoder_registers_kernel__locals__edge_encode" in keys
+    lay, features_launch = net.layout, net._launches[0]
+    assert features_launch.kernel.key.endswith("features") and features_launch.bounds.size == (
+        (lay.rows - lay.edges_pad) * GROUPS + 2 * lay.edges_pad)
+    net.feat.fill_(float("nan"))
+    z, u_now, u_next = random_inputs(top, 23)
+    assert_matches(run(net, z, u_now, u_next), reference(model, top, z, u_now, u_next))
     last_here = kind == "hybrid"  # with delta_v; the vanilla's last pass (decoder, Euler step) in node_kernel
     assert sum(k.startswith("node_registers_kernel") for k in keys) == 2 + last_here
     assert sum(k.startswith("node_kernel") for k in keys) == 1 - last_here
