@@ -656,7 +656,7 @@ def test_register_node_pass(kind, warpgroups, actuator_graphs):
     register_layout, and the hybrid's last pass with delta_v: the reference's answer, 3 passes on a graph of 120 nodes
     (a tile's rows past the nodes neither summed nor written), with and without actuator graphs, beside the register
     edge pass and mesh-edge encoder (register_edges: K chunks, so a features launch, which writes the mesh-edge rows'
-    8 features alone: their other columns, poisoned with NaN, are read by nothing)."""
+    8 features alone and no self-loop rows: the rest of its buffer, poisoned with NaN, is read by nothing)."""
     from warpgnn.kernels.features import GROUPS
     from warpgnn.kernels.spec import Spec
 
@@ -669,7 +669,7 @@ def test_register_node_pass(kind, warpgroups, actuator_graphs):
     assert net.edge_encoder and "encoder_registers_kernel__locals__edge_encode" in keys
     lay, features_launch = net.layout, net._launches[0]
     assert features_launch.kernel.key.endswith("features") and features_launch.bounds.size == (
-        (lay.rows - lay.edges_pad) * GROUPS + 2 * lay.edges_pad)
+        (lay.mesh_row + lay.rows - lay.act_row) * GROUPS + 2 * lay.edges_pad)  # no self-loop rows
     net.feat.fill_(float("nan"))
     z, u_now, u_next = random_inputs(top, 23)
     assert_matches(run(net, z, u_now, u_next), reference(model, top, z, u_now, u_next))
