@@ -6,7 +6,7 @@ Everything runs on tiny models and small box meshes on the CPU; symmetry and ass
 run in float64 so their tolerances can stay tight."""
 
 import math
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import numpy as np
 import pytest
@@ -495,6 +495,24 @@ def test_batch_offsets_match_per_graph_features():
         whole = model(big, z, un, ux).zdot
         split = torch.cat([model(t, zz, a, b).zdot for t, zz, a, b in zip(tops, zs, u_now, u_next)])
         torch.testing.assert_close(whole, split, rtol=1e-10, atol=1e-10 * split.abs().max().item())
+
+
+def test_topologies_sharing_one_mesh_stack_as_their_copies():
+    """Simulations of one mesh share its rest positions and edges (make_topology's ``shared``: the same tensors, as
+    load_file's), and batch stacks a shared tensor by one broadcast: the same stack as of topologies built apart."""
+    mesh = box((3, 2, 2))
+    nodes = top_nodes(mesh)
+    first = make_topology(mesh, nodes[[0]])
+    picks = ([1], [0, -1], [2])
+    shared = [make_topology(mesh, nodes[p], shared=first) for p in picks]
+    apart = [make_topology(mesh, nodes[p]) for p in picks]
+    assert all(t.senders is first.senders and t.rest is first.rest for t in shared)
+    assert all(t.senders is not first.senders for t in apart)
+    one, other = batch([first, *shared]), batch([first, *apart])
+    for f in fields(one):
+        assert torch.equal(getattr(one, f.name), getattr(other, f.name)), f.name
+    n = mesh.nodes.shape[0]
+    assert torch.equal(one.receivers[len(first.receivers):2 * len(first.receivers)], first.receivers + n)
 
 
 # ------------------------------------------------------------------- 9. noise augmentation

@@ -63,7 +63,7 @@ def load_file(path, device="cpu", names=None) -> list[Simulation]:
         rec = dataset.read_simulation(path, name)
         footprint = ("footprint_nodes", "footprint_load", "footprint_weight")
         tip = [rec[k] for k in footprint] if all(k in rec for k in footprint) else [None] * 3
-        top = make_topology(mesh, rec["loaded"], *tip, edges=edges)
+        top = make_topology(mesh, rec["loaded"], *tip, edges=edges, shared=sims[0].topology if sims else None)
         z = torch.as_tensor(dataset.state(rec), dtype=torch.float32, device=device)
         sims.append(Simulation(f"{path.stem}/{name}", top, z,
                                torch.as_tensor(rec["u"], dtype=torch.float32, device=device), dt, mean_edge))

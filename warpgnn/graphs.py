@@ -64,23 +64,29 @@ def to_device(t: torch.Tensor, device: torch.device) -> torch.Tensor:
 
 
 def make_topology(mesh: TetMesh, loaded, prescribed=None, prescribed_tool=None, prescribed_weight=None,
-                  device="cpu", edges: np.ndarray | None = None) -> Topology:
+                  device="cpu", edges: np.ndarray | None = None, shared: Topology | None = None) -> Topology:
     """One simulation's topology. Without a footprint only the loaded nodes are prescribed.
-    ``edges``: the mesh's undirected edges when already known (many simulations, one mesh)."""
+    ``edges``: the mesh's undirected edges when already known (many simulations, one mesh). ``shared``: another
+    simulation's topology of this mesh, whose rest positions and mesh edges (the same tensors) this one takes: then
+    graphs.batch stacks them from one copy."""
     n, loaded = len(mesh.nodes), np.asarray(loaded, np.int64)
     k = len(loaded)
     if prescribed is None:
         prescribed, prescribed_tool, prescribed_weight = loaded, np.arange(k), np.ones(k)
-    e = mesh.edges() if edges is None else edges
-    senders, receivers = np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]])
     node_type = np.where(mesh.fixed, NODE_FIXED, NODE_FREE)
     node_type[np.asarray(prescribed, np.int64)] = NODE_PRESCRIBED
 
     def t(a, dtype=torch.long):
         return torch.as_tensor(np.asarray(a), dtype=dtype, device=device)
 
+    if shared is None:
+        e = mesh.edges() if edges is None else edges
+        rest, senders, receivers = (t(mesh.nodes, torch.float32), t(np.concatenate([e[:, 0], e[:, 1]])),
+                                    t(np.concatenate([e[:, 1], e[:, 0]])))
+    else:
+        rest, senders, receivers = shared.rest, shared.senders, shared.receivers
     return Topology(
-        rest=t(mesh.nodes, torch.float32), senders=t(senders), receivers=t(receivers), node_type=t(node_type),
+        rest=rest, senders=senders, receivers=receivers, node_type=t(node_type),
         loaded=t(loaded), act_senders=t(np.repeat(np.arange(k), n)), act_receivers=t(np.tile(np.arange(n), k)),
         prescribed=t(prescribed), prescribed_tool=t(prescribed_tool),
         prescribed_weight=t(prescribed_weight, torch.float32), graph_sizes=torch.tensor([n]))
@@ -103,7 +109,11 @@ def batch(topologies: list[Topology]) -> Topology:
         # on the host in numpy: a chunk of 64 L5 topologies 6.8 -> 5.9 ms on the H200 machine's host, where stacking
         # is the first thing eval's rollouts wait for (bench/results/warp_rollout_loop_h200.json: its host probe);
         # parts of one length (one mesh's edges) offset by a broadcast add, not a repeat of the offsets (7.3 -> 6.4 ms
-        # on a 2-core host)
+        # on a 2-core host); one tensor shared by every part (make_topology's ``shared``) repeated by one broadcast
+        if all(p is parts[0] for p in parts):
+            x = parts[0].numpy()
+            out = np.broadcast_to(x, (len(parts), *x.shape)) if offsets is None else x + offsets[:, None]
+            return torch.from_numpy(np.ascontiguousarray(out).reshape(-1, *x.shape[1:]))
         out = np.concatenate([p.numpy() for p in parts])
         if offsets is not None:
             lengths = [len(p) for p in parts]
