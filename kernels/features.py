@@ -10,11 +10,12 @@ columns, one 16-byte store): Spec.features_in_encoder.
     actuator edge (KA, 8): node j relative to tool k's loaded node, now and at rest
     tool (K, 6): u_next and u_next - u_now
 
-A latent row (graph.Layout's blocks) has its features in FEATURE_WIDTH columns, every one written
-(zero past its class's width, and on padding rows), so the encoder's zero weight rows never meet
-stale memory; but the features launch writes no self-loop rows (the encoder reads none: their latent
-is learned), and where the mesh-edge rows' encoder in registers reads their 8 features alone
-(register_edges.MESH_EDGES_ENCODED) those 2 groups of a mesh-edge row only.
+A latent row (graph.Layout's blocks) that an encoder reads has its features in FEATURE_WIDTH columns,
+every one it reads written (zero past its class's width, and on padding rows), so the encoder's zero
+weight rows never meet stale memory: the features launch writes no self-loop rows (the encoder reads
+none: their latent is learned), and where the mesh-edge rows' encoder in registers reads their 8
+features alone (register_edges.MESH_EDGES_ENCODED, Network.mesh_edges_in_registers) those 2 groups of
+a mesh-edge row only.
 """
 
 # No `from __future__ import annotations`: the tile types in wp.func signatures are evaluated when defined.
@@ -184,7 +185,7 @@ def inputs(net) -> Inputs:
 @functools.cache
 def kernels(spec: Spec):
     """The features launch (where not Spec.features_in_encoder): feat[row, g] = a latent row's group g, a thread
-    each, consecutive threads' stores contiguous (a thread a (row, column) repeated its row's index loads and
+    an item (launches: which rows and groups), consecutive threads' stores contiguous (a thread a (row, column) repeated its row's index loads and
     standardisation for each of 24 columns, a thread a row stored 24 scalars 96 bytes apart: 154 / 143 -> 66 us at
     batch 64, bench/results/warp_large_graphs_h200.json)."""
     @wp.kernel(enable_backward=False, module=spec.module)
@@ -193,7 +194,7 @@ def kernels(spec: Spec):
         grid_step(0)
         grid_step(1)
         # items: GROUPS a row, but the mesh_rows rows of the mesh-edge block mesh_groups each, and none of the
-        # self-loop rows' after them (the encoder writes their latents without reading features)
+        # self-loop rows' after them (the encoder writes their latents without reading features): launches' count
         before = f.mesh_row * GROUPS
         mesh_items = mesh_rows * mesh_groups
         row = tid // GROUPS
@@ -219,7 +220,7 @@ def launches(net) -> list:
     if net.spec.features_in_encoder:
         return []
     lay = net.layout
-    mesh_groups = 2 if net.edge_encoder and net.spec.edge_warpgroups else GROUPS
-    items = (lay.mesh_row + lay.rows - lay.act_row) * GROUPS + lay.edges_pad * mesh_groups
+    mesh_groups = 2 if net.mesh_edges_in_registers else GROUPS
+    items = (lay.mesh_row + lay.rows - lay.act_row) * GROUPS + lay.edges_pad * mesh_groups  # as the kernel maps them
     return [wp.launch(kernels(net.spec), dim=items, block_dim=net.block_dim, device=net.device, record_cmd=True,
                       inputs=[inputs(net), net.feat_groups, lay.edges_pad, mesh_groups])]

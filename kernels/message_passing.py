@@ -520,7 +520,7 @@ def launches(net) -> list:
     mesh_tiles = lay.edges_pad // edges.tile_rows
     edge_tiles = mesh_tiles + lay.act_pad // edges.tile_rows
     blocks = register_edges.blocks_for(net.spec, edge_tiles, dev) if wgs else edge_tiles
-    if net.edge_encoder and wgs:  # in warpgroups' registers, from the features launch's rows, as the edge pass
+    if net.mesh_edges_in_registers:  # in warpgroups' registers, from the features launch's rows, as the edge pass
         enc_w1, enc_w2 = w.for_products("registers", "enc_edge_w1", "enc_w2")
         enc_blocks = register_edges.blocks_for(net.spec, mesh_tiles, dev)
         out.append(wp.launch_tiled(

@@ -223,6 +223,12 @@ class Network:
                           + decoders.launches(self) + generic_tail.launches(self))
         self._graphs = []  # CUDA graphs of forward and step, once captured
 
+    @property
+    def mesh_edges_in_registers(self) -> bool:
+        """The mesh-edge rows encoded on the register edge pass's tiles (register_edges.encoder_registers_kernel),
+        which read their 8 features alone."""
+        return bool(self.edge_encoder and self.spec.edge_warpgroups)
+
     # ----------------------------------------------------------------------------- inputs and outputs
     def block_dim_of(self, kernel: str) -> int:
         """Threads a block of ``kernel``'s launches (Spec.threads, else block_dim)."""

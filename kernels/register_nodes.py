@@ -18,7 +18,8 @@ The hybrid's last pass runs here too (``fields``): its next stage is the decoder
 second layer, (dE, dS), follows from the third block's accumulators (FMAs over the quad's columns, its weight from
 global memory: it would not fit in shared memory beside the others). The vanilla's last pass (its decoder, zdot and
 Euler step) stays in message_passing.node_kernel. Off CUDA one thread a block computes the same rows in plain fp32
-over the packed parts, so Warp's CPU device checks the layout and the tile walk.
+over the packed parts, its tiles from the first (a node's rows depend on its own messages alone, so the order changes
+no result), so Warp's CPU device checks the layout and the blocks' share of the tiles.
 """
 
 # No `from __future__ import annotations`: the kernel's annotations are evaluated when defined.
