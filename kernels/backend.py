@@ -59,12 +59,17 @@ class _Topology:
         """The Network's forward, captured once (Network.captured) and replayed."""
         self.run("forward", lambda: self.net.captured(self.net.forward))
 
+    def captured_graphs(self) -> list:
+        """Every graph captured for it: its own, its rollouts' loop bodies, the Network's."""
+        bodies = [r._body for r in self.rollouts.values() if getattr(r, "_body", None) is not None]
+        return [*self.graphs.values(), *bodies, *self.net._graphs]
+
 
 class WarpModel:
     def __init__(self, model, keep: int = 4):
         """``model``: a TIGNN (its weights are packed for each topology's Network, on its device);
-        ``keep``: how many topologies' Networks stay built (and as many dropped ones until the GPU is idle: _release).
-        A configuration the kernels do not cover is refused in one line."""
+        ``keep``: how many topologies' Networks stay built (a dropped one's captured graphs until the GPU is idle:
+        _release). A configuration the kernels do not cover is refused in one line."""
         try:
             check_config(model.config)
         except ValueError as exc:
@@ -77,7 +82,7 @@ class WarpModel:
         self.weights = pack(model, self.device)  # once: every topology's Network reads the same copy
         self.keep = keep
         self._cache = OrderedDict()  # id(topology) -> _Topology
-        self._retired = []  # dropped from the cache, released once the GPU is idle (_release)
+        self._held = []  # the captured graphs of Networks dropped from the cache, released once the GPU is idle
 
     def _get(self, top) -> _Topology:
         entry = self._cache.get(id(top))
@@ -85,21 +90,20 @@ class WarpModel:
             self._release()
             entry = self._cache[id(top)] = _Topology(Network(self.reference, top, device=self.device,
                                                                 weights=self.weights), top)
-            while len(self._cache) > self.keep:
-                self._retired.append(self._cache.popitem(last=False)[1])
+            while len(self._cache) > self.keep:  # its arrays go, its graphs wait (_release)
+                self._held += self._cache.popitem(last=False)[1].captured_graphs()
         self._cache.move_to_end(id(top))
         return entry
 
     def _release(self) -> None:
-        """Free the retired topologies' Networks where the GPU has no work in flight, else all but the last ``keep``
-        (called before a Network is built). Releasing one (its graphs, its arrays) waits for the device's work in
-        flight: eval, building the next chunk's Network while the GPU rolls out the last, waited for that chunk's
-        whole rollout (35 ms at batch 64 on the H200) each time a fifth chunk dropped the first
-        (bench/results/warp_rollout_chunks_h200.json)."""
+        """Free the dropped Networks' captured graphs where the GPU has no work in flight (called before a Network is
+        built). Releasing a captured graph waits for the device's work in flight, its Network's arrays do not (H200:
+        35 ms, a whole batch-64 chunk's rollout, against 0.2 ms; bench/studies/network_release.py,
+        bench/results/warp_rollout_chunks_h200.json calls U4, V1): eval, building the next chunk's Network while the
+        GPU rolls out the last, had waited for it each time a fifth chunk dropped the first. The graphs held are
+        handles (their kernels' parameters), not the arrays they ran on."""
         if self._idle():
-            self._retired.clear()
-        else:
-            del self._retired[:max(0, len(self._retired) - self.keep)]
+            self._held.clear()
 
     def _idle(self) -> bool:
         """Nothing in flight on the streams the Networks run on (torch's current one, Warp's); the CPU always."""

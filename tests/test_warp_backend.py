@@ -95,23 +95,32 @@ def test_one_network_per_topology(monkeypatch):
     assert [next(i for i, t in enumerate(tops) if t is b) for b in built] == [0, 1, 2, 1]  # 1: least recent
 
 
-def test_dropped_networks_wait_for_an_idle_device(monkeypatch):
-    """A Network dropped from the cache is released once the device is idle (releasing one waits for the GPU's work
-    in flight); while it is busy, the last ``keep`` dropped wait when the next Network is built and older ones go."""
+def test_dropped_networks_keep_their_graphs_until_the_device_is_idle(monkeypatch, sims):
+    """A Network dropped from the cache goes at once but for its captured graphs (releasing one waits for the GPU's
+    work in flight), held until a Network is built on an idle device; the graphs of rollouts' loops too."""
+    import gc
+    import weakref
+
     model = random_model("hybrid", 1, 16)
     warp = WarpModel(model, keep=1)
-    tops = [tool_topology(box((3, 3, 2)), 1, seed=k) for k in range(5)]
+    tops = [tool_topology(box((3, 3, 2)), 1, seed=k) for k in range(4)]
     busy = {"now": True}
     monkeypatch.setattr(warp, "_idle", lambda: not busy["now"])
-    for top in tops[:4]:
+    nets, graphs = [], []
+    for top in tops[:3]:
         z, u_now, u_next = random_inputs(top)
-        warp.step(top, z, u_now, u_next, DT)
-    # before tops[3]'s Network was built the last one dropped (tops[1]) stayed, tops[0] went; then tops[2] was dropped
-    assert [e.topology for e in warp._retired] == [tops[1], tops[2]]
+        warp.step(top, z, u_now, u_next, DT)  # its forward captured
+        warp.rollout(top, z, torch.zeros(3, top.n_tools, 3), DT)  # and a rollout
+        entry = warp._cache[id(top)]
+        nets.append(weakref.ref(entry.net))
+        graphs.append(entry.captured_graphs())
+    gc.collect()
+    assert list(warp._cache) == [id(tops[2])] and [n() is None for n in nets] == [True, True, False]
+    assert len(graphs[0]) >= 2 and [id(g) for g in warp._held] == [id(g) for g in graphs[0] + graphs[1]]
     busy["now"] = False
-    z, u_now, u_next = random_inputs(tops[4])
-    warp.step(tops[4], z, u_now, u_next, DT)
-    assert [e.topology for e in warp._retired] == [tops[3]] and list(warp._cache) == [id(tops[4])]
+    z, u_now, u_next = random_inputs(tops[3])
+    warp.step(tops[3], z, u_now, u_next, DT)
+    assert [id(g) for g in warp._held] == [id(g) for g in graphs[2]] and list(warp._cache) == [id(tops[3])]
 
 
 @pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
