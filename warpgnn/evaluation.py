@@ -47,8 +47,8 @@ def evaluate(checkpoint_path, data_file, out_dir, device=None, backend: str | No
     out.mkdir(parents=True, exist_ok=True)
     # one untimed step of a chunk of each size the rollouts take (the first and a shorter last), either backend: what
     # rollout_seconds times is rolling out, not loading code on first use (Warp's kernel definitions and modules,
-    # which differ with the chunk's size, torch's CUDA kernels and cuBLAS), reported apart. Not of every chunk: the
-    # warm-up's Networks would fill the Warp backend's cache, whose releases then wait for the GPU (WarpModel._release)
+    # which differ with the chunk's size, torch's CUDA kernels and cuBLAS), reported apart. Not of every chunk: one of
+    # each size loads all the code, and the warm-up's Networks would fill the Warp backend's cache
     rest = len(sims) % chunk if len(sims) > chunk else 0
     t0 = time.perf_counter()
     rollout(network, sims[:chunk] + sims[len(sims) - rest:len(sims)], chunk, first=sims[0].steps - 1)
