@@ -32,14 +32,26 @@ from .spec import check_config
 from .weights import pack
 
 
-def _ordered(device):
-    """Warp's work in order with torch's. Warp's own streams are blocking, so they already wait for and
-    hold back torch's default (legacy) stream; under another torch stream Warp runs on that one."""
+def _torch_stream(device):
+    """Torch's current stream on a CUDA ``device`` where it is not the default (legacy) one, else None."""
     if device.is_cuda:
         stream = torch.cuda.current_stream(wp.device_to_torch(device))
         if stream != torch.cuda.default_stream(stream.device):
-            return wp.ScopedStream(wp.stream_from_torch(stream))
-    return contextlib.nullcontext()
+            return stream
+    return None
+
+
+def _frees_wait_for_work(device) -> bool:
+    """Whether a Network's arrays, freed on the legacy stream (Warp's memory pool), wait for the work queued on
+    them: on the CPU, and under torch's default stream (Warp's own are blocking), not under another torch stream."""
+    return _torch_stream(device) is None
+
+
+def _ordered(device):
+    """Warp's work in order with torch's. Warp's own streams are blocking, so they already wait for and
+    hold back torch's default (legacy) stream; under another torch stream Warp runs on that one."""
+    stream = _torch_stream(device)
+    return wp.ScopedStream(wp.stream_from_torch(stream)) if stream is not None else contextlib.nullcontext()
 
 
 class _Topology:
@@ -82,7 +94,7 @@ class WarpModel:
         self.weights = pack(model, self.device)  # once: every topology's Network reads the same copy
         self.keep = keep
         self._cache = OrderedDict()  # id(topology) -> _Topology
-        self._held = []  # the captured graphs of Networks dropped from the cache, released once the GPU is idle
+        self._held = []  # what of the Networks dropped from the cache waits to be released until the GPU is idle
 
     def _get(self, top) -> _Topology:
         entry = self._cache.get(id(top))
@@ -90,18 +102,23 @@ class WarpModel:
             self._release()
             entry = self._cache[id(top)] = _Topology(Network(self.reference, top, device=self.device,
                                                                 weights=self.weights), top)
-            while len(self._cache) > self.keep:  # its arrays go, its graphs wait (_release)
-                self._held += self._cache.popitem(last=False)[1].captured_graphs()
+            while len(self._cache) > self.keep:  # _release: its arrays go, its graphs wait
+                dropped = self._cache.popitem(last=False)[1]
+                self._held += dropped.captured_graphs() if _frees_wait_for_work(self.device) else [dropped]
         self._cache.move_to_end(id(top))
         return entry
 
     def _release(self) -> None:
         """Free the dropped Networks' captured graphs where the GPU has no work in flight (called before a Network is
-        built). Releasing a captured graph waits for the device's work in flight, its Network's arrays do not (H200:
-        35 ms, a whole batch-64 chunk's rollout, against 0.2 ms; bench/studies/network_release.py,
-        bench/results/warp_rollout_chunks_h200.json calls U4, V1): eval, building the next chunk's Network while the
-        GPU rolls out the last, had waited for it each time a fifth chunk dropped the first. The graphs held are
-        handles (their kernels' parameters), not the arrays they ran on."""
+        built). Releasing a captured graph waits for the device's work in flight (H200: 35 ms, a whole batch-64
+        chunk's rollout; its rollouts' buffers and other arrays after it 0.13 and 0.2 ms with the GPU still busy:
+        bench/studies/network_release.py, bench/results/warp_rollout_chunks_h200.json calls U4, V1): eval, building
+        the next chunk's Network while the GPU rolls out the last, had waited for it each time a fifth chunk dropped
+        the first. The graphs held are handles (their kernels' parameters), not the arrays they ran on: those go at
+        once, freed stream-ordered on the legacy stream (Warp's memory pool: cudaFreeAsync), which waits for Warp's
+        blocking streams and torch's default one; under another torch stream, which it does not wait for, the whole
+        Network is held (_frees_wait_for_work). Between idle moments the graphs held grow by a dropped Network's few
+        (eval: one Network a chunk)."""
         if self._idle():
             self._held.clear()
 

@@ -95,7 +95,7 @@ def test_one_network_per_topology(monkeypatch):
     assert [next(i for i, t in enumerate(tops) if t is b) for b in built] == [0, 1, 2, 1]  # 1: least recent
 
 
-def test_dropped_networks_keep_their_graphs_until_the_device_is_idle(monkeypatch, sims):
+def test_dropped_networks_keep_their_graphs_until_the_device_is_idle(monkeypatch):
     """A Network dropped from the cache goes at once but for its captured graphs (releasing one waits for the GPU's
     work in flight), held until a Network is built on an idle device; the graphs of rollouts' loops too."""
     import gc
@@ -121,6 +121,14 @@ def test_dropped_networks_keep_their_graphs_until_the_device_is_idle(monkeypatch
     z, u_now, u_next = random_inputs(tops[3])
     warp.step(tops[3], z, u_now, u_next, DT)
     assert [id(g) for g in warp._held] == [id(g) for g in graphs[2]] and list(warp._cache) == [id(tops[3])]
+    # under a torch stream not the default one, whose work the arrays' release would not wait for: the whole Network
+    monkeypatch.setattr(backend, "_frees_wait_for_work", lambda device: False)
+    busy["now"] = True
+    kept = weakref.ref(warp._cache[id(tops[3])].net)
+    z, u_now, u_next = random_inputs(tops[0])
+    warp.step(tops[0], z, u_now, u_next, DT)
+    gc.collect()
+    assert kept() is not None and warp._held[-1].net is kept()
 
 
 @pytest.mark.parametrize("kind", ["hybrid", "vanilla"])

@@ -113,7 +113,7 @@ def batch(topologies: list[Topology]) -> Topology:
         if all(p is parts[0] for p in parts):
             x = parts[0].numpy()
             out = np.broadcast_to(x, (len(parts), *x.shape)) if offsets is None else x + offsets[:, None]
-            return torch.from_numpy(np.ascontiguousarray(out).reshape(-1, *x.shape[1:]))
+            return torch.from_numpy(np.array(out).reshape(-1, *x.shape[1:]))  # a copy, writable even if empty
         out = np.concatenate([p.numpy() for p in parts])
         if offsets is not None:
             lengths = [len(p) for p in parts]

@@ -1,8 +1,9 @@
 """Whether dropping a topology's Network (kernels.backend.WarpModel's cache) waits for the GPU's work in flight:
 eval's three chunks of its L5 simulations (64, 64, 62); A rolled out and finished, B's rollout queued, C's Network
 built and its rollout queued (A's and B's Networks dropped from a cache of one: their arrays released then, their
-captured graphs held until the GPU is idle, WarpModel._release), then, C's rollout replayed, the held graphs released
-one by one while it runs, to see which waits.
+captured graphs held until the GPU is idle, WarpModel._release; build_and_queue_c_ms tells whether dropping B's
+arrays while B rolls out waited), then the held graphs released one by one, each while a replay of C's rollout runs,
+to see which waits (a release taking C's time and leaving no GPU work: it waited).
 
     python bench/studies/network_release.py CHECKPOINT.pt L5.h5 --json OUT.json --device "..." --command "..."
 
@@ -63,18 +64,19 @@ def main():
         torch.cuda.synchronize()
         t3 = time.perf_counter()
         held = len(wm._held)  # A's and B's graphs: each a rollout's and its loop body's
-        wm.rollout(*c_)  # replayed: C's rollout in flight
-        # the held graphs, idle since the synchronize, released one by one while C rolls out: which waits?
-        releases, t = [], time.perf_counter()
+        # the held graphs, idle since the synchronize, released one by one, each while a replay of C's rollout runs
+        # (queued anew each time, so that one release's wait does not leave the next an idle GPU): which waits?
+        releases = []
         while wm._held:
+            wm.rollout(*c_)
+            t = time.perf_counter()
             graph = wm._held.pop(0)
             del graph
-            releases.append(ms(t, time.perf_counter()))
-            t = time.perf_counter()
-        torch.cuda.synchronize()
+            t_released = time.perf_counter()
+            torch.cuda.synchronize()
+            releases.append({"release_ms": ms(t, t_released), "gpu_left_ms": ms(t_released, time.perf_counter())})
         runs.append({"queue_b_ms": ms(t0, t1), "build_and_queue_c_ms": ms(t1, t2), "gpu_left_after_c_ms": ms(t2, t3),
-                     "graphs_held": held, "graph_releases_while_c_runs_ms": releases,
-                     "gpu_left_after_the_releases_ms": ms(t, time.perf_counter())})
+                     "graphs_held": held, "graph_releases_while_c_runs": releases})
         print(runs[-1], flush=True)
     Path(a.json).write_text(json.dumps(provenance.record(a) | {"runs": runs}, indent=1) + "\n")
 
