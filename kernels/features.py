@@ -185,9 +185,9 @@ def inputs(net) -> Inputs:
 @functools.cache
 def kernels(spec: Spec):
     """The features launch (where not Spec.features_in_encoder): feat[row, g] = a latent row's group g, a thread
-    an item (launches: which rows and groups), consecutive threads' stores contiguous (a thread a (row, column) repeated its row's index loads and
-    standardisation for each of 24 columns, a thread a row stored 24 scalars 96 bytes apart: 154 / 143 -> 66 us at
-    batch 64, bench/results/warp_large_graphs_h200.json)."""
+    an item (launches: which rows and groups), consecutive threads' stores contiguous (a thread a (row, column)
+    repeated its row's index loads and standardisation for each of 24 columns, a thread a row stored 24 scalars 96
+    bytes apart: 154 / 143 -> 66 us at batch 64, bench/results/warp_large_graphs_h200.json)."""
     @wp.kernel(enable_backward=False, module=spec.module)
     def features(f: Inputs, feat: wp.array2d(dtype=COLUMNS), mesh_rows: int, mesh_groups: int):
         tid = wp.tid()
