@@ -103,39 +103,25 @@ def _csr(keys: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.
     return order, ordered, off
 
 
-def _mesh_csr(top) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The mesh edges' receivers and senders in CSR order and the (n + 1) offsets (_csr), int32, where the topology
-    is. A host topology that stacks copies of one graph (eval's chunks: simulations of one anatomy) takes that graph's
-    order, repeated: a stable sort of the stack is each graph's own sort one after another (a graph's keys above the
-    ones before). 64 L5 simulations on a 2-core host: a graph build 5.5-5.8 -> 2.9-3.1 ms (the check 0.8 of it), the
-    same arrays."""
-    copies = _copies(top)
-    if copies is None:
+def _mesh_csr(top, device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The mesh edges' receivers and senders in CSR order and the (n + 1) offsets (_csr), int32. A stack of copies of
+    one mesh (Topology.copies: eval's chunks, simulations of one anatomy) takes that mesh's order, repeated (a stable
+    sort of the stack is each graph's own sort one after another, a graph's keys above the ones before), made on
+    ``device`` from the one mesh's: its stacked edges never made on the host, nor copied to the device (8 MB at batch
+    64 of L5). Any other topology's are sorted where it is."""
+    if top.copies is None:
         senders, receivers = (x.to(torch.int32) for x in (top.senders, top.receivers))
         order, mesh_recv, mesh_off = _csr(receivers, top.n_nodes)
         return mesh_recv, senders[order], mesh_off
-    senders, receivers, count, size = copies
-    order, recv, off = _csr(receivers.to(torch.int32), size)
-    node_shift = torch.arange(count, dtype=torch.int32)[:, None] * size
-    edge_shift = torch.arange(count, dtype=torch.int32)[:, None] * len(receivers)
-    mesh_off = torch.cat([(off[:-1] + edge_shift).ravel(), torch.tensor([count * len(receivers)], dtype=torch.int32)])
-    return (recv + node_shift).ravel(), (senders.to(torch.int32)[order] + node_shift).ravel(), mesh_off
-
-
-def _copies(top):
-    """(senders, receivers, count, size): a host topology's first graph's mesh edges, how many graphs it stacks and
-    their nodes each, where every graph is a copy of the first (its nodes offset by ``size`` a graph); else None.
-    Only on the CPU: the check reads back, which on a GPU would wait for the work in flight."""
-    sizes, senders, receivers = top.graph_sizes, top.senders, top.receivers
-    count = len(sizes)
-    if receivers.device.type != "cpu" or count < 2 or len(receivers) % count or not bool((sizes == sizes[0]).all()):
-        return None
-    edges, size = len(receivers) // count, int(sizes[0])
-    shift = torch.arange(count, dtype=receivers.dtype)[:, None] * size
-    for x in (receivers, senders):
-        if not torch.equal(x.view(count, edges) - shift, x[:edges].expand(count, edges)):
-            return None
-    return senders[:edges], receivers[:edges], count, size
+    mesh, count = top.copies
+    size, edges = mesh.n_nodes, mesh.n_edges
+    order, recv, off = _csr(mesh.receivers.to(torch.int32), size)
+    recv, send, off = (to_device(x, device) for x in (recv, mesh.senders.to(torch.int32)[order], off))
+    copy = torch.arange(count, dtype=torch.int32, device=device)[:, None]
+    mesh_off = torch.empty(count * size + 1, dtype=torch.int32, device=device)
+    mesh_off[:-1] = (off[:-1] + copy * edges).ravel()
+    mesh_off[-1:].fill_(count * edges)  # a fill on the device (an item set from Python copies, then waits)
+    return (recv + copy * size).ravel(), (send + copy * size).ravel(), mesh_off
 
 
 def _last_wins(index: torch.Tensor, values: torch.Tensor, n: int, empty) -> torch.Tensor:
@@ -199,41 +185,52 @@ def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = 
     rolls out). A topology on the CPU (eval's, as the dataset gave it) is built there, the results sent on through
     pinned memory without waiting: on the H200 the first chunk's build took 111 ms on the device, most of it torch
     loading its sort, search and scatter kernels on first use, against ~20 ms on the host
-    (bench/results/warp_rollout_l5_h200.json). ``group_rows``
+    (bench/results/warp_rollout_l5_h200.json). A stack of one mesh's copies (Topology.copies) has its mesh's arrays
+    made on the device from that mesh's (_mesh_csr: eval's first chunk on the H200 waited 18.9 -> 14.2 ms for the
+    GPU to start, bench/results/warp_rollout_mesh_copies_h200.json). ``group_rows``
     (self-loops only): the receiver groups of tiles of that many rows (receiver_groups), formed on the host (from a
     topology on a GPU a copy that waits for its work in flight: a Network forms them on small graphs only) where
     every node's rows fit one (its in-degree + 1 at most ``group_rows``)."""
     device = wp.get_device(device)
-    dev = top.senders.device
+    dev = top.loaded.device
     target = torch.device(wp.device_to_torch(device))
 
     def t_(x, dtype=torch.int32):  # indices as the kernels read them (int32), where the topology is
         return x.detach().to(dev, dtype)
 
+    def sent(x):  # on the Warp device (a no-op where it is)
+        return to_device(x, target)
+
     n, k = top.n_nodes, top.n_tools
     act_tool, act_node = t_(top.act_senders), t_(top.act_receivers)
     if not actuator_graphs:
         act_tool, act_node = act_tool[:0], act_node[:0]
-    lay = Layout(n, len(top.senders), k if actuator_graphs else 0, len(act_tool), tile_rows, self_loops, edge_rows)
+    lay = Layout(n, top.n_edges, k if actuator_graphs else 0, len(act_tool), tile_rows, self_loops, edge_rows)
 
-    mesh_recv, mesh_send, mesh_off = _mesh_csr(top)
+    groups = bool(group_rows and self_loops)  # formed on the host from the mesh CSR (below)
+    mesh = _mesh_csr(top, dev if groups else target)
+    mesh_recv, mesh_send, mesh_off = (sent(x) for x in mesh)
     a_order, act_node, act_off = _csr(act_node, n)
-    act_tool = act_tool[a_order]
+    act_node, act_tool = sent(act_node), sent(act_tool[a_order])
     loaded = t_(top.loaded)
     # tools loaded at each node: the single-graph ablation adds their features to the node's
     t_order, _, tool_off = _csr(loaded, n)
 
     # per latent row: the rows of the node-product buffer its edge MLP gathers (receiver, sender);
     # tool products sit after the node rows (message_passing stores them there, one block per pass)
-    row_recv = torch.zeros(lay.rows, dtype=torch.int32, device=dev)
-    row_send = torch.zeros(lay.rows, dtype=torch.int32, device=dev)
+    row_recv = torch.zeros(lay.rows, dtype=torch.int32, device=target)
+    row_send = torch.zeros(lay.rows, dtype=torch.int32, device=target)
     row_recv[lay.mesh_row:lay.mesh_row + lay.n_edges] = mesh_recv
     row_send[lay.mesh_row:lay.mesh_row + lay.n_edges] = mesh_send
     if self_loops:
-        row_recv[lay.self_row:lay.self_row + n] = torch.arange(n, dtype=torch.int32, device=dev)
+        row_recv[lay.self_row:lay.self_row + n] = torch.arange(n, dtype=torch.int32, device=target)
         row_send[lay.self_row:lay.self_row + n] = row_recv[lay.self_row:lay.self_row + n]
     row_recv[lay.act_row:lay.act_row + lay.n_act_edges] = act_node
     row_send[lay.act_row:lay.act_row + lay.n_act_edges] = lay.nodes_pad + act_tool
+    if top.copies is None:
+        rest = sent(t_(top.rest, torch.float32).reshape(n, 3)).clone()  # its own copy
+    else:  # the one mesh's, repeated where the kernels read it
+        rest = sent(top.copies[0].rest.to(torch.float32)).repeat(top.copies[1], 1)
 
     # boundary conditions per node: the tool driving it (-1: none) and its weight; where a node is listed
     # twice the last entry wins, as in apply_boundary_conditions' index_put
@@ -250,18 +247,18 @@ def build(top, tile_rows: int, actuator_graphs: bool = True, self_loops: bool = 
         return view(x, wp.int32)
 
     arrays = {
-        "rest": view(t_(top.rest, torch.float32).reshape(n, 3).clone(), wp.float32),  # its own copy
+        "rest": view(rest, wp.float32),
         "node_type": ints(t_(top.node_type)), "loaded": ints(loaded),
         "mesh_off": ints(mesh_off), "mesh_recv": ints(mesh_recv), "mesh_send": ints(mesh_send),
         "act_off": ints(act_off), "act_node": ints(act_node), "act_tool": ints(act_tool),
         "tool_off": ints(tool_off), "tool_list": ints(t_order),
         "row_recv": ints(row_recv), "row_send": ints(row_send),
         "presc_tool": ints(presc_tool), "presc_weight": view(presc_weight, wp.float32)}
-    host_off = mesh_off.cpu().numpy() if group_rows and self_loops else None
-    starts = receiver_groups(host_off, group_rows) if host_off is not None else None
+    host_off = mesh[2].cpu().numpy() if groups else None
+    starts = receiver_groups(host_off, group_rows) if groups else None
     if starts is None:
         return Graph(lay, arrays)
-    slots = group_slots(starts, host_off, lay, group_rows, mesh_recv.cpu().numpy(), mesh_send.cpu().numpy())
+    slots = group_slots(starts, host_off, lay, group_rows, *(x.cpu().numpy() for x in mesh[:2]))
     for name, x in zip(("group_node", "slot_row", "slot_recv", "slot_send"), (starts, *slots)):
         arrays[name] = ints(torch.from_numpy(x))
     return Graph(lay, arrays, len(starts) - 1)

@@ -63,9 +63,9 @@ def random_model(kind="hybrid", passes=2, latent=16, actuator_graphs=True, seed=
     return model.eval()
 
 
-def tool_topology(mesh, n_tools, seed=0):
+def tool_topology(mesh, n_tools, seed=0, shared=None):
     """``n_tools`` tools on top-face nodes, each driving its loaded node (weight 1) and one free
-    neighbour (weight 0.5): footprints, tools and weights all matter."""
+    neighbour (weight 0.5): footprints, tools and weights all matter. ``shared``: make_topology's."""
     top = np.flatnonzero(mesh.nodes[:, 2] > mesh.nodes[:, 2].max() - 1e-9)
     loaded = np.random.default_rng(seed).choice(top, n_tools, replace=False)
     ring = mesh.neighbours()
@@ -75,7 +75,7 @@ def tool_topology(mesh, n_tools, seed=0):
         nodes += [int(node), int(free[0])]
         tools += [k, k]
         weights += [1.0, 0.5]
-    return make_topology(mesh, loaded, nodes, tools, weights)
+    return make_topology(mesh, loaded, nodes, tools, weights, shared=shared)
 
 
 def random_inputs(top, seed=0):
@@ -357,31 +357,49 @@ def test_graph_built_as_numpy_would(where, device):
     np.testing.assert_array_equal(g.presc_weight.numpy(), want_weight)
 
 
-def test_stacked_copies_of_one_mesh_take_its_order():
-    """A host batch of one mesh's simulations (other tools each) is built from its first graph's CSR order, repeated
-    (graph._copies); a batch of two meshes by the whole stack's sort: either way the CSR order and offsets of a stable
-    argsort and counts of the stacked receivers; also where a graph's edges are the first's in another order (not
-    copies) and where no graph has edges."""
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
+    not (HAS_CUDA and torch.cuda.is_available()), reason="needs a CUDA device (Warp's and torch's)"))])
+def test_stacked_copies_of_one_mesh_take_its_order(device):
+    """A host batch of one mesh's simulations (other tools each, sharing the mesh's tensors: Topology.copies) is
+    built from that mesh's CSR order, repeated where the kernels read it (a GPU's: never waiting for it), its stacked
+    edges never made; a batch of
+    the same graphs built apart, of two meshes, of one mesh's graphs with edges in another order or none, by the
+    whole stack's sort: every array the same, the CSR order and offsets of a stable argsort and counts of the
+    stacked receivers."""
     import dataclasses
 
     from warpgnn.graphs import batch
-    from warpgnn.kernels.graph import _copies, build
+    from warpgnn.kernels.graph import build
 
-    parts = [tool_topology(box((4, 3, 2)), k, seed=k) for k in (1, 2, 3)]
-    one_mesh = batch(parts)  # graphs.batch offsets parts of one length by a broadcast add: as each part's own
-    for name in ("senders", "receivers"):
-        shifted = [getattr(t, name) + i * t.n_nodes for i, t in enumerate(parts)]
-        assert torch.equal(getattr(one_mesh, name), torch.cat(shifted))
+    mesh = box((4, 3, 2))
+    first = tool_topology(mesh, 1, seed=1)
+    one_mesh = batch([first, *(tool_topology(mesh, k, seed=k, shared=first) for k in (2, 3))])
+    apart = batch([tool_topology(mesh, k, seed=k) for k in (1, 2, 3)])
+    assert one_mesh.copies == (first, 3) and apart.copies is None
+    if device == "cpu":
+        g = build(one_mesh, 16, device=device)
+    else:  # built onto a GPU without waiting for its work in flight (torch raises where an op waits)
+        torch.cuda.set_sync_debug_mode("error")
+        try:
+            g = build(one_mesh, 16, device=device)
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    assert "senders" not in one_mesh.__dict__ and "rest" not in one_mesh.__dict__  # the build read the one mesh
+    assert (one_mesh.n_nodes, one_mesh.n_edges) == (apart.n_nodes, apart.n_edges)
+    want = build(apart, 16, device=device)
+    assert g.layout == want.layout and g.arrays.keys() == want.arrays.keys()
+    for name in g.arrays:
+        np.testing.assert_array_equal(g.arrays[name].numpy(), want.arrays[name].numpy(), err_msg=name)
+    for name in ("rest", "senders", "receivers"):  # stacked when asked for: as the graphs built apart
+        assert torch.equal(getattr(one_mesh, name), getattr(apart, name)), name
+    parts = [tool_topology(mesh, k, seed=k) for k in (1, 2, 3)]
     two_meshes = batch([tool_topology(box((4, 3, 2)), 1, seed=1), tool_topology(box((3, 3, 3)), 2, seed=2)])
-    # one mesh's sizes and edge count, the second graph's edges in another order: not copies
     reordered = batch([parts[0], dataclasses.replace(parts[1], senders=parts[1].senders.flip(0),
                                                      receivers=parts[1].receivers.flip(0))])
     rewired = batch([parts[0], dataclasses.replace(parts[1], senders=parts[1].senders.roll(1))])  # receivers alike
     no_edges = batch([dataclasses.replace(t, senders=t.senders[:0], receivers=t.receivers[:0]) for t in parts])
-    assert _copies(one_mesh) is not None and _copies(no_edges) is not None
-    assert _copies(two_meshes) is None and _copies(reordered) is None and _copies(rewired) is None
     for top in (one_mesh, two_meshes, reordered, rewired, no_edges):
-        g = build(top, 16, device="cpu")
+        g = build(top, 16, device=device)
         recv = top.receivers.numpy()
         order = np.argsort(recv, kind="stable")
         edges = len(recv)  # build's arrays hold one placeholder where empty

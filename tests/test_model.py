@@ -499,7 +499,8 @@ def test_batch_offsets_match_per_graph_features():
 
 def test_topologies_sharing_one_mesh_stack_as_their_copies():
     """Simulations of one mesh share its rest positions and edges (make_topology's ``shared``: the same tensors, as
-    load_file's), and batch stacks a shared tensor by one broadcast: the same stack as of topologies built apart."""
+    load_file's), and batch stacks them as copies of that mesh (Topology.copies), its rest positions and edges stacked
+    on first use: the same stack as of topologies built apart."""
     mesh = box((3, 2, 2))
     nodes = top_nodes(mesh)
     first = make_topology(mesh, nodes[[0]])
@@ -509,7 +510,9 @@ def test_topologies_sharing_one_mesh_stack_as_their_copies():
     assert all(t.senders is first.senders and t.rest is first.rest for t in shared)
     assert all(t.senders is not first.senders for t in apart)
     one, other = batch([first, *shared]), batch([first, *apart])
-    for f in fields(one):
+    assert one.copies == (first, 4) and other.copies is None
+    assert (one.n_nodes, one.n_edges) == (other.n_nodes, other.n_edges) and "senders" not in one.__dict__
+    for f in fields(one):  # the mesh's stacked when first asked for
         assert torch.equal(getattr(one, f.name), getattr(other, f.name)), f.name
     n = mesh.nodes.shape[0]
     assert torch.equal(one.receivers[len(first.receivers):2 * len(first.receivers)], first.receivers + n)

@@ -24,6 +24,7 @@ NODE_FREE, NODE_FIXED, NODE_PRESCRIBED = 0, 1, 2
 NODE_TYPES = 3
 STATE = 12  # q (3), v (3), sigma (6, Voigt xx yy zz xy yz xz)
 GROUPS = {"q": slice(0, 3), "v": slice(3, 6), "sigma": slice(6, 12)}
+MESH_FIELDS = ("rest", "senders", "receivers")  # a Topology's fields that describe its mesh alone
 
 
 @dataclass
@@ -40,9 +41,33 @@ class Topology:
     prescribed_weight: torch.Tensor  # (P,) q = rest + weight * u_tool
     graph_sizes: torch.Tensor  # (G,) nodes per stacked graph (CPU)
 
+    # a stack of copies of one mesh (batch of topologies sharing its tensors: make_topology's ``shared``): (one of
+    # them, how many), its MESH_FIELDS stacked on first use only (__getattr__); None otherwise
+    copies = None
+
+    def __getattr__(self, name):
+        """A stack's MESH_FIELDS, stacked when first asked for (the Warp kernels' graph build reads the one mesh:
+        eval's chunks of 64 L5 simulations then make 8 MB less on the host, where fresh memory is what stacking cost
+        on the H200 machine)."""
+        copies = self.__dict__.get("copies")
+        if copies is None or name not in MESH_FIELDS:
+            raise AttributeError(f"'Topology' object has no attribute {name!r}")
+        mesh, count = copies
+        value = self.__dict__[name] = _repeat(getattr(mesh, name), count, None if name == "rest" else mesh.n_nodes)
+        return value
+
     @property
     def n_nodes(self) -> int:
+        if "rest" not in self.__dict__ and self.copies:
+            return self.copies[1] * self.copies[0].n_nodes
         return self.rest.shape[0]
+
+    @property
+    def n_edges(self) -> int:
+        """Directed mesh edges."""
+        if "senders" not in self.__dict__ and self.copies:
+            return self.copies[1] * self.copies[0].n_edges
+        return self.senders.shape[0]
 
     @property
     def n_tools(self) -> int:
@@ -94,7 +119,8 @@ def make_topology(mesh: TetMesh, loaded, prescribed=None, prescribed_tool=None, 
 
 def batch(topologies: list[Topology]) -> Topology:
     """Stack topologies into one disconnected graph (node and tool indices offset). Cheapest
-    on CPU topologies (sizes are known there without asking the GPU)."""
+    on CPU topologies (sizes are known there without asking the GPU). Topologies sharing their mesh's
+    tensors (MESH_FIELDS) stack into copies of it (Topology.copies), those fields made on first use."""
     if len(topologies) == 1:
         return topologies[0]
     nodes = [t.n_nodes for t in topologies]
@@ -108,27 +134,40 @@ def batch(topologies: list[Topology]) -> Topology:
             return torch.cat([p + int(o) for p, o in zip(parts, offsets)] if offsets is not None else parts)
         # on the host in numpy: a chunk of 64 L5 topologies 6.8 -> 5.9 ms on the H200 machine's host, where stacking
         # is the first thing eval's rollouts wait for (bench/results/warp_rollout_loop_h200.json: its host probe);
-        # parts of one length (one mesh's edges) offset by a broadcast add, not a repeat of the offsets (7.3 -> 6.4 ms
-        # on a 2-core host); one tensor shared by every part (make_topology's ``shared``) repeated by one broadcast
+        # parts of one length offset by a broadcast add, not a repeat of the offsets (7.3 -> 6.4 ms on a 2-core host)
         if all(p is parts[0] for p in parts):
-            x = parts[0].numpy()
-            out = np.broadcast_to(x, (len(parts), *x.shape)) if offsets is None else x + offsets[:, None]
-            return torch.from_numpy(np.array(out).reshape(-1, *x.shape[1:]))  # a copy, writable even if empty
+            return _repeat(parts[0], len(parts), None if offsets is None else int(offsets[1]))
         out = np.concatenate([p.numpy() for p in parts])
         if offsets is not None:
-            lengths = [len(p) for p in parts]
+            lengths = [p.shape[0] for p in parts]
             if lengths.count(lengths[0]) == len(lengths):
                 out.reshape(len(parts), -1)[...] += offsets[:, None]
             else:
                 out += np.repeat(offsets, lengths)
         return torch.from_numpy(out)
 
-    return Topology(
-        rest=cat("rest"), senders=cat("senders", node_off), receivers=cat("receivers", node_off),
+    per_graph = dict(
         node_type=cat("node_type"), loaded=cat("loaded", node_off), act_senders=cat("act_senders", tool_off),
         act_receivers=cat("act_receivers", node_off), prescribed=cat("prescribed", node_off),
         prescribed_tool=cat("prescribed_tool", tool_off), prescribed_weight=cat("prescribed_weight"),
         graph_sizes=torch.cat([t.graph_sizes for t in topologies]))
+    first = topologies[0]
+    one_mesh = all(name in first.__dict__ and all(t.__dict__.get(name) is first.__dict__[name] for t in topologies)
+                   for name in MESH_FIELDS)
+    if not one_mesh or first.rest.is_cuda:
+        return Topology(rest=cat("rest"), senders=cat("senders", node_off), receivers=cat("receivers", node_off),
+                        **per_graph)
+    stack = Topology.__new__(Topology)  # its MESH_FIELDS left to Topology.__getattr__
+    stack.__dict__.update(per_graph, copies=(first, len(topologies)))
+    return stack
+
+
+def _repeat(x: torch.Tensor, count: int, step: int | None = None) -> torch.Tensor:
+    """``count`` copies of a host tensor ``x`` stacked along its first dimension, copy c's values plus c * ``step``
+    where given (node indices of copies of one graph): by one broadcast (a copy, writable even if empty)."""
+    a = x.numpy()
+    out = np.broadcast_to(a, (count, *a.shape)) if step is None else a + np.arange(0, count * step, step)[:, None]
+    return torch.from_numpy(np.array(out).reshape(-1, *a.shape[1:]))
 
 
 def _relative(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
