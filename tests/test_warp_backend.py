@@ -150,6 +150,24 @@ def test_rollout_equals_torch(sims, kind):
                     assert_close(a, b)
 
 
+def test_chunks_roll_out_in_halves_as_in_one_piece(sims):
+    """rollout() rolls a chunk out in two halves (rollout.halves), the second from the first's last state, joined
+    into one array a chunk: the states and the per-graph diagnostics of the chunk's one whole rollout, bit for bit."""
+    from warpgnn.rollout import _per_graph, chunk_inputs, halves
+
+    assert halves(4) == [(0, 2), (2, 4)] and halves(1) == [(0, 1)]
+    warp = WarpModel(random_model("hybrid", 1, 16, seed=8))
+    got = rollout(warp, sims[:2], chunk=2)
+    top, z, u, dt = chunk_inputs(sims[:2])
+    states, diagnostics = warp.rollout(top, z, u, dt)
+    per_graph = _per_graph(top.graph_sizes, *diagnostics)
+    offsets = np.cumsum([0, *top.graph_sizes.tolist()])
+    for g, r in enumerate(got):
+        np.testing.assert_array_equal(r.z, states[:, offsets[g]:offsets[g + 1]].numpy())
+        for field, want in zip(("degeneracy", "entropy_production_min", "entropy_production_mean"), per_graph):
+            np.testing.assert_array_equal(getattr(r, field), want[g].numpy(), err_msg=field)
+
+
 @pytest.mark.parametrize("kind", ["hybrid", "vanilla"])
 def test_rollout_loop_equals_unrolled_steps(sims, kind, monkeypatch):
     """A rollout's graph looping over its captured step on the device (kernels/rollout_graph.py) and the same steps

@@ -72,31 +72,76 @@ def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None, first
     behind the interface of model.py (its call and its step), or with a whole-rollout ``model.rollout``.
 
     On CUDA the host queues each chunk and goes on to build (and, on the Warp backend, capture) the next while the
-    GPU rolls it out; a thread of their own reads the chunks' results back as each one ends (_Reader)."""
+    GPU rolls it out; a thread of their own reads the chunks' results back as each one ends (_Reader). A whole-rollout
+    model rolls each chunk out in two halves (halves), so that the first half's results are read back while the GPU
+    rolls out the second: after the last chunk the caller waits for half a chunk's copy."""
     out, reader = [], None
     try:
         for c, end in chunk_spans(len(sims), chunk):
             part = sims[c:end]
             device = part[0].z.device
             top, z, u, dt = chunk_inputs(part, first, None if z0 is None else z0[c:end])
+            pieces = []  # [states, *per-graph diagnostics] of each part of the chunk's steps, in order
             if hasattr(model, "rollout"):  # the Warp kernels build their graph where the topology is (kernels/graph.py)
-                states, diagnostics = model.rollout(top, z, u, dt)
+                for a, b in halves(len(u) - 1):
+                    states, diagnostics = model.rollout(top, z, u[a:b + 1], dt)
+                    z = states[-1]
+                    pieces.append(_queued([states, *_per_graph(top.graph_sizes, *(diagnostics or ()))]))
                 if progress:
                     progress(len(part) * (len(u) - 1))
             else:
                 states, diagnostics = stepwise(model, top.to(device), z, u, dt,
                                                progress and partial(progress, len(part)))
-            results = [states, *_per_graph(top.graph_sizes, *(diagnostics or ()))]
-            if states.is_cuda:
-                reader = reader or _Reader(states.device)
-                reader.read(part, top, results)
+                pieces.append(_queued([states, *_per_graph(top.graph_sizes, *(diagnostics or ()))]))
+            if pieces[0][0][0].is_cuda:
+                reader = reader or _Reader(device)
+                reader.read(part, top, pieces)
             else:
-                out += _split(part, top, [t.numpy() for t in results])
+                host = _joined(pieces)
+                _fill(host, pieces)
+                out += _split(part, top, [h.numpy() for h in host])
     except BaseException:
         if reader:  # the error raised is this one, not a read's of the chunks queued before it
             reader.abandon()
         raise
     return out + (reader.close() if reader else [])
+
+
+def halves(steps: int) -> list[tuple[int, int]]:
+    """(first, last) step of each part a chunk's ``steps`` are rolled out in: two halves, or one part of one step."""
+    return [(0, steps // 2), (steps // 2, steps)] if steps > 1 else [(0, steps)]
+
+
+def _queued(results: list[torch.Tensor]):
+    """(results, an event recorded after them on their GPU's current stream, None on the CPU): what a read waits for."""
+    if not results[0].is_cuda:
+        return results, None
+    done = torch.cuda.Event()
+    done.record(torch.cuda.current_stream(results[0].device))  # the results' stream (Warp's work in order with it)
+    return results, done
+
+
+def _joined(pieces) -> list[torch.Tensor]:
+    """Host tensors (numpy's memory) for a chunk's results joined from its pieces: the states (S+1, N, 12) of the
+    steps of every piece (a piece's first state the last of the one before), the per-graph diagnostics (G, S)."""
+    steps = sum(len(results[0]) - 1 for results, _ in pieces)
+    states, *per_graph = pieces[0][0]
+    shapes = [(steps + 1, *states.shape[1:]), *((t.shape[0], steps) for t in per_graph)]
+    return [torch.from_numpy(np.empty(shape, _numpy_dtype(t.dtype))) for shape, t in zip(shapes, pieces[0][0])]
+
+
+def _fill(host: list[torch.Tensor], pieces) -> None:
+    """Copy each piece's results into their places in the joined ``host`` tensors (_joined), a piece once its event
+    has passed (from a GPU: on the current stream)."""
+    step = 0
+    for k, (results, done) in enumerate(pieces):
+        if done is not None:
+            done.synchronize()
+        n = len(results[0]) - 1  # the piece's steps; its first state is the piece before's last
+        host[0][step + (k > 0):step + n + 1].copy_(results[0][(k > 0):])
+        for h, t in zip(host[1:], results[1:]):
+            h[:, step:step + n].copy_(t)
+        step += n
 
 
 def chunk_inputs(part: list[Simulation], first: int = 0, z0: list[torch.Tensor] | None = None):
@@ -129,18 +174,15 @@ class _Reader:
         self.device, self.stream = device, torch.cuda.Stream(device)  # a non-blocking stream: not the default one's
         self.pool, self.pending = ThreadPoolExecutor(1, thread_name_prefix="rollout-reader"), []
 
-    def read(self, part, top, results: list[torch.Tensor]) -> None:
-        done = torch.cuda.Event()
-        done.record(torch.cuda.current_stream(self.device))  # the results' stream (Warp's work in order with it)
-        self.pending.append(self.pool.submit(self._read, part, top, results, done))
+    def read(self, part, top, pieces: list) -> None:
+        """Read a chunk's ``pieces`` ((results, the event after them): _queued), each once its event has passed."""
+        self.pending.append(self.pool.submit(self._read, part, top, pieces))
 
-    def _read(self, part, top, results, done) -> list[Rollout]:
+    def _read(self, part, top, pieces) -> list[Rollout]:
         # numpy's memory (huge pages where large: 15 against 29 ms for 43 MB there), zeroed: every page touched first
-        host = [torch.from_numpy(np.empty(t.shape, _numpy_dtype(t.dtype))).zero_() for t in results]
-        done.synchronize()
+        host = [h.zero_() for h in _joined(pieces)]
         with torch.cuda.stream(self.stream):
-            for h, t in zip(host, results):
-                h.copy_(t)
+            _fill(host, pieces)
         return _split(part, top, [h.numpy() for h in host])
 
     def close(self) -> list[Rollout]:
