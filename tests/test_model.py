@@ -516,6 +516,10 @@ def test_topologies_sharing_one_mesh_stack_as_their_copies():
         assert torch.equal(getattr(one, f.name), getattr(other, f.name)), f.name
     n = mesh.nodes.shape[0]
     assert torch.equal(one.receivers[len(first.receivers):2 * len(first.receivers)], first.receivers + n)
+    no_tools = make_topology(mesh, nodes[:0])  # one topology stacked with itself: its tools' offsets all 0
+    twice = batch([no_tools, no_tools])
+    assert twice.copies == (no_tools, 2) and twice.n_tools == 0 and torch.equal(twice.senders[len(first.senders):],
+                                                                                 first.senders + n)
 
 
 # ------------------------------------------------------------------- 9. noise augmentation

@@ -42,7 +42,8 @@ class Topology:
     graph_sizes: torch.Tensor  # (G,) nodes per stacked graph (CPU)
 
     # a stack of copies of one mesh (batch of topologies sharing its tensors: make_topology's ``shared``): (one of
-    # them, how many), its MESH_FIELDS stacked on first use only (__getattr__); None otherwise
+    # them, how many), its MESH_FIELDS stacked on first use only (__getattr__); None otherwise. Like every
+    # topology's tensors, the shared ones are never changed in place
     copies = None
 
     def __getattr__(self, name):
@@ -166,7 +167,7 @@ def _repeat(x: torch.Tensor, count: int, step: int | None = None) -> torch.Tenso
     """``count`` copies of a host tensor ``x`` stacked along its first dimension, copy c's values plus c * ``step``
     where given (node indices of copies of one graph): by one broadcast (a copy, writable even if empty)."""
     a = x.numpy()
-    out = np.broadcast_to(a, (count, *a.shape)) if step is None else a + np.arange(0, count * step, step)[:, None]
+    out = np.broadcast_to(a, (count, *a.shape)) if step is None else a + (np.arange(count) * step)[:, None]
     return torch.from_numpy(np.array(out).reshape(-1, *a.shape[1:]))
 
 

@@ -94,7 +94,7 @@ def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None, first
                                                progress and partial(progress, len(part)))
                 pieces.append(_queued([states, *_per_graph(top.graph_sizes, *(diagnostics or ()))]))
             if pieces[0][0][0].is_cuda:
-                reader = reader or _Reader(device)
+                reader = reader or _Reader(pieces[0][0][0].device)
                 reader.read(part, top, pieces)
             else:
                 host = _joined(pieces)
