@@ -81,20 +81,20 @@ def rollout(model, sims: list[Simulation], chunk: int = 64, progress=None, first
             part = sims[c:end]
             device = part[0].z.device
             top, z, u, dt = chunk_inputs(part, first, None if z0 is None else z0[c:end])
-            pieces = []  # [states, *per-graph diagnostics] of each part of the chunk's steps, in order
+            pieces = []  # each part of the chunk's steps in order (_piece)
             if hasattr(model, "rollout"):  # the Warp kernels build their graph where the topology is (kernels/graph.py)
                 for a, b in halves(len(u) - 1):
                     states, diagnostics = model.rollout(top, z, u[a:b + 1], dt)
                     z = states[-1]
-                    pieces.append(_queued([states, *_per_graph(top.graph_sizes, *(diagnostics or ()))]))
+                    pieces.append(_piece(top.graph_sizes, states, diagnostics))
                 if progress:
                     progress(len(part) * (len(u) - 1))
             else:
                 states, diagnostics = stepwise(model, top.to(device), z, u, dt,
                                                progress and partial(progress, len(part)))
-                pieces.append(_queued([states, *_per_graph(top.graph_sizes, *(diagnostics or ()))]))
-            if pieces[0][0][0].is_cuda:
-                reader = reader or _Reader(pieces[0][0][0].device)
+                pieces.append(_piece(top.graph_sizes, states, diagnostics))
+            if states.is_cuda:
+                reader = reader or _Reader(states.device)
                 reader.read(part, top, pieces)
             else:
                 host = _joined(pieces)
@@ -112,12 +112,14 @@ def halves(steps: int) -> list[tuple[int, int]]:
     return [(0, steps // 2), (steps // 2, steps)] if steps > 1 else [(0, steps)]
 
 
-def _queued(results: list[torch.Tensor]):
-    """(results, an event recorded after them on their GPU's current stream, None on the CPU): what a read waits for."""
-    if not results[0].is_cuda:
+def _piece(sizes: torch.Tensor, states: torch.Tensor, diagnostics=None):
+    """A part of a chunk's rollout as read back: ([states, *its per-graph diagnostics (_per_graph)], an event recorded
+    after them on their GPU's current stream, what a read waits for; None on the CPU)."""
+    results = [states, *_per_graph(sizes, *(diagnostics or ()))]
+    if not states.is_cuda:
         return results, None
     done = torch.cuda.Event()
-    done.record(torch.cuda.current_stream(results[0].device))  # the results' stream (Warp's work in order with it)
+    done.record(torch.cuda.current_stream(states.device))  # the results' stream (Warp's work in order with it)
     return results, done
 
 
@@ -175,7 +177,7 @@ class _Reader:
         self.pool, self.pending = ThreadPoolExecutor(1, thread_name_prefix="rollout-reader"), []
 
     def read(self, part, top, pieces: list) -> None:
-        """Read a chunk's ``pieces`` ((results, the event after them): _queued), each once its event has passed."""
+        """Read a chunk's ``pieces`` (_piece), each once its event has passed."""
         self.pending.append(self.pool.submit(self._read, part, top, pieces))
 
     def _read(self, part, top, pieces) -> list[Rollout]:
