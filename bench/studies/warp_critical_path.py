@@ -43,7 +43,7 @@ def empty_graph(n: int, device: str):
 
 
 def variant_options(text: str) -> dict:
-    """'default' or 'name=int[,name=int]' -> Network keyword arguments."""
+    """'default' or 'name=int[+name=int]' -> Network keyword arguments."""
     if text == "default":
         return {}
     return {k: bool(int(v)) if k in ("edge_encoder", "split_products", "receiver_groups") else int(v)
