@@ -3,8 +3,9 @@ three products on a tile of 8 rows (F = 64: its first layer (8, 192) x (192, 64)
 stage's (8, 64) x (64, 192); tiles.GEMM, 256 threads) run REPS times back to back by one block, against the same chain
 on a cluster of two blocks on two SMs, each block half of every product's columns, the halves of the first two
 outputs written into both blocks' tiles (distributed shared memory) and the cluster synced before the next product
-reads them. Grids of one block (one cluster of two) an SM's worth, every block's time a chain the difference between
-REPS and 1, per repetition (warp_product_latency.py's way); each chain's last output checked against float64.
+reads them. Grids of half the SMs' count of tiles (a cluster an SM pair) and of L5's 84 node tiles, the time a chain
+the difference between REPS and 1, per repetition (warp_product_latency.py's way); one chain's output checked against
+float64.
 
     python bench/studies/warp_cluster_products.py --json OUT.json --device "..." --command "..."
 """
