@@ -21,11 +21,11 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/: provenance.py
-import numpy as np
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 import provenance
 import warp as wp
+from warp_critical_path import replay_us
 
-from warpgnn.benchmark import warp_clock
 from warpgnn.kernels.pdl import overlap_launches
 
 THREADS = 256
@@ -150,10 +150,7 @@ def main():
         times = {name: [] for name in modes}
         for _ in range(a.rounds):
             for name, (graph, _errors, _seed) in graphs.items():
-                for _ in range(20):
-                    wp.capture_launch(graph)
-                t = warp_clock(str(device)).times(lambda g=graph: wp.capture_launch(g), a.repeats)
-                times[name].append(round(float(np.median(t)) * 1e3, 2))
+                times[name].append(round(replay_us(graph, str(device), a.repeats), 2))
         wp.synchronize_device(device)
         run = {"stages": stages, "blocks": BLOCKS, "threads": THREADS,
                "median_us": times, "stale_reads": {name: int(g[1].numpy()[0]) for name, g in graphs.items()},
