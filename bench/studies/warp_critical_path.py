@@ -2,7 +2,8 @@
 launches left out (the others as captured, overlapped; outputs wrong, timings only), so that each launch's share of
 the critical path shows as the time its absence saves; and graphs of 1 and of as many empty launches as the step has,
 timed the same way (what a replay costs before any kernel does work: the graph's launch and the events around it).
-Network options (e.g. edge_encoder=1) as variants.
+Network options (e.g. edge_encoder=1) as variants. With --alone also each launch alone in a graph of its own (its
+inputs those a whole step left), so a launch's own length shows apart from what runs beside it.
 
     python bench/studies/warp_critical_path.py --mesh L5.vtu --passes 1,5 --variants default,edge_encoder=1 \
         --json OUT.json --device "..." --command "..."
@@ -59,6 +60,7 @@ def main():
     ap.add_argument("--variants", default="default", help="comma-separated; options joined by + (edge_encoder=1)")
     ap.add_argument("--mesh", default=None)
     ap.add_argument("--repeats", type=int, default=400)
+    ap.add_argument("--alone", action="store_true", help="also each launch alone in a graph of its own")
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
@@ -80,19 +82,24 @@ def main():
                             launch.launch()
                 return record
 
+            def alone(i):
+                return lambda: launches[i].launch()
+
             step = replay_us(net.captured(without(None)), dev, a.repeats)
             saved = []
             for i, launch in enumerate(launches):
                 t = replay_us(net.captured(without(i)), dev, a.repeats)
                 saved.append({"launch": i, "kernel": launch.kernel.key, "step_without_us": round(t, 2),
                               "saved_us": round(step - t, 2)})
+                if a.alone:
+                    saved[-1]["alone_us"] = round(replay_us(net.captured(alone(i)), dev, a.repeats), 2)
             run = {"passes": passes, "variant": variant, "launches": len(launches), "step_us": round(step, 2),
                    "without": saved,
                    "empty_graph_us": {str(n): round(replay_us(empty_graph(n, dev), dev, a.repeats), 2)
                                       for n in sorted({1, len(launches)})}}
             runs.append(run)
             print(json.dumps({k: run[k] for k in ("passes", "variant", "step_us", "empty_graph_us")}),
-                  [s["saved_us"] for s in saved], flush=True)
+                  [s["saved_us"] for s in saved], [s.get("alone_us") for s in saved], flush=True)
     doc = provenance.record(a) | {"model": a.model, "latent": a.latent, "batch": a.batch, "runs": runs}
     Path(a.json).write_text(json.dumps(doc, indent=1) + "\n")
 
