@@ -7,8 +7,8 @@ an output tile on one accumulator: about one m16n8k8 per 19-25 cycles a schedule
 warp_tensor_core_blocks_h200.json). The weight sits in shared memory in the fragments' order (a lane's four values of
 a k step one 16-byte load), either as fp32 (split into tf32 hi and lo in registers, "mma-split") or split on the host
 (hi then lo, twice the bytes, "mma-presplit"); the node tile is split once a product into the B fragments' order.
-Against the fp32 products of the kernels (tiles.matmul, whole weights), a block's products back to back on one block
-an SM: the time a product is (time(REPS) - time(1)) / (REPS - 1). Each variant checked against a float64 product; on
+Against the fp32 products of the kernels (tiles.GEMM) on the weight in shared memory alike, and as the node pass
+runs them (tiles.matmul: the weight staged each product), a block's products back to back on one block an SM: the time a product is (time(REPS) - time(1)) / (REPS - 1). Each variant checked against a float64 product; on
 the CPU (here) the same fragment indexing runs element by element, so the layouts are checked without a GPU.
 
     python bench/studies/warp_mma_swap.py --check                      # the CPU: every shape against float64
@@ -230,10 +230,14 @@ def mma_kernel(rows: int, k: int, n: int, presplit: bool):
     return products
 
 
-def fp32_kernel(rows: int, k: int, n: int):
+def fp32_kernel(rows: int, k: int, n: int, staged: bool):
+    """The kernels' fp32 product (tiles.GEMM): on the weight loaded into shared memory once, as the mma variants'
+    (``staged`` False), or staged by tiles.matmul each product (whole, or in K chunks of 64 beyond WHOLE, as the
+    node pass copies its weights: ``staged`` True)."""
     kc = k if k * n <= WHOLE else 64
-    owner = f"fp32_{rows}_{k}_{n}_{kc}"
-    mm = tiles.matmul(rows, k, kc, n, "native", owner)
+    owner = f"fp32_{rows}_{k}_{n}_{kc if staged else 0}"
+    mm = tiles.matmul(rows, k, kc, n, "native", owner) if staged else None
+    product = tiles.gemm(rows, k, n, "native", owner)
 
     @wp.kernel(enable_backward=False, module=owner)
     def products(a: wp.array2d(dtype=float), w: wp.array2d(dtype=float), reps: int, c: wp.array2d(dtype=float)):
@@ -241,9 +245,15 @@ def fp32_kernel(rows: int, k: int, n: int):
         ta = wp.tile_load(a, shape=(rows, k), storage="shared")
         acc = wp.tile_zeros(shape=(rows, n), dtype=float, storage="shared")
         i = int(0)
-        while i < reps:
-            mm(ta, w, 0, 0, acc)
-            i += 1
+        if wp.static(staged):
+            while i < reps:
+                mm(ta, w, 0, 0, acc)
+                i += 1
+        else:
+            tw = wp.tile_load(w, shape=(k, n), storage="shared")
+            while i < reps:
+                product(ta, tw, acc)
+                i += 1
         wp.tile_store(c, acc, offset=(blk * rows, 0))
 
     return products
@@ -253,10 +263,11 @@ def cases():
     """[(name, rows, k, n, kernel, layout)]: layout maps a (K, N) weight to what the kernel reads."""
     out = []
     for rows, k, n in SHAPES:
-        out.append(("fp32", rows, k, n, fp32_kernel(rows, k, n), lambda w: w))
+        out.append(("fp32 staged", rows, k, n, fp32_kernel(rows, k, n, True), lambda w: w))
         # the weight whole in shared memory, beside the tiles (an SM's 227 KiB; not F = 128's first layer)
         if 4 * (k * n + rows * (3 * k + n)) > 227 * 1024:
             continue
+        out.append(("fp32", rows, k, n, fp32_kernel(rows, k, n, False), lambda w: w))
         for presplit in (False, True)[:2 if k * n <= WHOLE else 1]:
             out.append((f"mma-{'presplit' if presplit else 'split'}", rows, k, n, mma_kernel(rows, k, n, presplit),
                         lambda w, p=presplit: mma_layout(w, p)))
