@@ -25,7 +25,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/: provenan
 import numpy as np
 import provenance
 import warp as wp
-from warp_product_latency import per_rep_us
+from warp_product_latency import per_rep_us, repeat_kernel
+from warp_swap_ab import fp32_kernel as staged_kernel
 
 from warpgnn.kernels import tiles
 
@@ -214,49 +215,23 @@ def mma_kernel(rows: int, k: int, n: int, presplit: bool):
     def product(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.tile(dtype=float, shape=(wrows, n)),
                 xs: wp.tile(dtype=float, shape=(rows, k2)), acc: wp.tile(dtype=float, shape=(rows, n))): ...
 
-    @wp.kernel(enable_backward=False, module=owner)
-    def products(a: wp.array2d(dtype=float), w: wp.array2d(dtype=float), reps: int, c: wp.array2d(dtype=float)):
-        blk, _lane = wp.tid()
-        ta = wp.tile_load(a, shape=(rows, k), storage="shared")
-        tw = wp.tile_load(w, shape=(wrows, n), storage="shared")
+    @wp.func
+    def with_scratch(a: wp.tile(dtype=float, shape=(rows, k)), w: wp.tile(dtype=float, shape=(wrows, n)),
+                     acc: wp.tile(dtype=float, shape=(rows, n))):
         xs = wp.tile_empty(shape=(rows, k2), dtype=float, storage="shared")
-        acc = wp.tile_zeros(shape=(rows, n), dtype=float, storage="shared")
-        i = int(0)
-        while i < reps:
-            product(ta, tw, xs, acc)
-            i += 1
-        wp.tile_store(c, acc, offset=(blk * rows, 0))
+        product(a, w, xs, acc)
 
-    return products
+    return repeat_kernel(with_scratch, rows, k, k, wrows, n, owner)
 
 
 def fp32_kernel(rows: int, k: int, n: int, staged: bool):
     """The kernels' fp32 product (tiles.GEMM): on the weight loaded into shared memory once, as the mma variants'
     (``staged`` False), or staged by tiles.matmul each product (whole, or in K chunks of 64 beyond WHOLE, as the
     node pass copies its weights: ``staged`` True)."""
-    kc = k if k * n <= WHOLE else 64
-    owner = f"fp32_{rows}_{k}_{n}_{kc if staged else 0}"
-    mm = tiles.matmul(rows, k, kc, n, "native", owner) if staged else None
-    product = tiles.gemm(rows, k, n, "native", owner)
-
-    @wp.kernel(enable_backward=False, module=owner)
-    def products(a: wp.array2d(dtype=float), w: wp.array2d(dtype=float), reps: int, c: wp.array2d(dtype=float)):
-        blk, _lane = wp.tid()
-        ta = wp.tile_load(a, shape=(rows, k), storage="shared")
-        acc = wp.tile_zeros(shape=(rows, n), dtype=float, storage="shared")
-        i = int(0)
-        if wp.static(staged):
-            while i < reps:
-                mm(ta, w, 0, 0, acc)
-                i += 1
-        else:
-            tw = wp.tile_load(w, shape=(k, n), storage="shared")
-            while i < reps:
-                product(ta, tw, acc)
-                i += 1
-        wp.tile_store(c, acc, offset=(blk * rows, 0))
-
-    return products
+    if staged:
+        return staged_kernel(rows, k, n, k if k * n <= WHOLE else 64, THREADS)
+    owner = f"fp32_{rows}_{k}_{n}"
+    return repeat_kernel(tiles.gemm(rows, k, n, "native", owner), rows, k, k, k, n, owner)
 
 
 def cases():
