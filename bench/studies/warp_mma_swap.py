@@ -7,9 +7,10 @@ an output tile on one accumulator: about one m16n8k8 per 19-25 cycles a schedule
 warp_tensor_core_blocks_h200.json). The weight sits in shared memory in the fragments' order (a lane's four values of
 a k step one 16-byte load), either as fp32 (split into tf32 hi and lo in registers, "mma-split") or split on the host
 (hi then lo, twice the bytes, "mma-presplit"); the node tile is split once a product into the B fragments' order.
-Against the fp32 products of the kernels (tiles.GEMM) on the weight in shared memory alike, and as the node pass
-runs them (tiles.matmul: the weight staged each product), a block's products back to back on one block an SM: the time a product is (time(REPS) - time(1)) / (REPS - 1). Each variant checked against a float64 product; on
-the CPU (here) the same fragment indexing runs element by element, so the layouts are checked without a GPU.
+Against the fp32 products of the kernels (tiles.GEMM) on the weight in shared memory alike, and staged each product
+(tiles.matmul, as the F = 128 node pass's K chunks are), a block's products back to back on one block an SM: the time a
+product is (time(REPS) - time(1)) / (REPS - 1). Each variant checked against a float64 product; on the CPU (here) the
+same fragment indexing runs element by element, so the layouts are checked without a GPU.
 
     python bench/studies/warp_mma_swap.py --check                      # the CPU: every shape against float64
     python bench/studies/warp_mma_swap.py --build DIR                  # sm_90 modules ahead of time
@@ -29,6 +30,7 @@ from warp_product_latency import per_rep_us, repeat_kernel
 from warp_swap_ab import fp32_kernel as staged_kernel
 
 from warpgnn.kernels import tiles
+from warpgnn.kernels.weights import tf32
 
 # (rows, K, N): the node pass's products at F = 64 (first layer, W2, next stage, delta_v's second layer padded to 32
 # columns) and at F = 128
@@ -201,7 +203,6 @@ def mma_layout(w: np.ndarray, presplit: bool) -> np.ndarray:
     vals = w[8 * j + q + 4 * kh, 16 * t + g + 8 * mh].astype(np.float32).reshape(K, N)
     if not presplit:
         return np.ascontiguousarray(vals)
-    from warpgnn.kernels.weights import tf32
     hi = tf32(vals)
     return np.concatenate([hi, tf32(vals - hi)])
 
