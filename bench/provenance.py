@@ -18,6 +18,21 @@ def record(args: argparse.Namespace) -> dict:
             "note": args.note}
 
 
+def parse_ahead_of_time(ap: argparse.ArgumentParser, check_help: str) -> argparse.Namespace:
+    """A GPU study's arguments (``ap`` holding its own): --check (its CPU run: ``check_help``), --build DIR (its modules
+    compiled here for sm_90), --aot DIR (loaded there from DIR) and --json; the device and command only where it
+    measures (neither --check nor --build)."""
+    ap.add_argument("--check", action="store_true", help=check_help)
+    ap.add_argument("--build", help="compile its modules for sm_90 into this folder and stop")
+    ap.add_argument("--aot", help="load the modules --build made from this folder")
+    ap.add_argument("--json")
+    a, _rest = ap.parse_known_args()
+    if a.check or a.build:
+        return ap.parse_args()
+    add_arguments(ap)
+    return ap.parse_args()
+
+
 def add_probe_arguments(ap: argparse.ArgumentParser) -> None:
     """A probe of trained networks on one data file: DATA CHECKPOINT [...] --json OUT, and the above."""
     ap.add_argument("data")

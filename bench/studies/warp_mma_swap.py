@@ -266,15 +266,8 @@ def error(kernel, layout, rows, k, n, device, threads) -> float:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--check", action="store_true", help="on the CPU: each variant against float64, then stop")
-    ap.add_argument("--build", help="compile the modules for sm_90 into this folder and stop")
-    ap.add_argument("--aot", help="load the modules --build made from this folder")
     ap.add_argument("--reps", type=int, default=100)
-    ap.add_argument("--json")
-    a, _rest = ap.parse_known_args()
-    if not (a.check or a.build):
-        provenance.add_arguments(ap)
-        a = ap.parse_args()
+    a = provenance.parse_ahead_of_time(ap, "on the CPU: each variant against float64, then stop")
     wp.init()
     all_cases = cases()
     if a.check:
