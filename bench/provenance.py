@@ -27,9 +27,8 @@ def parse_ahead_of_time(ap: argparse.ArgumentParser, check_help: str) -> argpars
     ap.add_argument("--aot", help="load the modules --build made from this folder")
     ap.add_argument("--json")
     a, _rest = ap.parse_known_args()
-    if a.check or a.build:
-        return ap.parse_args()
-    add_arguments(ap)
+    if not (a.check or a.build):
+        add_arguments(ap)
     return ap.parse_args()
 
 
