@@ -153,7 +153,7 @@ class Network:
                              tile_rows or Spec.tile_rows, edge_warpgroups, node_warpgroups, node_rows,
                              decoder_warpgroups)
         tile_rows = tile_rows or tile_rows_for(node_rows, w.latent, edge)
-        threads = threads_for(k_chunk, w.latent, self.device.is_cuda, edge) if threads is None else threads
+        threads = threads_for(k_chunk, w.latent, self.device.is_cuda, edge, small) if threads is None else threads
         self.spec = Spec(w.latent, tile_rows, node_rows, k_chunk, gemm, threads=tuple(dict(threads).items()), **edge)
         build_kernels(self.spec)
         self.block_dim = block_dim or default_block_dim(self.device)

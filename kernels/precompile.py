@@ -74,7 +74,7 @@ def _specs(latents, max_shared: int | None, arch: int | None, **shape) -> list[S
         edge = edge_products(edge_rows, edge_gemm, k, F, arch, small, edge_kernels,
                              tile_rows=shape.get("tile_rows") or Spec.tile_rows, node_rows=node_rows, **warpgroups)
         tiles = {"tile_rows": shape.get("tile_rows") or tile_rows_for(node_rows, F, edge)}
-        specs.append(Spec(F, k_chunk=k, threads=threads_for(k, F, True, edge) if threads is None else threads,
+        specs.append(Spec(F, k_chunk=k, threads=threads_for(k, F, True, edge, small) if threads is None else threads,
                           **edge, **(shape | tiles)))
     for spec in specs:
         build_kernels(spec)

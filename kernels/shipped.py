@@ -45,7 +45,8 @@ def specs(arch: int) -> list[Spec]:
     loads = {n: (1.0, 2 * RESIDENT_NODE_TILES) if n == NODE_ROWS[-1] else (1.0,) for n in NODE_ROWS}
     edges = [(F, n, k, edge_products_for(k, F, arch, n == small, load, node_rows=n)) for F, n, k in shapes
              for load in loads[n]]
-    out = [Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, edge), **edge) for F, n, k, edge in edges]
+    out = [Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, edge, n == small), **edge)
+           for F, n, k, edge in edges]
     return list({s.module: s for s in out}.values())
 
 

@@ -379,18 +379,23 @@ def edge_products(edge_rows: int | None, edge_gemm: str | None, k_chunk: int, la
     return edge | {k: v for k, v in given.items() if v is not None}
 
 
-def threads_for(k_chunk: int, latent: int, cuda: bool, edge: dict | None = None) -> tuple:
+def threads_for(k_chunk: int, latent: int, cuda: bool, edge: dict | None = None, small: bool = False) -> tuple:
     """Spec.threads of a Network on CUDA (``cuda``) with ``k_chunk`` (k_chunk_for) and the edge products ``edge``
     (edge_products: Spec's edge_rows, edge_gemm, edge_kernels): with whole weights (small graphs), the node pass on
     WIDE threads: its block holds an SM alone (137 KiB at F = 64), and 256 threads give its products more warps a
     scheduler, each summing a part of K (tiles.GEMM: two parts when measured, up to four since), and its CSR sums two
     threads a row vector (tiles.SEGMENT_SUMS): 141.8 -> 138.3 us a 5-pass step, 278.4 -> 269.8 at 12 passes on an
-    H200 (bench/results/warp_wide_blocks_h200.json). Not with K chunks (batch 64, F = 128): each thread's half of a
-    32-row chunk is 16 k with a barrier every chunk (F = 128: 705.5 -> 712.6 us at 12 passes on 256 threads). The
+    H200 (bench/results/warp_wide_blocks_h200.json). With K chunks on small graphs at F > 64 (``small``: node tiles of
+    8, at most one an SM; F = 128 at batch 1) too, since the products carry their K parts in registers from chunk to
+    chunk (tiles.GEMM_CARRY) and take chunks of 64 (Spec.node_kc): on an H200 (L5, F = 128) hybrid 494.5 -> 464.6 us at
+    12 passes, 95.6 -> 91.0 at 1, vanilla 473.0 -> 445.3 and 72.8 -> 69.8, each node pass 19.5-20.8 -> 16.9-17.9 us of
+    the step, the outputs within 1.2e-6 (bench/results/warp_node_threads_f128_h200.json; the encoder on 256 threads
+    too was slower: 470.5 us). Not with K chunks on larger graphs (batch 64 at F = 64), nor when K chunks of 32 added
+    their parts each chunk (F = 128: 705.5 -> 712.6 us at 12 passes then). The
     edge-row launches with wgmma products too: their 64-row tiles' products on two warpgroups, their other steps with
     a thread for as many rows as on 32-row tiles (edge_products_for's measurements; on 128 threads the wgmma edge pass
     was slower, 130.4 -> 137.3 us at 5 passes, warp_wgmma_edge_pass_h200.json)."""
-    wide = [("node_pass", WIDE)] if cuda and k_chunk == latent else []
+    wide = [("node_pass", WIDE)] if cuda and (k_chunk == latent or (small and latent > 64)) else []
     tensor = cuda and edge and edge.get("edge_gemm") == "wgmma"
     edges = [(k, WIDE) for k in edge.get("edge_kernels", EDGE_KERNELS)] if tensor else []
     if tensor and edge.get("edge_warpgroups"):  # the register edge pass: a warpgroup a tile (kernels/register_edges)

@@ -442,7 +442,8 @@ def test_edge_products_and_threads_by_gpu():
     the edge pass and the hybrid decoder's fields in warpgroups' registers (the edge pass a warpgroup a block up to six
     node tiles an SM, three above; the decoder two), and on node tiles of 32 the node passes too (two warpgroups a
     block); the blocks of two warpgroups on 256 threads; elsewhere
-    as the other launches (spec.edge_products_for, spec.threads_for); off a GPU never."""
+    as the other launches (spec.edge_products_for, spec.threads_for; the node pass on 256 threads with whole weights,
+    and with K chunks on small graphs at F > 64); off a GPU never."""
     from warpgnn.kernels.spec import edge_products_for, threads_for
 
     tensor = {"edge_rows": 64, "edge_gemm": "wgmma"}
@@ -467,6 +468,11 @@ def test_edge_products_and_threads_by_gpu():
     assert threads_for(32, 128, True, tensor) == threads_for(32, 64, True, tensor) == (("edge_pass", 256),
                                                                                        ("hybrid_fields", 256))
     assert threads_for(64, 64, True, tensor) == (("edge_pass", 256), ("hybrid_fields", 256), ("node_pass", 256))
+    # with K chunks the node pass on 256 threads too on small graphs at F > 64 (F = 128 at batch 1), not at F = 64
+    assert threads_for(32, 128, True, tensor, small=True) == (("edge_pass", 256), ("hybrid_fields", 256),
+                                                              ("node_pass", 256))
+    assert threads_for(32, 128, True, {}, small=True) == (("node_pass", 256),)
+    assert threads_for(32, 64, True, {}, small=True) == threads_for(32, 128, False, tensor, small=True) == ()
     assert threads_for(64, 64, True, {}) == threads_for(64, 64, True) == (("node_pass", 256),)
     assert threads_for(32, 64, True, decoder) == (("hybrid_fields", 256),)
     assert threads_for(32, 64, True, tensor | {"edge_warpgroups": 3}) == (("edge_pass", 384), ("hybrid_fields", 256))

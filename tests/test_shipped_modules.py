@@ -75,8 +75,9 @@ def test_every_gpu_picks_a_shipped_module_whose_kernels_fit_its_shared_memory():
             cases += [(NODE_ROWS[0], 1.27), (node_rows_allowed(F, max_shared)[-1], 10.0)]
             for n, load in cases:
                 k = k_chunk_for(n, F, max_shared, load)
-                edge = edge_products_for(k, F, arch, n == NODE_ROWS[0] and load <= 1, load, node_rows=n)
-                spec = Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, edge), **edge)
+                small = n == NODE_ROWS[0] and load <= 1  # a node tile of 8 an SM at most
+                edge = edge_products_for(k, F, arch, small, load, node_rows=n)
+                spec = Spec(F, node_rows=n, k_chunk=k, threads=threads_for(k, F, True, edge, small), **edge)
                 # on sm_90 the edge-row launches' products on wgmma (an sm_90a build); with K chunks the edge pass in
                 # warpgroups' registers, three a block on graphs of more than RESIDENT_NODE_TILES node tiles an SM,
                 assert spec.sm90a == (arch == 90) and spec.edge_kernels == ("edge_pass", "hybrid_fields")

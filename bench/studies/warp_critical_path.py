@@ -44,11 +44,17 @@ def empty_graph(n: int, device: str):
 
 
 def variant_options(text: str) -> dict:
-    """'default' or 'name=int[+name=int]' -> Network keyword arguments."""
+    """'default' or 'name=value[+name=value]' -> Network keyword arguments: ints (flags as 0 / 1), and threads as
+    kernel:n/kernel:n (Network's threads, replacing the Network's pick whole: name every kernel of another block)."""
     if text == "default":
         return {}
-    return {k: bool(int(v)) if k in ("edge_encoder", "split_products", "receiver_groups") else int(v)
-            for k, v in (item.split("=") for item in text.split("+"))}
+
+    def value(k: str, v: str):
+        if k == "threads":
+            return {kernel: int(n) for kernel, n in (pair.split(":") for pair in v.split("/"))}
+        return bool(int(v)) if k in ("edge_encoder", "split_products", "receiver_groups") else int(v)
+
+    return {k: value(k, v) for k, v in (item.split("=") for item in text.split("+"))}
 
 
 def main():
@@ -57,7 +63,8 @@ def main():
     ap.add_argument("--model", default="hybrid")
     ap.add_argument("--passes", default="1,5")
     ap.add_argument("--batch", type=int, default=1)
-    ap.add_argument("--variants", default="default", help="comma-separated; options joined by + (edge_encoder=1)")
+    ap.add_argument("--variants", default="default",
+                    help="comma-separated; options joined by + (edge_encoder=1, threads=edge_pass:256/node_pass:256)")
     ap.add_argument("--mesh", default=None)
     ap.add_argument("--repeats", type=int, default=400)
     ap.add_argument("--alone", action="store_true", help="also each launch alone in a graph of its own")
