@@ -28,9 +28,8 @@ def relative(a: torch.Tensor, ref: torch.Tensor) -> float:
     return float((a.double() - ref).norm() / ref.norm())
 
 
-def fold_check(latent: int) -> dict:
+def fold_check(case, latent: int) -> dict:
     """The node encoder's second layer, LayerNorm and pass 0's receiver product on L5's node rows, three ways."""
-    case = l5_case()
     model = random_model("hybrid", 1, latent)
     with torch.no_grad():
         g = model.graph(case.topology, case.z, case.u_now, case.u_next)
@@ -49,9 +48,9 @@ def fold_check(latent: int) -> dict:
             "folded_relative_error": relative(folded, ref)}
 
 
-def multiply_adds(latent: int) -> dict:
+def multiply_adds(case, latent: int) -> dict:
     """Multiply-adds a pass (units of F^2 a row, and in all) on L5: the kernels' design and projected messages."""
-    top = l5_case().topology
+    top = case.topology
     nodes, mesh, act = top.rest.shape[0], top.senders.shape[0], top.act_senders.shape[0]
     edges = mesh + act
     # now: edge rows e W_e and W2 (2 F^2); node rows [x | sums] W1 (3), W2 (1), the next stage's (F, 3F) (3)
@@ -70,8 +69,9 @@ def main():
     ap.add_argument("--json", required=True)
     provenance.add_arguments(ap)
     a = ap.parse_args()
-    doc = provenance.record(a) | {"fold": [fold_check(f) for f in (64, 128)],
-                                  "projected_messages": [multiply_adds(f) for f in (64, 128)]}
+    case = l5_case()
+    doc = provenance.record(a) | {"fold": [fold_check(case, f) for f in (64, 128)],
+                                  "projected_messages": [multiply_adds(case, f) for f in (64, 128)]}
     Path(a.json).write_text(json.dumps(doc, indent=1) + "\n")
     for f in doc["fold"]:
         print(f"F = {f['latent']}: folded {f['folded_relative_error']:.2e}, plain {f['plain_relative_error']:.2e}")
